@@ -1,0 +1,15 @@
+"""Errors a user can act on. The CLI prints their message on one line and exits with 2."""
+from __future__ import annotations
+
+
+class UserError(Exception):
+    """Bad input: a missing or corrupt file, a wrong size, a bad option. Message names the culprit."""
+
+
+class InputFileError(UserError):
+    """A file that cannot be read or does not hold what it should."""
+
+    def __init__(self, path, problem: str):
+        self.path = str(path)
+        self.problem = problem
+        super().__init__(f"{path}: {problem}")

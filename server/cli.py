@@ -1,0 +1,64 @@
+"""The ``mocap`` command line: one parser, one module per subcommand.
+
+Each module in ``server.commands`` exposes ``register(subparsers)``; the parser it adds
+carries ``func`` (args -> exit code). ``mocap client`` runs the client package in its own
+interpreter so that ``server`` never imports ``client``.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+EXIT_OK = 0
+EXIT_USAGE = 2  # bad input: missing/corrupt files, bad calibration, wrong arguments
+
+COMMAND_MODULES = (
+    "calib", "synth", "fit", "server", "bench", "segment", "import_video", "voxels", "live", "export",
+)
+
+
+def _client_entry(argv: list[str]) -> int:
+    os.execv(sys.executable, [sys.executable, "-m", "client", *argv])
+    return EXIT_OK  # not reached
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mocap", description="Markerless multi-view silhouette motion capture.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(f"server.commands.{name}")
+        except ModuleNotFoundError as exc:
+            if exc.name == f"server.commands.{name}":
+                continue  # optional subcommand not installed in this build
+            raise
+        module.register(sub)
+    client = sub.add_parser("client", help="run a limb-fitting client (same as python -m client)",
+                            add_help=False)
+    client.set_defaults(func=None)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "client":
+        return _client_entry(argv[1:])
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from common.errors import UserError
+
+    try:
+        return int(args.func(args) or EXIT_OK)
+    except UserError as exc:
+        print(f"mocap {args.command}: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print(f"mocap {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
