@@ -1,0 +1,344 @@
+"""The articulated body: 16 rigid segments, 17 joints, 35 pose parameters (Theobalt et al. 2003).
+
+World: metres, z up; in the rest pose the actor faces -y with its left side towards +x.
+
+Parameters (index: name), angles in radians:
+    0-2   root_x root_y root_z        pelvis joint position
+    3     root_heading                rotation about world z (unbounded, unwrapped)
+    4-5   root_tilt_x root_tilt_y     tilt as a rotation vector in the heading frame
+    6-8   spine_x spine_y spine_z     rotation vector, shared half/half by the abdomen and chest
+    9-10  neck_nod neck_turn
+    11-13 l_shoulder_x/y/z            rotation vector relative to the rest pose
+    14    l_elbow                     flexion, 0 = straight
+    15-16 l_wrist_flex l_wrist_dev
+    17-22 the same for the right arm
+    23-25 l_hip_x/y/z                 rotation vector relative to the rest pose
+    26    l_knee                      flexion, 0 = straight
+    27-28 l_ankle_flex l_ankle_inv
+    29-34 the same for the right leg
+Rotation vectors (exponential maps) have no gimbal lock inside |angle| < pi, which keeps
+Powell's line searches well conditioned; the root uses heading + tilt so that turning on the
+spot (pirouettes) never wraps.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from importlib import resources
+
+import numpy as np
+
+SEGMENT_NAMES = (
+    "pelvis", "abdomen", "chest", "head",
+    "l_upperarm", "l_forearm", "l_hand", "r_upperarm", "r_forearm", "r_hand",
+    "l_thigh", "l_shin", "l_foot", "r_thigh", "r_shin", "r_foot",
+)
+SEGMENT_PARENTS = (-1, 0, 1, 2, 2, 4, 5, 2, 7, 8, 0, 10, 11, 0, 13, 14)
+# Joint i < 16 is the origin of segment i; head_top is a point on the head.
+JOINT_NAMES = (
+    "pelvis", "spine", "chest", "neck",
+    "l_shoulder", "l_elbow", "l_wrist", "r_shoulder", "r_elbow", "r_wrist",
+    "l_hip", "l_knee", "l_ankle", "r_hip", "r_knee", "r_ankle", "head_top",
+)
+HEAD_TOP_SEGMENT = 3
+
+PARAM_NAMES = (
+    "root_x", "root_y", "root_z", "root_heading", "root_tilt_x", "root_tilt_y",
+    "spine_x", "spine_y", "spine_z", "neck_nod", "neck_turn",
+    "l_shoulder_x", "l_shoulder_y", "l_shoulder_z", "l_elbow", "l_wrist_flex", "l_wrist_dev",
+    "r_shoulder_x", "r_shoulder_y", "r_shoulder_z", "r_elbow", "r_wrist_flex", "r_wrist_dev",
+    "l_hip_x", "l_hip_y", "l_hip_z", "l_knee", "l_ankle_flex", "l_ankle_inv",
+    "r_hip_x", "r_hip_y", "r_hip_z", "r_knee", "r_ankle_flex", "r_ankle_inv",
+)
+PARAM_COUNT = len(PARAM_NAMES)
+P = {name: i for i, name in enumerate(PARAM_NAMES)}
+
+_INF = np.inf
+# Joint limits (radians, metres): anatomical ranges, generous enough for dance.
+_LIMITS = {
+    "root_x": (-_INF, _INF), "root_y": (-_INF, _INF), "root_z": (-_INF, _INF),
+    "root_heading": (-_INF, _INF), "root_tilt_x": (-2.9, 2.9), "root_tilt_y": (-2.9, 2.9),
+    "spine_x": (-0.7, 1.5), "spine_y": (-0.8, 0.8), "spine_z": (-1.0, 1.0),
+    "neck_nod": (-0.9, 1.0), "neck_turn": (-1.4, 1.4),
+    "shoulder_x": (-3.0, 3.0), "shoulder_y": (-3.0, 3.0), "shoulder_z": (-3.0, 3.0),
+    "elbow": (-0.1, 2.7), "wrist_flex": (-1.3, 1.3), "wrist_dev": (-0.6, 0.7),
+    "hip_x": (-2.7, 1.4), "hip_y": (-1.6, 1.6), "hip_z": (-1.3, 1.3),
+    "knee": (-0.1, 2.7), "ankle_flex": (-1.0, 1.0), "ankle_inv": (-0.7, 0.7),
+}
+
+
+def _limits_array() -> np.ndarray:
+    out = np.empty((PARAM_COUNT, 2))
+    for i, name in enumerate(PARAM_NAMES):
+        key = name if name in _LIMITS else name[2:]
+        out[i] = _LIMITS[key]
+    return out
+
+
+PARAM_LIMITS = _limits_array()  # (35, 2) lower, upper
+
+
+@dataclass(frozen=True)
+class Chain:
+    """A kinematic sub-chain: the parameters it owns and the segments they move."""
+
+    name: str
+    params: tuple[int, ...]
+    segments: tuple[int, ...]  # segments rendered while this chain is optimized
+
+
+def _seg(*names):
+    return tuple(SEGMENT_NAMES.index(n) for n in names)
+
+
+CHAINS = {
+    "torso": Chain("torso", tuple(range(0, 9)), tuple(range(16))),
+    "head": Chain("head", (9, 10), _seg("head")),
+    "left_arm": Chain("left_arm", tuple(range(11, 17)), _seg("l_upperarm", "l_forearm", "l_hand")),
+    "right_arm": Chain("right_arm", tuple(range(17, 23)), _seg("r_upperarm", "r_forearm", "r_hand")),
+    "left_leg": Chain("left_leg", tuple(range(23, 29)), _seg("l_thigh", "l_shin", "l_foot")),
+    "right_leg": Chain("right_leg", tuple(range(29, 35)), _seg("r_thigh", "r_shin", "r_foot")),
+}
+LIMB_CHAINS = ("left_arm", "right_arm", "left_leg", "right_leg")
+# Within a limb chain: the proximal part (grid search + Powell, 128x128 windows) and the
+# extremity (Powell, 64x64 windows), the paper's steps 2 and 3.
+LIMB_PARTS = {
+    "left_arm": ((11, 12, 13, 14), (15, 16), _seg("l_hand")),
+    "right_arm": ((17, 18, 19, 20), (21, 22), _seg("r_hand")),
+    "left_leg": ((23, 24, 25, 26), (27, 28), _seg("l_foot")),
+    "right_leg": ((29, 30, 31, 32), (33, 34), _seg("r_foot")),
+}
+
+
+@dataclass(frozen=True)
+class BodyModel:
+    """Rest geometry of one actor. Arrays are read-only views shared by all users.
+
+    joint_rest: (17, 3) rest joint positions; vertices: (V, 3) rest surface; triangles: (T, 3);
+    triangle_segment: (T,); vertex_segment: (V,); skin_weights: (V, 16);
+    ellipsoid_centres (16, 3), ellipsoid_axes (16, 3, 3) (columns), ellipsoid_radii (16, 3),
+    all in segment-local coordinates (rest orientation, origin at the segment's joint).
+    hinge_axes: (16, 3, 3) per-segment local axes used by 1- and 2-DOF joints.
+    """
+
+    joint_rest: np.ndarray
+    vertices: np.ndarray
+    triangles: np.ndarray
+    triangle_segment: np.ndarray
+    vertex_segment: np.ndarray
+    skin_weights: np.ndarray
+    ellipsoid_centres: np.ndarray
+    ellipsoid_axes: np.ndarray
+    ellipsoid_radii: np.ndarray
+    scale: float = 1.0
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """(16, 3) each segment's origin relative to its parent's, rest pose."""
+        off = self.joint_rest[:16].copy()
+        for s, p in enumerate(SEGMENT_PARENTS):
+            if p >= 0:
+                off[s] = self.joint_rest[s] - self.joint_rest[p]
+        return off
+
+    @property
+    def head_top_offset(self) -> np.ndarray:
+        return self.joint_rest[16] - self.joint_rest[HEAD_TOP_SEGMENT]
+
+    def scaled(self, factor: float) -> "BodyModel":
+        """The same body uniformly scaled (an actor of another height)."""
+        return BodyModel(self.joint_rest * factor, self.vertices * factor, self.triangles,
+                         self.triangle_segment, self.vertex_segment, self.skin_weights,
+                         self.ellipsoid_centres * factor, self.ellipsoid_axes,
+                         self.ellipsoid_radii * factor, self.scale * factor)
+
+    @property
+    def height(self) -> float:
+        return float(self.vertices[:, 2].max() - self.vertices[:, 2].min())
+
+
+@lru_cache(maxsize=1)
+def load_body_model() -> BodyModel:
+    """The default actor (MakeHuman base mesh, about 1.7 m)."""
+    with resources.files("common.data").joinpath("body_model.npz").open("rb") as fh:
+        data = np.load(fh)
+        arrays = {k: data[k] for k in data.files}
+    arrays["skin_weights"] = arrays["skin_weights"].astype(np.float32)
+    for arr in arrays.values():
+        arr.setflags(write=False)
+    return BodyModel(**arrays)
+
+
+# ----------------------------------------------------------------------------- rotations
+
+def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
+    """(..., 3) rotation vectors -> (..., 3, 3) matrices (Rodrigues, stable near zero)."""
+    rv = np.asarray(rv, dtype=np.float64)
+    theta2 = np.einsum("...i,...i->...", rv, rv)
+    theta = np.sqrt(theta2)
+    small = theta2 < 1e-12
+    safe = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
+    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
+    x, y, z = rv[..., 0], rv[..., 1], rv[..., 2]
+    zero = np.zeros_like(x)
+    K = np.stack([np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], -2)
+    eye = np.broadcast_to(np.eye(3), K.shape)
+    return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
+
+
+def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices -> (..., 3) rotation vectors with angle in [0, pi]."""
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(R, dtype=np.float64)
+    flat = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec()
+    return flat.reshape(R.shape[:-2] + (3,))
+
+
+def axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Fixed unit axis (3,), angles (...,) -> (..., 3, 3)."""
+    return rotvec_to_matrix(np.asarray(angle)[..., None] * np.asarray(axis))
+
+
+def rot_z(angle: np.ndarray) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    zero, one = np.zeros_like(c), np.ones_like(c)
+    return np.stack([np.stack([c, -s, zero], -1), np.stack([s, c, zero], -1),
+                     np.stack([zero, zero, one], -1)], -2)
+
+
+# ------------------------------------------------------------------------ joint axes
+
+FORWARD = np.array([0.0, -1.0, 0.0])  # the actor's front in the rest pose
+LATERAL = np.array([1.0, 0.0, 0.0])   # towards the actor's left
+
+
+def _unit(v):
+    return v / np.linalg.norm(v)
+
+
+@lru_cache(maxsize=8)
+def _joint_frames(joint_rest_bytes: bytes):
+    joint_rest = np.frombuffer(joint_rest_bytes).reshape(17, 3)
+    J = {n: joint_rest[i] for i, n in enumerate(JOINT_NAMES)}
+    out = {}
+    for side in ("l", "r"):
+        upper = _unit(J[f"{side}_elbow"] - J[f"{side}_shoulder"])
+        fore = _unit(J[f"{side}_wrist"] - J[f"{side}_elbow"])
+        elbow_axis = _unit(np.cross(upper, FORWARD))  # flexion brings the forearm forward
+        rest_elbow = np.arctan2(np.cross(upper, fore) @ elbow_axis, upper @ fore)
+        wrist_dev_axis = _unit(np.cross(elbow_axis, fore))
+        thigh = _unit(J[f"{side}_knee"] - J[f"{side}_hip"])
+        shin = _unit(J[f"{side}_ankle"] - J[f"{side}_knee"])
+        knee_axis = _unit(np.cross(thigh, -FORWARD))  # flexion brings the shin backwards
+        rest_knee = np.arctan2(np.cross(thigh, shin) @ knee_axis, thigh @ shin)
+        out[side] = dict(elbow_axis=elbow_axis, rest_elbow=rest_elbow, wrist_dev_axis=wrist_dev_axis,
+                         knee_axis=knee_axis, rest_knee=rest_knee, ankle_inv_axis=FORWARD.copy())
+    return out
+
+
+def joint_frames(model: BodyModel) -> dict:
+    """Hinge axes and rest flexion angles of elbows and knees, per side ('l', 'r')."""
+    return _joint_frames(np.ascontiguousarray(model.joint_rest, dtype=np.float64).tobytes())
+
+
+# ------------------------------------------------------------------- forward kinematics
+
+@dataclass(frozen=True)
+class Pose:
+    """Forward kinematics of a batch of parameter vectors.
+
+    rotations: (B, 16, 3, 3) segment orientations in the world;
+    origins: (B, 16, 3) segment origins (joint positions) in the world;
+    joints: (B, 17, 3) the 17 joint positions.
+    """
+
+    rotations: np.ndarray
+    origins: np.ndarray
+    joints: np.ndarray
+
+
+def local_rotations(model: BodyModel, params: np.ndarray) -> np.ndarray:
+    """(B, 35) parameters -> (B, 16, 3, 3) rotation of each segment relative to its parent."""
+    p = np.asarray(params, dtype=np.float64)
+    B = p.shape[0]
+    frames = joint_frames(model)
+    R = np.empty((B, 16, 3, 3))
+    tilt = np.concatenate([p[:, 4:6], np.zeros((B, 1))], axis=1)
+    R[:, 0] = rot_z(p[:, 3]) @ rotvec_to_matrix(tilt)
+    half_spine = rotvec_to_matrix(0.5 * p[:, 6:9])
+    R[:, 1] = half_spine
+    R[:, 2] = half_spine
+    R[:, 3] = rotvec_to_matrix(p[:, 9, None] * LATERAL) @ rot_z(p[:, 10])
+    for side, base, up, fore, hand in (("l", 11, 4, 5, 6), ("r", 17, 7, 8, 9)):
+        f = frames[side]
+        R[:, up] = rotvec_to_matrix(p[:, base:base + 3])
+        R[:, fore] = axis_angle_matrix(f["elbow_axis"], p[:, base + 3] - f["rest_elbow"])
+        R[:, hand] = axis_angle_matrix(f["elbow_axis"], p[:, base + 4]) @ axis_angle_matrix(
+            f["wrist_dev_axis"], p[:, base + 5])
+    for side, base, thigh, shin, foot in (("l", 23, 10, 11, 12), ("r", 29, 13, 14, 15)):
+        f = frames[side]
+        R[:, thigh] = rotvec_to_matrix(p[:, base:base + 3])
+        R[:, shin] = axis_angle_matrix(f["knee_axis"], p[:, base + 3] - f["rest_knee"])
+        R[:, foot] = axis_angle_matrix(LATERAL, p[:, base + 4]) @ axis_angle_matrix(
+            f["ankle_inv_axis"], p[:, base + 5])
+    return R
+
+
+def forward_kinematics(model: BodyModel, params: np.ndarray) -> Pose:
+    """(B, 35) or (35,) parameters -> Pose with a leading batch axis of B (1 for a single vector)."""
+    p = np.atleast_2d(np.asarray(params, dtype=np.float64))
+    if p.shape[1] != PARAM_COUNT:
+        raise ValueError(f"expected {PARAM_COUNT} parameters, got {p.shape[1]}")
+    local = local_rotations(model, p)
+    offsets = model.offsets
+    B = p.shape[0]
+    rot = np.empty_like(local)
+    org = np.empty((B, 16, 3))
+    rot[:, 0] = local[:, 0]
+    org[:, 0] = p[:, 0:3]
+    for s in range(1, 16):
+        parent = SEGMENT_PARENTS[s]
+        rot[:, s] = rot[:, parent] @ local[:, s]
+        org[:, s] = org[:, parent] + rot[:, parent] @ offsets[s]
+    head_top = org[:, HEAD_TOP_SEGMENT] + rot[:, HEAD_TOP_SEGMENT] @ model.head_top_offset
+    joints = np.concatenate([org, head_top[:, None]], axis=1)
+    return Pose(rot, org, joints)
+
+
+def rest_params(model: BodyModel, position=None, heading: float = 0.0) -> np.ndarray:
+    """(35,) the rest pose (A-pose arms, straight legs) at ``position`` (pelvis), turned by heading."""
+    p = np.zeros(PARAM_COUNT)
+    p[0:3] = model.joint_rest[0] if position is None else position
+    p[3] = heading
+    f = joint_frames(model)
+    p[P["l_elbow"]], p[P["r_elbow"]] = f["l"]["rest_elbow"], f["r"]["rest_elbow"]
+    p[P["l_knee"]], p[P["r_knee"]] = f["l"]["rest_knee"], f["r"]["rest_knee"]
+    return p
+
+
+def clip_to_limits(params: np.ndarray) -> np.ndarray:
+    """(..., 35) parameters clipped into the joint limits."""
+    return np.clip(params, PARAM_LIMITS[:, 0], PARAM_LIMITS[:, 1])
+
+
+def joints_dict(joints: np.ndarray) -> dict:
+    """(17, 3) -> {joint name: [x, y, z]} (plain floats, for JSON)."""
+    return {name: [float(v) for v in joints[i]] for i, name in enumerate(JOINT_NAMES)}
+
+
+def skinned_vertices(model: BodyModel, pose: Pose, index: int = 0) -> np.ndarray:
+    """(V, 3) world vertices of the smoothly skinned surface (linear blend skinning)."""
+    rot, org = pose.rotations[index], pose.origins[index]
+    rest_origin = model.joint_rest[:16]
+    local = model.vertices[:, None, :] - rest_origin[None]            # (V, 16, 3)
+    per_seg = np.einsum("sij,vsj->vsi", rot, local) + org[None]         # (V, 16, 3)
+    return np.einsum("vs,vsi->vi", model.skin_weights, per_seg)
+
+
+def rigid_vertices(model: BodyModel, pose: Pose, index: int = 0) -> np.ndarray:
+    """(V, 3) world vertices, each moving rigidly with its own segment."""
+    seg = model.vertex_segment.astype(np.int64)
+    local = model.vertices - model.joint_rest[seg]
+    return np.einsum("vij,vj->vi", pose.rotations[index][seg], local) + pose.origins[index][seg]
