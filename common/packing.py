@@ -1,0 +1,110 @@
+"""Silhouette bit planes, packed as the Theobalt paper packs them for the stencil buffer.
+
+K binary masks of one size (H, W) become P = ceil(K / 8) byte planes: camera k lives in
+bit (k % 8) of plane k // 8, so one byte per pixel carries eight cameras and the XOR energy
+of all of them is one pass over the buffer. ``packbits_masks`` is the compact form for disk
+and the wire (one bit per pixel). Windows for the paper's sub-window speed-up are cut from
+either masks or planes; ``downsample_masks`` gives the half-resolution torso images.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+CAMERAS_PER_PLANE = 8  # bits in a uint8 plane
+
+
+def plane_count(cameras: int) -> int:
+    """Number of uint8 planes P = ceil(K / 8) that hold ``cameras`` masks."""
+    return -(-int(cameras) // CAMERAS_PER_PLANE)
+
+
+def packed_length(cameras: int, height: int, width: int) -> int:
+    """Bytes of ``packbits_masks`` for (K, H, W) masks: ceil(K * H * W / 8)."""
+    return -(-int(cameras) * int(height) * int(width) // 8)
+
+
+def pack_planes(masks: np.ndarray) -> np.ndarray:
+    """(K, H, W) bool masks -> (P, H, W) uint8 planes, camera k in bit (k % 8) of plane k // 8.
+
+    Any non-zero value counts as set. Bits of cameras beyond K in the last plane are 0.
+    """
+    masks = np.asarray(masks)
+    if masks.ndim != 3 or masks.shape[0] == 0:
+        raise ValueError(f"expected (K, H, W) masks with K >= 1, got shape {masks.shape}")
+    return np.packbits(masks != 0, axis=0, bitorder="little")
+
+
+def unpack_planes(planes: np.ndarray, cameras: int) -> np.ndarray:
+    """(P, H, W) uint8 planes -> (K, H, W) bool masks for K = ``cameras`` <= 8 P."""
+    planes = np.asarray(planes)
+    if planes.ndim != 3 or planes.dtype != np.uint8:
+        raise ValueError(f"expected (P, H, W) uint8 planes, got {planes.dtype} {planes.shape}")
+    if not 1 <= cameras <= CAMERAS_PER_PLANE * planes.shape[0]:
+        raise ValueError(f"{planes.shape[0]} planes hold 1..{CAMERAS_PER_PLANE * planes.shape[0]} "
+                         f"cameras, not {cameras}")
+    return np.unpackbits(planes, axis=0, count=int(cameras), bitorder="little").view(bool)
+
+
+def packbits_masks(masks: np.ndarray) -> bytes:
+    """(K, H, W) bool masks -> ``packed_length(K, H, W)`` bytes.
+
+    One bit per pixel in C order over (K, H, W), most significant bit first (numpy.packbits'
+    default), the last byte padded with zero bits. Any non-zero value counts as set.
+    """
+    masks = np.asarray(masks)
+    if masks.ndim != 3:
+        raise ValueError(f"expected (K, H, W) masks, got shape {masks.shape}")
+    return np.packbits(masks != 0, axis=None).tobytes()
+
+
+def unpackbits_masks(data: bytes, cameras: int, height: int, width: int) -> np.ndarray:
+    """Inverse of ``packbits_masks``: bytes -> (K, H, W) bool masks.
+
+    Raises ValueError when ``len(data)`` is not ``packed_length(K, H, W)``.
+    """
+    expected = packed_length(cameras, height, width)
+    buffer = np.frombuffer(data, dtype=np.uint8)
+    if buffer.size != expected:
+        raise ValueError(f"{cameras}x{height}x{width} masks pack to {expected} bytes, got {buffer.size}")
+    count = int(cameras) * int(height) * int(width)
+    return np.unpackbits(buffer, count=count).view(bool).reshape(int(cameras), int(height), int(width))
+
+
+def window(planes: np.ndarray, x0: int, y0: int, w: int, h: int) -> np.ndarray:
+    """Cut the (h, w) window whose top-left pixel is (x0, y0) from (..., H, W) planes or masks.
+
+    Returns (..., h, w) of the same dtype, a copy. Pixels outside the image are 0 (no camera
+    sees the body there), so windows near or past the border keep their size.
+    """
+    planes = np.asarray(planes)
+    x0, y0, w, h = int(x0), int(y0), int(w), int(h)
+    if w < 0 or h < 0:
+        raise ValueError(f"window size must be >= 0, got {w}x{h}")
+    height, width = planes.shape[-2:]
+    out = np.zeros(planes.shape[:-2] + (h, w), dtype=planes.dtype)
+    xa, xb = max(x0, 0), min(x0 + w, width)
+    ya, yb = max(y0, 0), min(y0 + h, height)
+    if xa < xb and ya < yb:
+        out[..., ya - y0:yb - y0, xa - x0:xb - x0] = planes[..., ya:yb, xa:xb]
+    return out
+
+
+def downsample_masks(masks: np.ndarray, factor: int = 2) -> np.ndarray:
+    """(..., H, W) bool masks -> (..., H // factor, W // factor) bool masks.
+
+    Each output pixel covers a factor x factor block of source pixels and is set when at
+    least half of them are set: at factor 2, at least 2 of the 4. Ties count as set so that
+    thin limbs one source pixel wide survive as often as not. A last row or column that
+    does not fill a whole block (odd H or W at factor 2) is dropped.
+    """
+    masks = np.asarray(masks)
+    if int(factor) != factor or factor < 1:
+        raise ValueError(f"factor must be a positive integer, got {factor!r}")
+    factor = int(factor)
+    if masks.ndim < 2:
+        raise ValueError(f"expected (..., H, W) masks, got shape {masks.shape}")
+    height, width = masks.shape[-2] // factor, masks.shape[-1] // factor
+    blocks = (masks[..., :height * factor, :width * factor] != 0).reshape(
+        masks.shape[:-2] + (height, factor, width, factor))
+    counts = blocks.sum(axis=(-3, -1), dtype=np.int32)
+    return counts >= -(-factor * factor // 2)
