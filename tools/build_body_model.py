@@ -97,11 +97,18 @@ def main(mh_dir: Path) -> None:
     tri_seg_votes = vertex_segment[faces]
     tri_segment = np.array([np.bincount(v, minlength=len(SEGMENT_NAMES)).argmax() for v in tri_seg_votes])
 
+    # area-weighted surface moments: vertex density varies a lot (the face is dense)
+    tri_pts = verts[faces]
+    tri_area = 0.5 * np.linalg.norm(np.cross(tri_pts[:, 1] - tri_pts[:, 0], tri_pts[:, 2] - tri_pts[:, 0]), axis=1)
+    tri_centre = tri_pts.mean(1)
     centres, axes, radii = [], [], []
     for s in range(len(SEGMENT_NAMES)):
-        pts = verts[vertex_segment == s] - joints[s]
-        c = pts.mean(0)
-        evals, evecs = np.linalg.eigh(np.cov((pts - c).T))
+        sel = tri_segment == s
+        w = tri_area[sel] / tri_area[sel].sum()
+        pts = tri_centre[sel] - joints[s]
+        c = w @ pts
+        d = pts - c
+        evals, evecs = np.linalg.eigh((d * w[:, None]).T @ d)
         if np.linalg.det(evecs) < 0:
             evecs[:, 0] *= -1
         centres.append(c)

@@ -1,0 +1,296 @@
+"""Hierarchical pose fitting (Theobalt et al. 2003, section 3), shared by server and clients.
+
+Per frame, from the previous frame's pose:
+ 1. torso (root + spine) by Powell's method on the half-resolution energy;
+ 2. the four limbs, each by a grid search then Powell in 128x128 windows, followed by its
+    hand or foot in 64x64 windows; and the head in 64x64 windows. Every limb and the head
+    start from the same pose (Jacobi), so they are independent: a client can solve any of
+    them and the result does not depend on who solved it or in which order;
+ 3. repeat until the full energy stops improving or an iteration cap.
+
+``solve_chain`` is the unit of work a client does; ``fit_frame`` is the server's loop, with
+the limb solves handed to a ``dispatch`` callable (local by default).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from itertools import product
+from typing import Callable
+
+import numpy as np
+from scipy.optimize import minimize
+
+from common.body import (
+    CHAINS, LIMB_CHAINS, LIMB_PARTS, PARAM_LIMITS, BodyModel, forward_kinematics,
+)
+from common.camera import Studio
+from common.energy import (
+    ARM_WINDOW, SMALL_WINDOW, EnergySetup, Window, centred_window, cut_window, make_energy,
+)
+from common.packing import downsample_masks
+
+HALF = 0.5  # torso works at half resolution (paper: 160x120 of 320x240)
+ENERGY_BACKENDS = ("cpu", "gl", "coarse-to-fine")
+
+
+@dataclass(frozen=True)
+class FitOptions:
+    """Fitting settings; every field is a plain scalar so it can travel in a SOLVE message."""
+
+    energy: str = "cpu"              # cpu | gl | coarse-to-fine
+    max_iterations: int = 2          # torso -> limbs -> extremities rounds per frame
+    min_improvement: float = 0.002   # stop when the full energy improves by less (fraction)
+    grid_steps: int = 3              # grid points per limb parameter (odd)
+    grid_range_rad: float = 0.25     # +- half-width of the limb grid, radians
+    torso_step_m: float = 0.03       # Powell's initial step, root translation
+    torso_step_rad: float = 0.08     # Powell's initial step, rotations
+    limb_step_rad: float = 0.15
+    extremity_step_rad: float = 0.2
+    xtol: float = 0.01               # Powell's parameter tolerance (in units of the step)
+    ftol: float = 1e-4               # Powell's relative energy tolerance
+    max_evals_torso: int = 400
+    max_evals_limb: int = 250
+    max_evals_extremity: int = 60
+    prerender: bool = True
+
+    def __post_init__(self):
+        if self.energy not in ENERGY_BACKENDS:
+            raise ValueError(f"energy must be one of {ENERGY_BACKENDS}, got {self.energy!r}")
+        if self.grid_steps < 1 or self.grid_steps % 2 == 0:
+            raise ValueError("grid_steps must be odd and >= 1")
+
+    def to_wire(self) -> dict:
+        return dict(self.__dict__)
+
+    @classmethod
+    def from_wire(cls, options: dict) -> "FitOptions":
+        unknown = set(options) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"unknown fit options: {sorted(unknown)}")
+        return cls(**options)
+
+
+@dataclass(frozen=True)
+class ChainResult:
+    """What solving one chain gives back (the RESULT message carries the same fields)."""
+
+    chain: str
+    params: np.ndarray        # (35,) the full pose with this chain's parameters updated
+    energy_before: int
+    energy: int
+    evaluations: int
+    iterations: int
+    wall_seconds: float
+    cpu_seconds: float
+
+
+@dataclass
+class FrameResult:
+    params: np.ndarray
+    energy: int
+    iterations: int
+    evaluations: int
+    chains: list = field(default_factory=list)  # ChainResult of every solve, in order
+    wall_seconds: float = 0.0
+
+
+class FrameData:
+    """One frame's input silhouettes at full and half resolution, and its studio."""
+
+    def __init__(self, model: BodyModel, studio: Studio, masks: np.ndarray):
+        self.model = model
+        masks = np.asarray(masks, dtype=bool)
+        if masks.shape[0] != len(studio):
+            raise ValueError(f"{masks.shape[0]} silhouettes for {len(studio)} cameras")
+        for cam, m in zip(studio, masks):
+            if m.shape != (cam.height, cam.width):
+                raise ValueError(f"silhouette of {cam.name} is {m.shape[1]}x{m.shape[0]}, "
+                                 f"calibration says {cam.width}x{cam.height}")
+        self.studio = studio
+        self.masks = masks
+        self.half_studio = Studio(tuple(
+            replace(c.scaled(HALF), width=c.width // 2, height=c.height // 2) for c in studio))
+        self.half_masks = downsample_masks(masks, 2)
+
+    def full_setup(self, params: np.ndarray, half: bool = False) -> EnergySetup:
+        studio = self.half_studio if half else self.studio
+        masks = self.half_masks if half else self.masks
+        windows = tuple(Window(0, 0, c.width, c.height) for c in studio)
+        return EnergySetup(studio, windows, masks, tuple(range(16)), np.asarray(params), prerender=False)
+
+    def window_setup(self, params: np.ndarray, segments, size: int, prerender: bool) -> EnergySetup:
+        """Windows of ``size`` centred on the projected centre of ``segments`` at ``params``."""
+        pose = forward_kinematics(self.model, params)
+        R, o = pose.rotations[0, list(segments)], pose.origins[0, list(segments)]
+        # the mean of the parts' ellipsoid centres: the middle of the bones, not the joints
+        centre = (np.einsum("sij,sj->si", R, self.model.ellipsoid_centres[list(segments)]) + o).mean(axis=0)
+        windows, cuts = [], []
+        for cam, mask in zip(self.studio, self.masks):
+            w = centred_window(cam.project(centre), size)
+            windows.append(w)
+            cuts.append(cut_window(mask, w))
+        return EnergySetup(self.studio, tuple(windows), np.stack(cuts), tuple(segments), np.asarray(params),
+                           prerender=prerender)
+
+
+def _limb_centre_segments(chain: str) -> tuple:
+    segs = CHAINS[chain].segments
+    return segs[:2]  # upper arm + forearm, thigh + shin
+
+
+# -------------------------------------------------------------------------- optimizers
+
+def powell(energy, x0: np.ndarray, indices, steps: np.ndarray, options: FitOptions, max_evals: int):
+    """Powell's direction set with Brent line searches over ``indices`` of the 35 parameters.
+
+    Returns (params (35,), energy, evaluations, iterations). Parameters are scaled by their
+    initial steps so that one tolerance fits translations and angles.
+    """
+    idx = np.asarray(indices)
+    base = np.array(x0, dtype=np.float64)
+    lo = PARAM_LIMITS[idx, 0]
+    hi = PARAM_LIMITS[idx, 1]
+    start = np.clip(base[idx], lo, hi)
+    scale = np.asarray(steps, dtype=np.float64)
+
+    def f(z):
+        p = base.copy()
+        p[idx] = start + z * scale
+        return float(energy(p)[0])
+
+    bounds = list(zip((lo - start) / scale, (hi - start) / scale))
+    res = minimize(f, np.zeros(len(idx)), method="Powell", bounds=bounds,
+                   options=dict(xtol=options.xtol, ftol=options.ftol, maxfev=max_evals))
+    out = base.copy()
+    out[idx] = np.clip(start + res.x * scale, lo, hi)
+    return out, float(res.fun), int(res.nfev), int(res.nit)
+
+
+def grid_search(energy, x0: np.ndarray, indices, options: FitOptions):
+    """Batched grid over ``indices`` around x0 (the paper's limb grid search).
+
+    Returns (best params (35,), its energy, evaluations).
+    """
+    idx = np.asarray(indices)
+    offsets = np.linspace(-options.grid_range_rad, options.grid_range_rad, options.grid_steps)
+    grid = np.array(list(product(offsets, repeat=len(idx))))
+    cand = np.repeat(np.asarray(x0, dtype=np.float64)[None], len(grid), axis=0)
+    cand[:, idx] = np.clip(cand[:, idx] + grid, PARAM_LIMITS[idx, 0], PARAM_LIMITS[idx, 1])
+    energies = energy(cand)
+    best = int(np.argmin(energies))  # ties -> the first, which is deterministic
+    return cand[best], float(energies[best]), len(cand)
+
+
+# ------------------------------------------------------------------------ chain solves
+
+def _clock():
+    return time.perf_counter(), time.process_time()
+
+
+def _stage_backends(options: FitOptions) -> tuple:
+    return ("cpu", "gl") if options.energy == "coarse-to-fine" else (options.energy,)
+
+
+def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarray,
+                options: FitOptions) -> ChainResult:
+    """Optimize one chain's parameters with every other parameter held at ``params``."""
+    wall0, cpu0 = _clock()
+    x = np.array(params, dtype=np.float64)
+    evals = iters = 0
+    before = None
+    energy_value = None
+    for backend in _stage_backends(options):
+        if chain == "torso":
+            setup = frame.full_setup(x, half=True)
+            energy = make_energy(backend, model, setup)
+            before = before if before is not None else int(energy(x)[0])
+            idx = CHAINS["torso"].params
+            steps = np.array([options.torso_step_m] * 3 + [options.torso_step_rad] * 6)
+            x, energy_value, n, it = powell(energy, x, idx, steps, options, options.max_evals_torso)
+        elif chain == "head":
+            setup = frame.window_setup(x, CHAINS["head"].segments, SMALL_WINDOW, options.prerender)
+            energy = make_energy(backend, model, setup)
+            before = before if before is not None else int(energy(x)[0])
+            steps = np.full(2, options.extremity_step_rad)
+            x, energy_value, n, it = powell(energy, x, CHAINS["head"].params, steps, options,
+                                            options.max_evals_extremity)
+        elif chain in LIMB_CHAINS:
+            proximal, distal, extremity = LIMB_PARTS[chain]
+            setup = frame.window_setup(x, _limb_centre_segments(chain), ARM_WINDOW, options.prerender)
+            setup = replace(setup, moving=CHAINS[chain].segments)
+            energy = make_energy(backend, model, setup)
+            before = before if before is not None else int(energy(x)[0])
+            n = 0
+            if backend == _stage_backends(options)[0] and options.grid_steps > 1:
+                x, _, n = grid_search(energy, x, proximal, options)
+            steps = np.full(len(proximal), options.limb_step_rad)
+            x, _, n2, it = powell(energy, x, proximal, steps, options, options.max_evals_limb)
+            n += n2
+            ext_setup = frame.window_setup(x, extremity, SMALL_WINDOW, options.prerender)
+            ext_energy = make_energy(backend, model, ext_setup)
+            x, _, n3, it3 = powell(ext_energy, x, distal, np.full(len(distal), options.extremity_step_rad),
+                                   options, options.max_evals_extremity)
+            n += n3
+            it += it3
+            energy_value = float(energy(x)[0])
+            n += 1
+        else:
+            raise ValueError(f"unknown chain {chain!r}")
+        evals += n + 1
+        iters += it
+    wall1, cpu1 = _clock()
+    return ChainResult(chain, x, int(before), int(round(energy_value)), evals, iters, wall1 - wall0, cpu1 - cpu0)
+
+
+def full_energy(model: BodyModel, frame: FrameData, params: np.ndarray) -> int:
+    """Whole-body XOR energy at full resolution (the convergence test and the reported energy)."""
+    return int(make_energy("cpu", model, frame.full_setup(params))(params)[0])
+
+
+Dispatch = Callable[[list, np.ndarray, int], list]
+
+
+def solve_locally(model: BodyModel, frame: FrameData, options: FitOptions) -> Dispatch:
+    def dispatch(chains: list, params: np.ndarray, iteration: int) -> list:
+        return [solve_chain(model, frame, c, params, options) for c in chains]
+
+    return dispatch
+
+
+def merge_chains(params: np.ndarray, results: list) -> np.ndarray:
+    """Take each result's own chain parameters (results of independent Jacobi solves)."""
+    out = np.array(params, dtype=np.float64)
+    for r in sorted(results, key=lambda r: r.chain):
+        idx = list(CHAINS[r.chain].params)
+        out[idx] = r.params[idx]
+    return out
+
+
+def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: FitOptions,
+              dispatch: Dispatch | None = None) -> FrameResult:
+    """Fit one frame from ``start`` (the previous frame's pose). ``dispatch`` solves limb chains."""
+    wall0 = time.perf_counter()
+    dispatch = dispatch or solve_locally(model, frame, options)
+    x = np.array(start, dtype=np.float64)
+    best = full_energy(model, frame, x)
+    result = FrameResult(x, best, 0, 0)
+    for it in range(options.max_iterations):
+        torso = solve_chain(model, frame, "torso", x, options)
+        after_torso = torso.params
+        # the limbs go out first so that clients work while the server fits the head
+        limb_results = dispatch(list(LIMB_CHAINS), after_torso, it)
+        head = solve_chain(model, frame, "head", after_torso, options)
+        x_new = merge_chains(after_torso, [*limb_results, head])
+        e_new = full_energy(model, frame, x_new)
+        result.chains.extend([torso, *limb_results, head])
+        result.evaluations += torso.evaluations + head.evaluations + sum(r.evaluations for r in limb_results)
+        result.iterations = it + 1
+        improved = best - e_new
+        if e_new <= best:
+            x, best = x_new, e_new
+        if improved < options.min_improvement * max(best, 1):
+            break
+    result.params, result.energy = x, best
+    result.wall_seconds = time.perf_counter() - wall0
+    return result

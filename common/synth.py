@@ -1,0 +1,107 @@
+"""The virtual studio (Bottino's protocol): real motion drives the body, K cameras film it.
+
+Silhouettes are rendered from the smoothly skinned MakeHuman surface by default, a different
+surface from the rigid segments and ellipsoids the fitter uses, so a fit is never the model
+recognising itself. Noise follows Cheung et al.: independent flips of foreground pixels
+(missed, rate eta) and background pixels (false, rate xi), plus small false blobs.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from common.body import BodyModel, forward_kinematics, joints_dict, rigid_vertices, skinned_vertices
+from common.calibration import save_calibration
+from common.camera import Studio
+from common.motion_import import import_bvh
+from common.sequence import FRAME_NAME, write_mask_png, write_sequence_meta
+
+CHEUNG_ETA = 0.043  # fraction of foreground pixels missed (Cheung et al. 2000)
+CHEUNG_XI = 0.021   # fraction of background pixels falsely set
+BLOBS_PER_IMAGE = 3         # small false-foreground blobs per camera image
+BLOB_RADIUS_PX = (1.5, 4.0)  # their radius range, pixels
+SURFACES = ("skinned", "rigid")
+NOISE_MODELS = ("none", "cheung")
+
+
+@dataclass(frozen=True)
+class SynthOptions:
+    frames: int = 60
+    start: int = 1          # frame 0 of the CMU conversions is an added T-pose
+    step: int = 4           # 120 fps clips -> 30 fps
+    noise: str = "none"
+    surface: str = "skinned"
+    seed: int = 0
+    images: bool = False
+
+
+def add_cheung_noise(mask: np.ndarray, rng: np.random.Generator, eta: float = CHEUNG_ETA,
+                     xi: float = CHEUNG_XI) -> np.ndarray:
+    """(H, W) bool -> (H, W) bool with missed/false pixels at rates eta/xi and a few blobs."""
+    flip = np.where(mask, rng.random(mask.shape) < eta, rng.random(mask.shape) < xi)
+    out = mask ^ flip
+    H, W = mask.shape
+    yy, xx = np.mgrid[0:H, 0:W]
+    for _ in range(BLOBS_PER_IMAGE):
+        cx, cy = rng.uniform(0, W), rng.uniform(0, H)
+        r = rng.uniform(*BLOB_RADIUS_PX)
+        out |= (xx - cx) ** 2 + (yy - cy) ** 2 <= r * r
+    return out
+
+
+def clip_frames(total: int, opts: SynthOptions) -> np.ndarray:
+    idx = opts.start + opts.step * np.arange(opts.frames)
+    return idx[idx < total]
+
+
+def synthesize(model: BodyModel, studio: Studio, clip_path, out_dir, opts: SynthOptions,
+               joint_map=None, progress=None) -> dict:
+    """Write a sequence folder for ``opts.frames`` frames of ``clip_path``; returns its summary."""
+    from common.bvh import read_bvh
+    from common.render_gl import MeshRenderer
+
+    if opts.noise not in NOISE_MODELS:
+        raise ValueError(f"noise must be one of {NOISE_MODELS}")
+    if opts.surface not in SURFACES:
+        raise ValueError(f"surface must be one of {SURFACES}")
+    total = read_bvh(clip_path).num_frames
+    src = clip_frames(total, opts)
+    motion = import_bvh(model, clip_path, src, joint_map)
+    params = motion.params.copy()
+    # centre the performance in the studio (the cameras look at the origin)
+    params[:, 0:2] -= params[:, 0:2].mean(axis=0)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    save_calibration(studio, out / "calibration.json")
+    renderer = MeshRenderer(studio, model.triangles, model.triangle_segment)
+    rng = np.random.default_rng(opts.seed)
+    pose = forward_kinematics(model, params)
+    colour = None
+    if opts.images:
+        from common.colour_studio import ColourStudio
+
+        colour = ColourStudio(studio, model, rng)
+        colour.write_backgrounds(out)
+    fps = 1.0 / (motion.frame_time * opts.step)
+    with open(out / "truth.jsonl", "w") as truth:
+        for i in range(len(params)):
+            verts = skinned_vertices(model, pose, i) if opts.surface == "skinned" else rigid_vertices(model, pose, i)
+            labels = renderer.render_labels(verts)
+            for cam, lab in zip(studio, labels):
+                mask = lab >= 0
+                if opts.noise == "cheung":
+                    mask = add_cheung_noise(mask, rng)
+                write_mask_png(out / "silhouettes" / cam.name / FRAME_NAME.format(frame=i), mask)
+            if colour is not None:
+                colour.write_frame(out, i, verts, labels)
+            truth.write(json.dumps({"frame": i, "params": [float(x) for x in params[i]],
+                                    "joints": joints_dict(pose.joints[i])}) + "\n")
+            if progress:
+                progress(i + 1, len(params))
+    meta = dict(clip=str(clip_path), source_frames=[int(f) for f in src], noise=opts.noise,
+                surface=opts.surface, seed=opts.seed)
+    write_sequence_meta(out, range(len(params)), fps, studio.names, **meta)
+    return {"frames": len(params), "fps": fps, "cameras": len(studio), **meta}
