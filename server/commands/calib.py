@@ -1,0 +1,88 @@
+"""``mocap calib``: convert calibrations between formats, show a calibration's cameras.
+
+    mocap calib convert IN OUT [--format FMT] [--from FMT] [--units m|cm|mm] [--size WxH]
+    mocap calib show FILE [--from FMT] [--units m|cm|mm] [--size WxH]
+
+The input format is detected (see ``common.calibration.detect_format``). The output format is
+``--format``, else from OUT's name: .json -> json, .toml -> pose2sim (``--format anipose`` for
+aniposelib), .xml -> opencv-xml (one camera); easymocap and opencv-xml write a folder OUT.
+"""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from common.calibration import FORMATS, UNIT_SCALE, detect_format, load_calibration, output_format, save_calibration
+from common.camera import Studio
+from common.errors import UserError
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("calib", help="convert or show camera calibrations",
+                                   description="Convert or show camera calibrations (" + ", ".join(FORMATS) + ").")
+    sub = parser.add_subparsers(dest="calib_command", metavar="ACTION")
+    sub.required = True
+
+    convert = sub.add_parser("convert", help="convert a calibration to another format")
+    convert.add_argument("input", metavar="IN", help="calibration file or folder")
+    convert.add_argument("output", metavar="OUT", help="file or folder to write")
+    convert.add_argument("--format", choices=FORMATS,
+                         help="output format (default: from OUT's extension; .toml means pose2sim)")
+    _input_options(convert)
+    convert.set_defaults(func=run_convert)
+
+    show = sub.add_parser("show", help="print a table of the cameras in a calibration")
+    show.add_argument("input", metavar="FILE", help="calibration file or folder")
+    _input_options(show)
+    show.set_defaults(func=run_show)
+
+
+def _input_options(parser) -> None:
+    parser.add_argument("--from", dest="input_format", choices=FORMATS, help="input format (default: detected)")
+    parser.add_argument("--units", choices=sorted(UNIT_SCALE),
+                        help="units of translations in files that do not say (default: metres, checked)")
+    parser.add_argument("--size", metavar="WxH", help="image size for cameras whose file gives none")
+
+
+def _parse_size(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
+        raise UserError(f"--size: expected WIDTHxHEIGHT in pixels such as 1920x1080, got {text!r}")
+    return int(m.group(1)), int(m.group(2))
+
+
+def _load(args) -> Studio:
+    return load_calibration(args.input, units=args.units, fmt=args.input_format, size=_parse_size(args.size))
+
+
+def run_convert(args) -> int:
+    fmt = output_format(args.output, args.format)  # fail before reading when OUT is ambiguous
+    studio = _load(args)
+    save_calibration(studio, args.output, fmt)
+    print(f"wrote {len(studio)} cameras to {args.output} ({fmt})")
+    return 0
+
+
+def run_show(args) -> int:
+    studio = _load(args)
+    fmt = args.input_format or detect_format(args.input)
+    print(f"{args.input}: {len(studio)} cameras ({fmt}; positions in metres)")
+    print(studio_table(studio))
+    return 0
+
+
+def studio_table(studio: Studio) -> str:
+    """One line per camera: name, image size, focal lengths (px), centre position (m), distortion."""
+    rows = [("camera", "size", "fx", "fy", "x", "y", "z", "distortion")]
+    for c in studio:
+        x, y, z = c.center
+        rows.append((c.name, f"{c.width}x{c.height}", f"{c.K[0, 0]:.1f}", f"{c.K[1, 1]:.1f}",
+                     f"{x:.3f}", f"{y:.3f}", f"{z:.3f}", "yes" if c.has_distortion else "no"))
+    widths = np.max([[len(cell) for cell in row] for row in rows], axis=0)
+    left = {0, 1, 7}  # text columns; numbers right-aligned
+    return "\n".join("  ".join(cell.ljust(w) if i in left else cell.rjust(w)
+                               for i, (cell, w) in enumerate(zip(row, widths))).rstrip()
+                     for row in rows)
