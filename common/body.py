@@ -174,17 +174,25 @@ def load_body_model() -> BodyModel:
 def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
     """(..., 3) rotation vectors -> (..., 3, 3) matrices (Rodrigues, stable near zero)."""
     rv = np.asarray(rv, dtype=np.float64)
-    theta2 = np.einsum("...i,...i->...", rv, rv)
-    theta = np.sqrt(theta2)
-    small = theta2 < 1e-12
-    safe = np.where(small, 1.0, theta)
-    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(safe) / safe)
-    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(safe)) / (safe * safe))
     x, y, z = rv[..., 0], rv[..., 1], rv[..., 2]
-    zero = np.zeros_like(x)
-    K = np.stack([np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], -2)
-    eye = np.broadcast_to(np.eye(3), K.shape)
-    return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
+    theta2 = x * x + y * y + z * z
+    small = theta2 < 1e-12
+    theta = np.sqrt(np.where(small, 1.0, theta2))
+    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(theta) / theta)
+    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(theta)) / (theta * theta))
+    out = np.empty(rv.shape + (3,))
+    # R = I + a [r]x + b [r]x^2, written out element by element (no temporaries of 3x3 stacks)
+    out[..., 0, 0] = 1.0 - b * (y * y + z * z)
+    out[..., 1, 1] = 1.0 - b * (x * x + z * z)
+    out[..., 2, 2] = 1.0 - b * (x * x + y * y)
+    bxy, bxz, byz = b * x * y, b * x * z, b * y * z
+    out[..., 0, 1] = bxy - a * z
+    out[..., 1, 0] = bxy + a * z
+    out[..., 0, 2] = bxz + a * y
+    out[..., 2, 0] = bxz - a * y
+    out[..., 1, 2] = byz - a * x
+    out[..., 2, 1] = byz + a * x
+    return out
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
@@ -259,30 +267,54 @@ class Pose:
     joints: np.ndarray
 
 
+@lru_cache(maxsize=8)
+def _axis_table(joint_rest_bytes: bytes) -> np.ndarray:
+    """(35, 19, 3) linear map from parameters to the 19 rotation vectors local_rotations uses."""
+    f = _joint_frames(joint_rest_bytes)
+    M = np.zeros((PARAM_COUNT, 19, 3))
+    M[4, 0, 0] = M[5, 0, 1] = 1.0                     # root tilt (heading applied separately)
+    for i in range(3):
+        M[6 + i, 1, i] = 0.5                          # half the spine rotation at each spine joint
+    M[9, 2, 0] = 1.0                                  # neck nod about the lateral axis
+    for side, base, slot in (("l", 11, 3), ("r", 17, 7)):
+        for i in range(3):
+            M[base + i, slot, i] = 1.0                # shoulder rotation vector
+        M[base + 3, slot + 1] = f[side]["elbow_axis"]  # elbow flexion
+        M[base + 4, slot + 2] = f[side]["elbow_axis"]  # wrist flexion
+        M[base + 5, slot + 3] = f[side]["wrist_dev_axis"]
+    for side, base, slot in (("l", 23, 11), ("r", 29, 15)):
+        for i in range(3):
+            M[base + i, slot, i] = 1.0                # hip rotation vector
+        M[base + 3, slot + 1] = f[side]["knee_axis"]   # knee flexion
+        M[base + 4, slot + 2] = LATERAL                # ankle flexion
+        M[base + 5, slot + 3] = f[side]["ankle_inv_axis"]
+    return M
+
+
+def _rest_offsets_vector(model: BodyModel) -> np.ndarray:
+    """(35,) subtracted from the parameters so that elbows and knees measure from straight."""
+    f = joint_frames(model)
+    off = np.zeros(PARAM_COUNT)
+    off[P["l_elbow"]], off[P["r_elbow"]] = f["l"]["rest_elbow"], f["r"]["rest_elbow"]
+    off[P["l_knee"]], off[P["r_knee"]] = f["l"]["rest_knee"], f["r"]["rest_knee"]
+    return off
+
+
 def local_rotations(model: BodyModel, params: np.ndarray) -> np.ndarray:
     """(B, 35) parameters -> (B, 16, 3, 3) rotation of each segment relative to its parent."""
     p = np.asarray(params, dtype=np.float64)
-    B = p.shape[0]
-    frames = joint_frames(model)
-    R = np.empty((B, 16, 3, 3))
-    tilt = np.concatenate([p[:, 4:6], np.zeros((B, 1))], axis=1)
-    R[:, 0] = rot_z(p[:, 3]) @ rotvec_to_matrix(tilt)
-    half_spine = rotvec_to_matrix(0.5 * p[:, 6:9])
-    R[:, 1] = half_spine
-    R[:, 2] = half_spine
-    R[:, 3] = rotvec_to_matrix(p[:, 9, None] * LATERAL) @ rot_z(p[:, 10])
-    for side, base, up, fore, hand in (("l", 11, 4, 5, 6), ("r", 17, 7, 8, 9)):
-        f = frames[side]
-        R[:, up] = rotvec_to_matrix(p[:, base:base + 3])
-        R[:, fore] = axis_angle_matrix(f["elbow_axis"], p[:, base + 3] - f["rest_elbow"])
-        R[:, hand] = axis_angle_matrix(f["elbow_axis"], p[:, base + 4]) @ axis_angle_matrix(
-            f["wrist_dev_axis"], p[:, base + 5])
-    for side, base, thigh, shin, foot in (("l", 23, 10, 11, 12), ("r", 29, 13, 14, 15)):
-        f = frames[side]
-        R[:, thigh] = rotvec_to_matrix(p[:, base:base + 3])
-        R[:, shin] = axis_angle_matrix(f["knee_axis"], p[:, base + 3] - f["rest_knee"])
-        R[:, foot] = axis_angle_matrix(LATERAL, p[:, base + 4]) @ axis_angle_matrix(
-            f["ankle_inv_axis"], p[:, base + 5])
+    key = np.ascontiguousarray(model.joint_rest, dtype=np.float64).tobytes()
+    rv = np.einsum("bp,pkc->bkc", p - _rest_offsets_vector(model), _axis_table(key))
+    M = rotvec_to_matrix(rv)  # (B, 19, 3, 3)
+    R = np.empty((p.shape[0], 16, 3, 3))
+    R[:, 0] = rot_z(p[:, 3]) @ M[:, 0]
+    R[:, 1] = M[:, 1]
+    R[:, 2] = M[:, 1]
+    R[:, 3] = M[:, 2] @ rot_z(p[:, 10])
+    R[:, 4], R[:, 5], R[:, 6] = M[:, 3], M[:, 4], M[:, 5] @ M[:, 6]
+    R[:, 7], R[:, 8], R[:, 9] = M[:, 7], M[:, 8], M[:, 9] @ M[:, 10]
+    R[:, 10], R[:, 11], R[:, 12] = M[:, 11], M[:, 12], M[:, 13] @ M[:, 14]
+    R[:, 13], R[:, 14], R[:, 15] = M[:, 15], M[:, 16], M[:, 17] @ M[:, 18]
     return R
 
 

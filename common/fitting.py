@@ -19,11 +19,11 @@ from itertools import product
 from typing import Callable
 
 import numpy as np
-from scipy.optimize import minimize
 
 from common.body import (
     CHAINS, LIMB_CHAINS, LIMB_PARTS, PARAM_LIMITS, BodyModel, forward_kinematics,
 )
+from common import optimize
 from common.camera import Studio
 from common.energy import (
     ARM_WINDOW, SMALL_WINDOW, EnergySetup, Window, centred_window, cut_window, make_energy,
@@ -47,7 +47,7 @@ class FitOptions:
     torso_step_rad: float = 0.08     # Powell's initial step, rotations
     limb_step_rad: float = 0.15
     extremity_step_rad: float = 0.2
-    xtol: float = 0.01               # Powell's parameter tolerance (in units of the step)
+    xtol: float = 0.03               # line-search resolution, in units of a direction's step
     ftol: float = 1e-4               # Powell's relative energy tolerance
     max_evals_torso: int = 400
     max_evals_limb: int = 250
@@ -142,29 +142,23 @@ def _limb_centre_segments(chain: str) -> tuple:
 # -------------------------------------------------------------------------- optimizers
 
 def powell(energy, x0: np.ndarray, indices, steps: np.ndarray, options: FitOptions, max_evals: int):
-    """Powell's direction set with Brent line searches over ``indices`` of the 35 parameters.
+    """Powell's direction set over ``indices`` of the 35 parameters, others held at x0.
 
-    Returns (params (35,), energy, evaluations, iterations). Parameters are scaled by their
-    initial steps so that one tolerance fits translations and angles.
+    Returns (params (35,), energy, evaluations, iterations).
     """
     idx = np.asarray(indices)
     base = np.array(x0, dtype=np.float64)
-    lo = PARAM_LIMITS[idx, 0]
-    hi = PARAM_LIMITS[idx, 1]
-    start = np.clip(base[idx], lo, hi)
-    scale = np.asarray(steps, dtype=np.float64)
 
-    def f(z):
-        p = base.copy()
-        p[idx] = start + z * scale
-        return float(energy(p)[0])
+    def f(Z: np.ndarray) -> np.ndarray:
+        cand = np.repeat(base[None], len(Z), axis=0)
+        cand[:, idx] = Z
+        return energy(cand)
 
-    bounds = list(zip((lo - start) / scale, (hi - start) / scale))
-    res = minimize(f, np.zeros(len(idx)), method="Powell", bounds=bounds,
-                   options=dict(xtol=options.xtol, ftol=options.ftol, maxfev=max_evals))
+    res = optimize.powell(f, base[idx], PARAM_LIMITS[idx, 0], PARAM_LIMITS[idx, 1], steps,
+                          xtol=options.xtol, ftol=options.ftol, max_evals=max_evals)
     out = base.copy()
-    out[idx] = np.clip(start + res.x * scale, lo, hi)
-    return out, float(res.fun), int(res.nfev), int(res.nit)
+    out[idx] = res.x
+    return out, res.fun, res.nfev, res.nit
 
 
 def grid_search(energy, x0: np.ndarray, indices, options: FitOptions):
