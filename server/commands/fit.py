@@ -1,0 +1,85 @@
+"""mocap fit: fit the body model to every frame of a sequence (single process or with clients)."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from common.body import load_body_model
+from common.export import write_motion_bvh
+from common.fitting import ENERGY_BACKENDS, FitOptions
+from common.sequence import load_sequence
+from server.progress import Progress
+from server.session import LocalSolver, load_records, run_fit
+
+INIT_CHOICES = ("auto", "truth", "standing")
+
+
+def add_fit_arguments(p) -> None:
+    p.add_argument("sequence", type=Path, help="sequence folder (calibration.json + silhouettes/)")
+    p.add_argument("--out", type=Path, required=True, help="result folder")
+    p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
+    p.add_argument("--frames", type=int, default=None, help="fit only the first N frames")
+    p.add_argument("--iterations", type=int, default=FitOptions.max_iterations, help="rounds per frame")
+    p.add_argument("--grid-steps", type=int, default=FitOptions.grid_steps, help="grid points per limb parameter")
+    p.add_argument("--grid-range", type=float, default=FitOptions.grid_range_rad, help="limb grid half-width, rad")
+    p.add_argument("--no-prerender", action="store_true", help="render every part in every evaluation")
+    p.add_argument("--init", choices=INIT_CHOICES, default="auto",
+                   help="first-frame start: truth pose if the sequence has one (auto), else standing")
+    p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
+    p.add_argument("--resume", action="store_true", help="continue a result folder after a crash")
+    p.add_argument("--quiet", action="store_true", help="no progress bar, no table")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+
+
+def options_from_args(args) -> FitOptions:
+    return FitOptions(energy=args.energy, max_iterations=args.iterations, grid_steps=args.grid_steps,
+                      grid_range_rad=args.grid_range, prerender=not args.no_prerender)
+
+
+def finish(model, seq, args, summary: dict) -> None:
+    """Files made from the results: the BVH, and the summary on the terminal."""
+    records = load_records(args.out)
+    if records:
+        import numpy as np
+
+        write_motion_bvh(args.out / "motion.bvh", model, np.array([r["params"] for r in records]), seq.fps)
+    if args.json:
+        print(json.dumps(summary, indent=1))
+    elif not args.quiet:
+        print_summary(summary, sys.stdout)
+
+
+def print_summary(summary: dict, out) -> None:
+    rows = [("frames", summary["frames"]), ("mode", f"{summary['mode']} ({summary['clients']} clients)"),
+            ("energy", summary["energy_backend"]),
+            ("s/frame (median)", f"{summary['seconds_per_frame']:.3f}" if summary["seconds_per_frame"] else "-"),
+            ("evaluations/frame", f"{summary['evaluations_per_frame']:.0f}" if summary["evaluations_per_frame"] else "-")]
+    if "mean_joint_error_mm" in summary:
+        rows += [("mean joint error", f"{summary['mean_joint_error_mm']:.1f} mm"),
+                 ("max joint error", f"{summary['max_joint_error_mm']:.1f} mm")]
+    width = max(len(k) for k, _ in rows)
+    for k, v in rows:
+        print(f"  {k.ljust(width)}  {v}", file=out)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("fit", help="fit the body model to a sequence")
+    add_fit_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    model = load_body_model()
+    seq = load_sequence(args.sequence, args.units)
+    options = options_from_args(args)
+    solver = LocalSolver(model, options)
+    total = min(len(seq.frames), args.frames or len(seq.frames))
+    bar = Progress("fit", total, enabled=None if not args.quiet else False)
+    try:
+        summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
+                          max_frames=args.frames, progress=bar)
+    finally:
+        solver.close()
+    finish(model, seq, args, summary)
+    return 0

@@ -1,0 +1,249 @@
+"""The server's frame loop: fit every frame of a sequence, write results frame by frame.
+
+The torso and head are solved here; limb chains go to a ``Solver`` (local, or a cluster of
+clients). ``mocap fit`` is this loop with the local solver: single-process mode is the server
+with zero clients.
+
+Result folder:
+    poses.jsonl   one line per frame: frame, params, joints, energy, seconds, ... (appended and
+                  flushed per frame, so an interrupted run keeps what it had and --resume
+                  continues after the last complete line)
+    summary.json  run summary, accuracy against truth.jsonl when the sequence has one
+    motion.bvh    the fitted motion
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from common.body import JOINT_NAMES, BodyModel, forward_kinematics, joints_dict, rest_params
+from common.errors import InputFileError, UserError
+from common.fitting import ChainResult, FitOptions, FrameData, fit_frame, solve_chain
+from common.sequence import Sequence
+
+POSES_FILE = "poses.jsonl"
+SUMMARY_FILE = "summary.json"
+STANDING_PELVIS_FRACTION = 0.52  # pelvis height / body height when standing
+
+
+class Solver(Protocol):
+    """Who solves the limb chains: this process, or clients over the network."""
+
+    mode: str
+    clients: int
+
+    def begin_frame(self, frame: int, data: FrameData, start: np.ndarray) -> None: ...
+
+    def solve(self, chains: list, params: np.ndarray, iteration: int) -> list: ...
+
+    def timing(self) -> dict: ...
+
+    def close(self) -> None: ...
+
+
+class LocalSolver:
+    """Single-process mode: the same chain solves, run here in a fixed order."""
+
+    mode = "single"
+    clients = 0
+
+    def __init__(self, model: BodyModel, options: FitOptions):
+        self.model, self.options = model, options
+        self.data: FrameData | None = None
+        self.compute_seconds = 0.0
+
+    def begin_frame(self, frame: int, data: FrameData, start: np.ndarray) -> None:
+        self.data = data
+
+    def solve(self, chains: list, params: np.ndarray, iteration: int) -> list:
+        t0 = time.perf_counter()
+        out = [solve_chain(self.model, self.data, c, params, self.options) for c in chains]
+        self.compute_seconds += time.perf_counter() - t0
+        return out
+
+    def timing(self) -> dict:
+        return {"processes": []}
+
+    def close(self) -> None:
+        pass
+
+
+@dataclass
+class RunStats:
+    seconds: list = field(default_factory=list)
+    evaluations: list = field(default_factory=list)
+    energies: list = field(default_factory=list)
+    chain_cpu: dict = field(default_factory=dict)        # chain -> total CPU seconds
+    chain_wall: dict = field(default_factory=dict)       # chain -> total wall seconds
+    chain_evaluations: dict = field(default_factory=dict)
+    server_compute: float = 0.0                          # torso + head + energy checks, seconds
+
+    def add_chains(self, chains: list[ChainResult]) -> None:
+        for c in chains:
+            self.chain_cpu[c.chain] = self.chain_cpu.get(c.chain, 0.0) + c.cpu_seconds
+            self.chain_wall[c.chain] = self.chain_wall.get(c.chain, 0.0) + c.wall_seconds
+            self.chain_evaluations[c.chain] = self.chain_evaluations.get(c.chain, 0) + c.evaluations
+
+
+def silhouette_centre(data: FrameData) -> np.ndarray:
+    """(3,) least-squares intersection of the rays through each silhouette's centroid."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for cam, mask in zip(data.studio, data.masks):
+        ys, xs = np.nonzero(mask)
+        if xs.size == 0:
+            continue
+        u, v = xs.mean(), ys.mean()
+        ray = cam.R.T @ np.linalg.solve(cam.K, np.array([u, v, 1.0]))
+        ray /= np.linalg.norm(ray)
+        proj = np.eye(3) - np.outer(ray, ray)
+        A += proj
+        b += proj @ cam.center
+    if np.linalg.matrix_rank(A) < 3:
+        raise UserError("cannot locate the actor: fewer than two cameras see a silhouette in the first frame")
+    return np.linalg.solve(A, b)
+
+
+def initial_pose(model: BodyModel, seq: Sequence, data: FrameData, init: str) -> np.ndarray:
+    """The first frame's start pose: 'truth' (the sequence's truth), or 'standing' at the silhouettes."""
+    if init == "truth":
+        truth = seq.truth()
+        if truth is None or seq.frames[0] not in truth:
+            raise UserError(f"{seq.path}: --init truth needs truth.jsonl with frame {seq.frames[0]}")
+        return truth[seq.frames[0]].params.copy()
+    if init == "standing":
+        centre = silhouette_centre(data)
+        return rest_params(model, position=(centre[0], centre[1], model.joint_rest[0, 2]))
+    raise UserError(f"unknown --init {init!r}")
+
+
+def read_done_frames(path: Path) -> list[dict]:
+    """Complete lines of an existing poses.jsonl (a torn last line from a crash is dropped)."""
+    if not path.exists():
+        return []
+    done = []
+    with open(path) as fh:
+        for line in fh:
+            if not line.endswith("\n"):
+                break
+            try:
+                done.append(json.loads(line))
+            except json.JSONDecodeError:
+                break
+    return done
+
+
+def _rewrite_complete(path: Path, records: list[dict]) -> None:
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "w") as fh:
+        for r in records:
+            fh.write(json.dumps(r) + "\n")
+    os.replace(tmp, path)
+
+
+def accuracy(records: list[dict], truth: dict | None) -> dict:
+    """Joint position errors against the truth, millimetres."""
+    if not truth:
+        return {}
+    errs = []
+    for r in records:
+        t = truth.get(r["frame"])
+        if t is None:
+            continue
+        fitted = np.array([r["joints"][n] for n in JOINT_NAMES])
+        true = np.array([t.joints[n] for n in JOINT_NAMES])
+        errs.append(np.linalg.norm(fitted - true, axis=1) * 1000.0)
+    if not errs:
+        return {}
+    E = np.array(errs)
+    per_frame = E.mean(axis=1)
+    return {
+        "mean_joint_error_mm": float(E.mean()),
+        "max_joint_error_mm": float(E.max()),
+        "per_joint_error_mm": {n: float(v) for n, v in zip(JOINT_NAMES, E.mean(axis=0))},
+        "per_frame_error_mm": [float(v) for v in per_frame],
+    }
+
+
+def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions, solver: Solver,
+            init: str = "auto", resume: bool = False, max_frames: int | None = None, progress=None) -> dict:
+    """Fit the sequence's frames in order; returns the summary (also written to summary.json)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    poses_path = out_dir / POSES_FILE
+    frames = seq.frames[:max_frames] if max_frames else list(seq.frames)
+    done = read_done_frames(poses_path) if resume else []
+    if resume:
+        expected = frames[:len(done)]
+        if [d.get("frame") for d in done] != expected:
+            raise UserError(f"{poses_path}: does not hold the first frames of {seq.path}; cannot --resume")
+        _rewrite_complete(poses_path, done)  # drop a torn last line before appending
+    elif poses_path.exists():
+        poses_path.unlink()
+    truth = seq.truth()
+    if init == "auto":
+        init = "truth" if truth else "standing"
+    stats = RunStats()
+    wall0 = time.perf_counter()
+    x = np.asarray(done[-1]["params"], dtype=np.float64) if done else None
+    with open(poses_path, "a") as fh:
+        for n, frame in enumerate(frames[len(done):], start=len(done)):
+            t0 = time.perf_counter()
+            data = FrameData(model, seq.studio, seq.silhouettes(frame))
+            if x is None:
+                x = initial_pose(model, seq, data, init)
+            solver.begin_frame(frame, data, x)
+            result = fit_frame(model, data, x, options, solver.solve)
+            x = result.params
+            seconds = time.perf_counter() - t0
+            joints = forward_kinematics(model, x).joints[0]
+            record = {
+                "frame": int(frame), "params": [float(v) for v in x], "joints": joints_dict(joints),
+                "energy": int(result.energy), "seconds": seconds, "iterations": result.iterations,
+                "evaluations": result.evaluations,
+                "chains": {c.chain: {"evaluations": c.evaluations, "energy_before": c.energy_before,
+                                     "energy": c.energy, "cpu_seconds": c.cpu_seconds,
+                                     "wall_seconds": c.wall_seconds} for c in result.chains},
+            }
+            fh.write(json.dumps(record) + "\n")
+            fh.flush()
+            stats.seconds.append(seconds)
+            stats.evaluations.append(result.evaluations)
+            stats.energies.append(result.energy)
+            stats.add_chains(result.chains)
+            if progress:
+                progress(n + 1, len(frames), f"E={result.energy}")
+    records = read_done_frames(poses_path)
+    summary = {
+        "sequence": str(seq.path),
+        "frames": len(records),
+        "frames_fitted_this_run": len(stats.seconds),
+        "mode": solver.mode,
+        "clients": solver.clients,
+        "energy_backend": options.energy,
+        "init": init,
+        "seconds_per_frame": float(np.median(stats.seconds)) if stats.seconds else None,
+        "mean_seconds_per_frame": float(np.mean(stats.seconds)) if stats.seconds else None,
+        "wall_seconds": time.perf_counter() - wall0,
+        "evaluations_per_frame": float(np.mean(stats.evaluations)) if stats.evaluations else None,
+        "chain_cpu_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_cpu.items()},
+        "chain_wall_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_wall.items()},
+        "chain_evaluations_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_evaluations.items()},
+        "options": options.to_wire(),
+        "timing": solver.timing(),
+        **accuracy(records, truth),
+    }
+    (out_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+def load_records(out_dir: Path) -> list[dict]:
+    path = Path(out_dir) / POSES_FILE
+    if not path.exists():
+        raise InputFileError(path, "missing (not a result folder?)")
+    return read_done_frames(path)
