@@ -242,12 +242,15 @@ def full_energy(model: BodyModel, frame: FrameData, params: np.ndarray) -> int:
     return int(make_energy("cpu", model, frame.full_setup(params))(params)[0])
 
 
-Dispatch = Callable[[list, np.ndarray, int], list]
+# dispatch(chains, params, iteration) starts the limb solves and returns a function that
+# waits for and returns their ChainResults (in the order of ``chains``); the server solves the
+# head in between, so a cluster's clients and the server work at the same time.
+Dispatch = Callable[[list, np.ndarray, int], Callable[[], list]]
 
 
 def solve_locally(model: BodyModel, frame: FrameData, options: FitOptions) -> Dispatch:
-    def dispatch(chains: list, params: np.ndarray, iteration: int) -> list:
-        return [solve_chain(model, frame, c, params, options) for c in chains]
+    def dispatch(chains: list, params: np.ndarray, iteration: int):
+        return lambda: [solve_chain(model, frame, c, params, options) for c in chains]
 
     return dispatch
 
@@ -273,8 +276,9 @@ def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: Fi
         torso = solve_chain(model, frame, "torso", x, options)
         after_torso = torso.params
         # the limbs go out first so that clients work while the server fits the head
-        limb_results = dispatch(list(LIMB_CHAINS), after_torso, it)
+        collect_limbs = dispatch(list(LIMB_CHAINS), after_torso, it)
         head = solve_chain(model, frame, "head", after_torso, options)
+        limb_results = collect_limbs()
         x_new = merge_chains(after_torso, [*limb_results, head])
         e_new = full_energy(model, frame, x_new)
         result.chains.extend([torso, *limb_results, head])

@@ -18,7 +18,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -40,7 +40,8 @@ class Solver(Protocol):
 
     def begin_frame(self, frame: int, data: FrameData, start: np.ndarray) -> None: ...
 
-    def solve(self, chains: list, params: np.ndarray, iteration: int) -> list: ...
+    def solve(self, chains: list, params: np.ndarray, iteration: int) -> Callable[[], list]:
+        """Start solving ``chains`` from ``params``; the returned function waits for the results."""
 
     def timing(self) -> dict: ...
 
@@ -61,11 +62,16 @@ class LocalSolver:
     def begin_frame(self, frame: int, data: FrameData, start: np.ndarray) -> None:
         self.data = data
 
-    def solve(self, chains: list, params: np.ndarray, iteration: int) -> list:
-        t0 = time.perf_counter()
-        out = [solve_chain(self.model, self.data, c, params, self.options) for c in chains]
-        self.compute_seconds += time.perf_counter() - t0
-        return out
+    def solve(self, chains: list, params: np.ndarray, iteration: int) -> Callable[[], list]:
+        data = self.data
+
+        def collect() -> list:
+            t0 = time.perf_counter()
+            out = [solve_chain(self.model, data, c, params, self.options) for c in chains]
+            self.compute_seconds += time.perf_counter() - t0
+            return out
+
+        return collect
 
     def timing(self) -> dict:
         return {"processes": []}
