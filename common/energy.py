@@ -96,60 +96,86 @@ def image_conics(P: np.ndarray, centres: np.ndarray, A: np.ndarray) -> tuple:
     return adj * sign[..., None, None], depth > MIN_DEPTH_M
 
 
-def conic_spans(C: np.ndarray, rows: np.ndarray, x0: np.ndarray, width: int) -> tuple:
-    """Covered pixel spans of conics on image rows.
+def conic_row_spans(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.ndarray,
+                    rows: int, width: int) -> tuple:
+    """Covered pixel spans of image conics, only on the rows each conic covers.
 
-    C (..., K, S, 3, 3); rows (K, R) image row centres per camera; x0 (K,) window left edges.
-    Returns start, end (..., K, S, R) int32 window columns, end exclusive, empty if start >= end.
+    C (B, K, S, 3, 3) conics (negative inside); drawable (B, K, S); y0, x0 (K,) window corners;
+    rows, width: window size. Pixel centres at integer coordinates are inside when the conic
+    is negative there. Returns flat arrays over the non-empty spans:
+    batch (N,), row_id (N,) = camera * rows + window row, start (N,), end (N,) (exclusive).
     """
-    a = C[..., 0, 0][..., None]
-    y = rows[:, None, :]
-    b = 2.0 * (C[..., 0, 1][..., None] * y + C[..., 0, 2][..., None])
-    c = (C[..., 1, 1][..., None] * y + 2.0 * C[..., 1, 2][..., None]) * y + C[..., 2, 2][..., None]
-    disc = b * b - 4.0 * a * c
-    ok = (disc > 0) & (a > 0)
-    root = np.sqrt(np.where(ok, disc, 0.0))
-    inv2a = 0.5 / np.where(ok, a, 1.0)
-    xs = (-b - root) * inv2a - x0[:, None, None]
-    xe = (-b + root) * inv2a - x0[:, None, None]
-    start = np.clip(np.ceil(xs), 0, width).astype(np.int32)
-    end = np.clip(np.floor(xe) + 1, 0, width).astype(np.int32)
-    end = np.where(ok, end, start)
-    return start, end
+    B, K, S = C.shape[:3]
+    c00, c01, c02 = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
+    c11, c12, c22 = C[..., 1, 1], C[..., 1, 2], C[..., 2, 2]
+    # y-extent: where the quadratic in x has a double root
+    qa = c01 * c01 - c00 * c11
+    qb = 2.0 * (c01 * c02 - c00 * c12)
+    qc = c02 * c02 - c00 * c22
+    disc_y = qb * qb - 4.0 * qa * qc
+    ellipse = drawable & (qa < 0) & (c00 > 0) & (disc_y > 0)
+    sq = np.sqrt(np.where(ellipse, disc_y, 0.0))
+    qa_safe = np.where(ellipse, qa, -1.0)
+    y_lo = (-qb + sq) / (2.0 * qa_safe)  # qa < 0: this is the smaller root
+    y_hi = (-qb - sq) / (2.0 * qa_safe)
+    wy0 = y0[None, :, None]
+    first = np.clip(np.ceil(y_lo - wy0), 0, rows).astype(np.int64)
+    last = np.clip(np.floor(y_hi - wy0) + 1, 0, rows).astype(np.int64)
+    count = np.where(ellipse, last - first, 0)
+    n_max = int(count.max()) if count.size else 0
+    if n_max <= 0:
+        empty = np.zeros(0, dtype=np.int64)
+        return empty, empty, empty, empty
+    j = np.arange(n_max)
+    row = first[..., None] + j                       # (B, K, S, n) window rows
+    valid = j < count[..., None]
+    y = (row + wy0[..., None]).astype(np.float64)    # image rows
+    a = c00[..., None]
+    b = 2.0 * (c01[..., None] * y + c02[..., None])
+    c = (c11[..., None] * y + 2.0 * c12[..., None]) * y + c22[..., None]
+    disc = np.maximum(b * b - 4.0 * a * c, 0.0)
+    root = np.sqrt(disc)
+    inv2a = 0.5 / np.where(valid, a, 1.0)
+    wx0 = x0[None, :, None, None]
+    start = np.clip(np.ceil((-b - root) * inv2a - wx0), 0, width).astype(np.int64)
+    end = np.clip(np.floor((-b + root) * inv2a - wx0) + 1, 0, width).astype(np.int64)
+    keep = valid & (end > start)
+    batch = np.broadcast_to(np.arange(B)[:, None, None, None], keep.shape)[keep]
+    cam = np.broadcast_to(np.arange(K)[None, :, None, None], keep.shape)[keep]
+    return batch, cam * rows + row[keep], start[keep], end[keep]
 
 
-def merged_span_sums(start: np.ndarray, end: np.ndarray, prefix: np.ndarray) -> np.ndarray:
-    """Sum of per-pixel values over the union of spans in each row.
+def union_span_sums(batch, row_id, start, end, prefix: np.ndarray, batch_size: int) -> np.ndarray:
+    """Sum of per-pixel values over the union of the spans of each row, per batch entry.
 
-    start, end (B, K, S, R) int32 window columns; prefix (K, R, W+1) per-row prefix sums.
-    Returns (B,) totals.
+    prefix (K, rows, width + 1) per-row prefix sums; returns (batch_size,) totals.
     """
-    B, K, S, R = start.shape
-    if S > 1:
-        order = np.argsort(start, axis=2, kind="stable")
-        start = np.take_along_axis(start, order, 2)
-        end = np.take_along_axis(end, order, 2)
-        reach = np.maximum.accumulate(end, axis=2)
-        prev = np.concatenate([np.zeros_like(reach[:, :, :1]), reach[:, :, :-1]], axis=2)
-        start = np.maximum(start, prev)
-        end = np.maximum(end, start)
-    Wp = prefix.shape[2]
-    base = (np.arange(K)[:, None] * R + np.arange(R)[None, :]) * Wp  # (K, R)
+    if batch.size == 0:
+        return np.zeros(batch_size, dtype=np.int64)
+    K, R, Wp = prefix.shape
+    group = batch * (K * R) + row_id
+    order = np.argsort(group * Wp + start, kind="stable")
+    group, start, end, batch, row_id = group[order], start[order], end[order], batch[order], row_id[order]
+    # offset each row group past the previous one so one running maximum sweeps all groups
+    offset = group * Wp
+    reach = np.maximum.accumulate(end + offset)
+    covered_from = np.empty_like(reach)
+    covered_from[0] = -1
+    covered_from[1:] = reach[:-1]
+    s = np.maximum(start + offset, covered_from) - offset
+    e = np.maximum(end, s)
     flat = prefix.reshape(-1)
-    vals = flat[base[None, :, None, :] + end] - flat[base[None, :, None, :] + start]
-    return vals.reshape(B, -1).sum(axis=1)
+    base = row_id * Wp
+    vals = flat[base + e] - flat[base + s]
+    return np.bincount(batch, weights=vals, minlength=batch_size).astype(np.int64)
 
 
-def render_spans_mask(start: np.ndarray, end: np.ndarray, width: int) -> np.ndarray:
-    """start, end (K, S, R) -> (K, R, width) bool coverage (used to pre-render static parts)."""
-    K, S, R = start.shape
-    diff = np.zeros((K, R, width + 1), dtype=np.int32)
-    k_idx = np.broadcast_to(np.arange(K)[:, None, None], start.shape)
-    r_idx = np.broadcast_to(np.arange(R)[None, None, :], start.shape)
-    nonempty = end > start
-    np.add.at(diff, (k_idx[nonempty], r_idx[nonempty], start[nonempty]), 1)
-    np.add.at(diff, (k_idx[nonempty], r_idx[nonempty], end[nonempty]), -1)
-    return np.cumsum(diff, axis=2)[..., :width] > 0
+def render_row_spans(row_id, start, end, cameras: int, rows: int, width: int) -> np.ndarray:
+    """Flat spans of one pose -> (K, rows, width) bool coverage (pre-rendered static parts)."""
+    diff = np.zeros((cameras * rows, width + 1), dtype=np.int32)
+    np.add.at(diff, (row_id, start), 1)
+    np.add.at(diff, (row_id, end), -1)
+    return (np.cumsum(diff, axis=1)[:, :width] > 0).reshape(cameras, rows, width)
 
 
 # ------------------------------------------------------------------------ the energy
@@ -183,15 +209,15 @@ class CpuEnergy:
         studio, windows = setup.studio, setup.windows
         K = len(studio)
         h, w = setup.inputs.shape[1:]
-        self.width = w
+        self.width, self.rows = w, h
         self.P = np.stack([c.projection_matrix for c in studio])
-        self.rows = np.stack([np.arange(h, dtype=np.float64) + win.y0 for win in windows])  # (K, h)
+        self.y0 = np.array([win.y0 for win in windows], dtype=np.float64)
         self.x0 = np.array([win.x0 for win in windows], dtype=np.float64)
         self.moving = tuple(setup.moving) if setup.prerender else tuple(range(16))
         static = tuple(s for s in range(16) if s not in self.moving)
         I = setup.inputs.astype(np.int32)
         if static:
-            M = self._render(setup.static_params[None], static)[0]
+            M = self._render(setup.static_params, static)
         else:
             M = np.zeros((K, h, w), dtype=bool)
         self.static_mask = M
@@ -202,25 +228,23 @@ class CpuEnergy:
     def _spans(self, params: np.ndarray, segments) -> tuple:
         pose = forward_kinematics(self.model, params)
         centres, A = ellipsoid_world(self.model, pose.rotations, pose.origins, segments)
-        C, ok = image_conics(self.P, centres, A)
-        start, end = conic_spans(C, self.rows, self.x0, self.width)
-        end = np.where(ok[..., None], end, start)
-        return start, end
+        C, drawable = image_conics(self.P, centres, A)
+        return conic_row_spans(C, drawable, self.y0, self.x0, self.rows, self.width)
 
     def _render(self, params: np.ndarray, segments) -> np.ndarray:
-        start, end = self._spans(params, segments)
-        return np.stack([render_spans_mask(s, e, self.width) for s, e in zip(start, end)])
+        _, row_id, start, end = self._spans(np.atleast_2d(params)[:1], segments)
+        return render_row_spans(row_id, start, end, len(self.setup.studio), self.rows, self.width)
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
         """(B, 35) or (35,) -> (B,) int64 energies (pixels)."""
         p = np.atleast_2d(params)
-        start, end = self._spans(p, self.moving)
+        batch, row_id, start, end = self._spans(p, self.moving)
         self.evaluations += len(p)
-        return self.base + merged_span_sums(start, end, self.prefix)
+        return self.base + union_span_sums(batch, row_id, start, end, self.prefix, len(p))
 
     def render(self, params: np.ndarray) -> np.ndarray:
-        """(35,) -> (K, h, w) bool: the model's silhouette windows (moving or static parts)."""
-        return self._render(np.atleast_2d(params), self.moving)[0] | self.static_mask
+        """(35,) -> (K, h, w) bool: the model's silhouette windows (moving and static parts)."""
+        return self._render(params, self.moving) | self.static_mask
 
 
 ENERGY_BACKENDS = {"cpu": CpuEnergy}
