@@ -1,0 +1,91 @@
+"""``mocap segment``: colour images + empty-studio frames -> binary silhouettes.
+
+Reads ``images/<camera>/<frame:06d>.png`` and ``background/<camera>/*.png`` (one or many
+empty frames per camera) of a sequence folder and writes ``silhouettes/<camera>/<frame:06d>.png``.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from common.errors import InputFileError
+from common.segmentation import METHODS, load_params, make_segmenter, params_dict
+from common.sequence import FRAME_NAME, load_sequence, read_png, write_mask_png, write_sequence_meta
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "segment", help="background subtraction: images/ and background/ -> silhouettes/",
+        description="Segment the colour images of a sequence folder into silhouettes by background "
+                    "subtraction (Cheung et al. 2000 or Bottino & Laurentini), per camera, against "
+                    "the empty-studio frames in background/<camera>/.")
+    parser.add_argument("sequence", help="sequence folder with calibration.json, images/ and background/")
+    parser.add_argument("--method", choices=sorted(METHODS), default="cheung",
+                        help="background subtraction method (default: cheung)")
+    parser.add_argument("--params", metavar="FILE.toml",
+                        help="method parameters as flat TOML keys over the defaults")
+    parser.set_defaults(func=run)
+
+
+def _pngs(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() == ".png")
+
+
+def _read_rgb(path: Path, camera) -> np.ndarray:
+    img = read_png(path, "RGB")
+    if img.shape[:2] != (camera.height, camera.width):
+        raise InputFileError(path, f"size {img.shape[1]}x{img.shape[0]} does not match the calibration "
+                                   f"of {camera.name} ({camera.width}x{camera.height})")
+    return img
+
+
+def run(args) -> int:
+    params = load_params(args.method, args.params)
+    seq = load_sequence(args.sequence)
+    root = seq.path
+    # Check every folder and file before writing anything.
+    background_files = {}
+    for cam in seq.studio:
+        bg_dir = root / "background" / cam.name
+        if not bg_dir.is_dir():
+            raise InputFileError(bg_dir, f"missing: empty-studio frames of camera {cam.name} are needed "
+                                         "(background/<camera>/<n:06d>.png)")
+        files = _pngs(bg_dir)
+        if not files:
+            raise InputFileError(bg_dir, "no .png empty-studio frames")
+        background_files[cam.name] = files
+        img_dir = root / "images" / cam.name
+        if not img_dir.is_dir():
+            raise InputFileError(img_dir, f"missing: colour images of camera {cam.name} "
+                                          "(images/<camera>/<frame:06d>.png)")
+        for frame in seq.frames:
+            path = img_dir / FRAME_NAME.format(frame=frame)
+            if not path.is_file():
+                raise InputFileError(path, f"missing: frame {frame} of camera {cam.name}")
+
+    seconds = 0.0
+    for cam in seq.studio:
+        backgrounds = np.stack([_read_rgb(p, cam) for p in background_files[cam.name]])
+        segmenter = make_segmenter(args.method, params).fit(backgrounds)
+        for frame in seq.frames:
+            image = _read_rgb(root / "images" / cam.name / FRAME_NAME.format(frame=frame), cam)
+            t0 = time.perf_counter()
+            mask = segmenter.segment(image)
+            seconds += time.perf_counter() - t0
+            write_mask_png(seq.silhouette_path(cam.name, frame), mask)
+
+    record = {"method": args.method, "params": params_dict(params)}
+    meta_path = root / "sequence.json"
+    if meta_path.exists():
+        doc = dict(seq.meta)
+        doc["segmentation"] = record
+        meta_path.write_text(json.dumps(doc, indent=1))
+    else:
+        write_sequence_meta(root, seq.frames, seq.fps, seq.studio.names, segmentation=record)
+    count = len(seq.frames) * len(seq.studio)
+    print(f"segmented {len(seq.frames)} frames x {len(seq.studio)} cameras with {args.method} "
+          f"({count / max(seconds, 1e-9):.0f} images/s) -> {root / 'silhouettes'}")
+    return 0
