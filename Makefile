@@ -26,7 +26,7 @@ test-all: $(STAMP)
 	$(PY) -m pytest -q tests
 
 bench: $(STAMP)
-	$(PY) -m server.bench_all --out bench
+	$(PY) -m server.cli bench all --out bench
 
 clean:
 	rm -rf $(VENV) $(DEMO_DIR) bench/*.json .pytest_cache

@@ -204,11 +204,6 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     return flat.reshape(R.shape[:-2] + (3,))
 
 
-def axis_angle_matrix(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """Fixed unit axis (3,), angles (...,) -> (..., 3, 3)."""
-    return rotvec_to_matrix(np.asarray(angle)[..., None] * np.asarray(axis))
-
-
 def rot_z(angle: np.ndarray) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)
     zero, one = np.zeros_like(c), np.ones_like(c)
@@ -337,6 +332,31 @@ def forward_kinematics(model: BodyModel, params: np.ndarray) -> Pose:
     head_top = org[:, HEAD_TOP_SEGMENT] + rot[:, HEAD_TOP_SEGMENT] @ model.head_top_offset
     joints = np.concatenate([org, head_top[:, None]], axis=1)
     return Pose(rot, org, joints)
+
+
+# The limbs' roots: (segment, its parent, first of its 3 rotation-vector parameters)
+LIMB_ROOTS = ((4, 2, 11), (7, 2, 17), (10, 0, 23), (13, 0, 29))
+
+
+def hold_limbs_in_world(model: BodyModel, params: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(B, 35) torso candidates -> the same with shoulder and hip rotations changed so that the
+    upper arms and thighs keep the world orientation they have at ``reference`` (35,).
+
+    Moving the torso then carries the limbs along by their attachment points only, instead of
+    swinging them with it: the torso and limb sub-problems decouple (no drift of the pelvis
+    heading traded against hip rotations).
+    """
+    p = np.array(np.atleast_2d(params), dtype=np.float64)
+    ref = forward_kinematics(model, reference)
+    B = len(p)
+    tilt = np.concatenate([p[:, 4:6], np.zeros((B, 1))], axis=1)
+    R_pelvis = rot_z(p[:, 3]) @ rotvec_to_matrix(tilt)
+    R_chest = R_pelvis @ rotvec_to_matrix(p[:, 6:9])
+    parents = {0: R_pelvis, 2: R_chest}
+    for seg, parent, first in LIMB_ROOTS:
+        local = np.swapaxes(parents[parent], -1, -2) @ ref.rotations[0, seg]
+        p[:, first:first + 3] = matrix_to_rotvec(local)
+    return p
 
 
 def rest_params(model: BodyModel, position=None, heading: float = 0.0) -> np.ndarray:

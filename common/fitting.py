@@ -21,7 +21,8 @@ from typing import Callable
 import numpy as np
 
 from common.body import (
-    CHAINS, LIMB_CHAINS, LIMB_PARTS, PARAM_LIMITS, BodyModel, forward_kinematics,
+    CHAINS, LIMB_CHAINS, LIMB_PARTS, PARAM_LIMITS, BodyModel, clip_to_limits, forward_kinematics,
+    hold_limbs_in_world,
 )
 from common import optimize
 from common.camera import Studio
@@ -141,24 +142,24 @@ def _limb_centre_segments(chain: str) -> tuple:
 
 # -------------------------------------------------------------------------- optimizers
 
-def powell(energy, x0: np.ndarray, indices, steps: np.ndarray, options: FitOptions, max_evals: int):
+def powell(energy, x0: np.ndarray, indices, steps: np.ndarray, options: FitOptions, max_evals: int,
+           complete=None):
     """Powell's direction set over ``indices`` of the 35 parameters, others held at x0.
 
-    Returns (params (35,), energy, evaluations, iterations).
+    complete: optional (B, 35) -> (B, 35) applied to every candidate (the torso uses it to hold
+    the limbs' world orientations). Returns (params (35,), energy, evaluations, iterations).
     """
     idx = np.asarray(indices)
     base = np.array(x0, dtype=np.float64)
 
-    def f(Z: np.ndarray) -> np.ndarray:
+    def candidates(Z: np.ndarray) -> np.ndarray:
         cand = np.repeat(base[None], len(Z), axis=0)
         cand[:, idx] = Z
-        return energy(cand)
+        return complete(cand) if complete else cand
 
-    res = optimize.powell(f, base[idx], PARAM_LIMITS[idx, 0], PARAM_LIMITS[idx, 1], steps,
-                          xtol=options.xtol, ftol=options.ftol, max_evals=max_evals)
-    out = base.copy()
-    out[idx] = res.x
-    return out, res.fun, res.nfev, res.nit
+    res = optimize.powell(lambda Z: energy(candidates(Z)), base[idx], PARAM_LIMITS[idx, 0], PARAM_LIMITS[idx, 1],
+                          steps, xtol=options.xtol, ftol=options.ftol, max_evals=max_evals)
+    return candidates(res.x[None])[0], res.fun, res.nfev, res.nit
 
 
 def grid_search(energy, x0: np.ndarray, indices, options: FitOptions):
@@ -201,7 +202,9 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             before = before if before is not None else int(energy(x)[0])
             idx = CHAINS["torso"].params
             steps = np.array([options.torso_step_m] * 3 + [options.torso_step_rad] * 6)
-            x, energy_value, n, it = powell(energy, x, idx, steps, options, options.max_evals_torso)
+            reference = x.copy()
+            x, energy_value, n, it = powell(energy, x, idx, steps, options, options.max_evals_torso,
+                                            complete=lambda c: clip_to_limits(hold_limbs_in_world(model, c, reference)))
         elif chain == "head":
             setup = frame.window_setup(x, CHAINS["head"].segments, SMALL_WINDOW, options.prerender)
             energy = make_energy(backend, model, setup)

@@ -52,6 +52,45 @@ def add_cheung_noise(mask: np.ndarray, rng: np.random.Generator, eta: float = CH
     return out
 
 
+TRUE_SILHOUETTES = "silhouettes_true"  # exact masks kept beside colour images
+BACKGROUND_FRAMES = 20  # empty-studio frames written per camera with --images
+
+
+class ColourWriter:
+    """Colour images for ``--images``: the body in clothing colours in a textured room, its
+    shadow on the floor, per-frame lighting gain and sensor noise; plus empty backgrounds."""
+
+    def __init__(self, studio: Studio, model: BodyModel, rng: np.random.Generator, out: Path):
+        from PIL import Image
+
+        from common import colour_studio as cs
+
+        self.cs, self.Image = cs, Image
+        self.studio, self.model, self.rng, self.out = studio, model, rng, out
+        self.backgrounds = [cs.make_background(cam, rng) for cam in studio]
+        empty = [np.zeros((c.height, c.width), dtype=bool) for c in studio]
+        for n in range(BACKGROUND_FRAMES):
+            gain = 1.0 + rng.uniform(-cs.GAIN_JITTER, cs.GAIN_JITTER)
+            for cam, bg, e in zip(studio, self.backgrounds, empty):
+                img = cs.composite_frame(cam, e, None, None, bg, rng, gain, cs.NOISE_SIGMA, psf_sigma=cs.PSF_SIGMA)
+                self._save("background", cam.name, n, img)
+
+    def _save(self, sub: str, camera: str, index: int, img: np.ndarray) -> None:
+        path = self.out / sub / camera / FRAME_NAME.format(frame=index)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.Image.fromarray(img).save(path)
+
+    def write_frame(self, index: int, vertices: np.ndarray, labels: list) -> None:
+        cs = self.cs
+        gain = 1.0 + self.rng.uniform(-cs.GAIN_JITTER, cs.GAIN_JITTER)
+        darkening = self.rng.uniform(*cs.SHADOW_DARKENING)
+        for cam, bg, lab in zip(self.studio, self.backgrounds, labels):
+            shadow = cs.floor_shadow_mask(cam, vertices, cs.LIGHT_DIR, self.model.triangles)
+            img = cs.composite_frame(cam, lab >= 0, cs.clothing_colours(lab), shadow, bg, self.rng, gain,
+                                     cs.NOISE_SIGMA, darkening, cs.PSF_SIGMA)
+            self._save("images", cam.name, index, img)
+
+
 def clip_frames(total: int, opts: SynthOptions) -> np.ndarray:
     idx = opts.start + opts.step * np.arange(opts.frames)
     return idx[idx < total]
@@ -79,12 +118,7 @@ def synthesize(model: BodyModel, studio: Studio, clip_path, out_dir, opts: Synth
     renderer = MeshRenderer(studio, model.triangles, model.triangle_segment)
     rng = np.random.default_rng(opts.seed)
     pose = forward_kinematics(model, params)
-    colour = None
-    if opts.images:
-        from common.colour_studio import ColourStudio
-
-        colour = ColourStudio(studio, model, rng)
-        colour.write_backgrounds(out)
+    colour = ColourWriter(studio, model, rng, out) if opts.images else None
     fps = 1.0 / (motion.frame_time * opts.step)
     with open(out / "truth.jsonl", "w") as truth:
         for i in range(len(params)):
@@ -95,8 +129,10 @@ def synthesize(model: BodyModel, studio: Studio, clip_path, out_dir, opts: Synth
                 if opts.noise == "cheung":
                     mask = add_cheung_noise(mask, rng)
                 write_mask_png(out / "silhouettes" / cam.name / FRAME_NAME.format(frame=i), mask)
+                if colour is not None:  # segmentation will overwrite silhouettes/: keep the truth
+                    write_mask_png(out / TRUE_SILHOUETTES / cam.name / FRAME_NAME.format(frame=i), lab >= 0)
             if colour is not None:
-                colour.write_frame(out, i, verts, labels)
+                colour.write_frame(i, verts, labels)
             truth.write(json.dumps({"frame": i, "params": [float(x) for x in params[i]],
                                     "joints": joints_dict(pose.joints[i])}) + "\n")
             if progress:

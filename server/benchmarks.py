@@ -1,0 +1,145 @@
+"""Benchmarks behind `make bench` and `mocap bench`: the paper's Tables 1 and 2, side by side.
+
+Every figure is measured here, now, on this machine; the paper's figures (GeForce3, 2003) sit
+beside ours in each row. Rates are evaluations per second of the XOR energy with 8 cameras.
+"""
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from common.body import CHAINS, load_body_model, rest_params
+from common.energy import ARM_WINDOW, SMALL_WINDOW, make_energy
+from common.fitting import FitOptions, FrameData
+
+# Theobalt et al. 2003, Table 1 (XOR / XORPR evaluations per second) and Table 2 (s/frame, seq. A)
+PAPER_TABLE1 = {"full": 95.9, "half": 131.1, "arm128": 133.7, "arm128_prerender": 433.1, "head64_prerender": 855.4}
+PAPER_TABLE2 = {"single_xor": 7.98, "single_xorpr": 3.30, "distributed": 1.16}
+MEASURE_SECONDS = 1.5   # per rate measurement
+BATCH = 16              # candidate poses per evaluation call (the optimizer's line searches batch 4-81)
+
+
+def _bench_pose(model, rng) -> np.ndarray:
+    p = rest_params(model, heading=0.4)
+    p[6:35] += rng.normal(0.0, 0.15, 29)
+    return p
+
+
+def energy_setup(case: str, frame: FrameData, params: np.ndarray):
+    if case == "full":
+        return frame.full_setup(params)
+    if case == "half":
+        return frame.full_setup(params, half=True)
+    if case in ("arm128", "arm128_prerender"):
+        setup = frame.window_setup(params, CHAINS["left_arm"].segments[:2], ARM_WINDOW, case.endswith("prerender"))
+        return replace(setup, moving=CHAINS["left_arm"].segments)
+    if case == "head64_prerender":
+        return frame.window_setup(params, CHAINS["head"].segments, SMALL_WINDOW, True)
+    raise ValueError(case)
+
+
+def _rate(energy, params: np.ndarray, batch: int, seconds: float) -> float:
+    rng = np.random.default_rng(1)
+    cands = np.repeat(params[None], batch, axis=0)
+    cands[:, 6:] += rng.normal(0.0, 0.02, (batch, 29))
+    energy(cands)  # warm up (GL programs, caches)
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        energy(cands)
+        n += batch
+    return n / (time.perf_counter() - t0)
+
+
+def _worker_rate(args) -> float:
+    backend, case, batch, seconds, seed = args
+    model = load_body_model()
+    frame, params = make_frame(model, seed)
+    return _rate(make_energy(backend, model, energy_setup(case, frame, params)), params, batch, seconds)
+
+
+def make_frame(model, seed: int = 0):
+    """A synthetic 8-camera 320x240 frame: the skinned body rendered at a random pose, perturbed start."""
+    from common.body import forward_kinematics, skinned_vertices
+    from common.camera import circle_studio
+    from common.render_gl import MeshRenderer
+
+    rng = np.random.default_rng(seed)
+    studio = circle_studio(8, 320, 240)
+    truth = _bench_pose(model, rng)
+    masks = np.stack(MeshRenderer(studio, model.triangles).render_masks(
+        skinned_vertices(model, forward_kinematics(model, truth))))
+    start = truth.copy()
+    start[6:] += rng.normal(0.0, 0.05, 29)
+    return FrameData(model, studio, masks), start
+
+
+def energy_rows(backends=("cpu", "gl"), cases=tuple(PAPER_TABLE1), seconds: float = MEASURE_SECONDS,
+                processes: int = 2) -> list[dict]:
+    """Evaluations/s per backend and case: one process, batched, and `processes` in parallel."""
+    model = load_body_model()
+    frame, params = make_frame(model)
+    rows = []
+    for backend in backends:
+        for case in cases:
+            try:
+                energy = make_energy(backend, model, energy_setup(case, frame, params))
+            except Exception as exc:  # a backend that cannot run here (no EGL) is reported, not fatal
+                rows.append({"backend": backend, "case": case, "error": str(exc)})
+                continue
+            single = _rate(energy, params, 1, seconds)
+            batched = _rate(energy, params, BATCH, seconds)
+            parallel = None
+            if processes > 1 and backend == "cpu":
+                with mp.get_context("spawn").Pool(processes) as pool:
+                    parallel = float(sum(pool.map(_worker_rate, [(backend, case, BATCH, seconds, 0)] * processes)))
+            rows.append({
+                "backend": backend, "case": case,
+                "evals_per_second": float(parallel if parallel is not None else batched),
+                "evals_per_second_one_core_batched": float(batched),
+                "evals_per_second_one_core_single": float(single),
+                "processes": processes if parallel is not None else 1,
+                "batch": BATCH,
+                "paper_evals_per_second": PAPER_TABLE1[case],
+            })
+    return rows
+
+
+def fit_rows(sequence: Path, frames: int) -> list[dict]:
+    """Seconds per frame fitting a sequence, single process, with and without pre-rendering."""
+    from common.sequence import load_sequence
+    from server.session import LocalSolver, run_fit
+
+    model = load_body_model()
+    seq = load_sequence(sequence)
+    rows = []
+    for label, prerender, paper in (("single_xorpr", True, PAPER_TABLE2["single_xorpr"]),
+                                    ("single_xor", False, PAPER_TABLE2["single_xor"])):
+        options = FitOptions(prerender=prerender)
+        out = Path(os.environ.get("TMPDIR", "/tmp")) / f"mocap-bench-{label}-{os.getpid()}"
+        summary = run_fit(model, seq, out, options, LocalSolver(model, options), max_frames=frames)
+        rows.append({"mode": label, "energy_backend": "cpu", "seconds_per_frame": summary["seconds_per_frame"],
+                     "paper_seconds_per_frame": paper, "frames": summary["frames"],
+                     "mean_joint_error_mm": summary.get("mean_joint_error_mm")})
+    return rows
+
+
+def write_json(path: Path, rows) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(rows, indent=1))
+
+
+def print_energy_table(rows: list[dict]) -> None:
+    print(f"{'backend':8} {'case':18} {'evals/s':>10} {'1 core':>10} {'unbatched':>10} {'paper':>8}")
+    for r in rows:
+        if "error" in r:
+            print(f"{r['backend']:8} {r['case']:18} unavailable: {r['error']}")
+            continue
+        print(f"{r['backend']:8} {r['case']:18} {r['evals_per_second']:10.0f} "
+              f"{r['evals_per_second_one_core_batched']:10.0f} {r['evals_per_second_one_core_single']:10.0f} "
+              f"{r['paper_evals_per_second']:8.1f}")

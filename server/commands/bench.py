@@ -1,0 +1,127 @@
+"""mocap bench: measure the numbers of DESIGN.md section 9 and write them as JSON."""
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+
+from common.errors import UserError
+
+BENCH_CLIP_FRAMES = 20  # frames of the bundled walk used for fitting benchmarks
+
+
+def register(sub) -> None:
+    p = sub.add_parser("bench", help="benchmarks (energy, fit, cluster, segment, voxels, all)")
+    bsub = p.add_subparsers(dest="bench", metavar="WHAT")
+    bsub.required = True
+    e = bsub.add_parser("energy", help="XOR energy evaluations per second (paper Table 1)")
+    e.add_argument("--backends", default="cpu,gl")
+    e.add_argument("--json", type=Path, default=None)
+    f = bsub.add_parser("fit", help="seconds per frame, single process (paper Table 2)")
+    f.add_argument("sequence", type=Path, nargs="?", default=None,
+                   help="sequence folder (default: synthesise the bundled walk)")
+    f.add_argument("--frames", type=int, default=BENCH_CLIP_FRAMES)
+    f.add_argument("--json", type=Path, default=None)
+    c = bsub.add_parser("cluster", help="single process vs server + clients (paper Table 2)")
+    c.add_argument("sequence", type=Path)
+    c.add_argument("--frames", type=int, default=BENCH_CLIP_FRAMES)
+    c.add_argument("--clients", type=int, default=4)
+    c.add_argument("--json", type=Path, default=None)
+    s = bsub.add_parser("segment", help="background subtraction frames/s and error rates")
+    s.add_argument("--json", type=Path, default=None)
+    v = bsub.add_parser("voxels", help="SPOT voxel reconstruction frames/s")
+    v.add_argument("--json", type=Path, default=None)
+    a = bsub.add_parser("all", help="everything, into a folder of JSON files")
+    a.add_argument("--out", type=Path, default=Path("bench"))
+    a.add_argument("--frames", type=int, default=BENCH_CLIP_FRAMES)
+    p.set_defaults(func=run)
+
+
+def _emit(rows, path: Path | None) -> None:
+    from server.benchmarks import write_json
+
+    if path:
+        write_json(path, rows)
+    print(json.dumps(rows, indent=1))
+
+
+def bench_sequence(frames: int, workdir: Path) -> Path:
+    """The bundled walk in the virtual studio with Cheung noise: the standard fitting benchmark."""
+    from common.body import load_body_model
+    from common.camera import circle_studio
+    from common.synth import SynthOptions, synthesize
+    from server.commands.synth import DEFAULT_CLIP
+
+    seq = workdir / "bench-walk"
+    if not (seq / "sequence.json").exists():
+        synthesize(load_body_model(), circle_studio(), DEFAULT_CLIP, seq,
+                   SynthOptions(frames=frames, noise="cheung", seed=0))
+    return seq
+
+
+def run(args) -> int:
+    from server import benchmarks
+
+    if args.bench == "energy":
+        rows = benchmarks.energy_rows(tuple(b for b in args.backends.split(",") if b))
+        benchmarks.print_energy_table(rows)
+        if args.json:
+            benchmarks.write_json(args.json, rows)
+        return 0
+    if args.bench == "fit":
+        with tempfile.TemporaryDirectory() as tmp:
+            seq = args.sequence or bench_sequence(args.frames, Path(tmp))
+            _emit(benchmarks.fit_rows(seq, args.frames), args.json)
+        return 0
+    if args.bench == "cluster":
+        from server.bench_cluster import bench_cluster
+
+        if not args.sequence.exists():
+            raise UserError(f"{args.sequence}: no such sequence")
+        _emit(bench_cluster(args.sequence, args.frames, args.clients), args.json)
+        return 0
+    if args.bench == "segment":
+        from common.segmentation import bench_segmentation
+
+        _emit(bench_segmentation(), args.json)
+        return 0
+    if args.bench == "voxels":
+        from common.voxels import bench_voxels
+
+        _emit(bench_voxels(), args.json)
+        return 0
+    return run_all(args.out, args.frames)
+
+
+def run_all(out: Path, frames: int) -> int:
+    from server import benchmarks
+
+    out.mkdir(parents=True, exist_ok=True)
+    rows = benchmarks.energy_rows()
+    benchmarks.print_energy_table(rows)
+    benchmarks.write_json(out / "energy.json", rows)
+    with tempfile.TemporaryDirectory() as tmp:
+        seq = bench_sequence(frames, Path(tmp))
+        fit = benchmarks.fit_rows(seq, frames)
+        try:
+            from server.bench_cluster import bench_cluster
+
+            cluster = bench_cluster(seq, frames, 4)
+            benchmarks.write_json(out / "cluster.json", cluster)
+            fit.append({"mode": "distributed", "energy_backend": "cpu", "clients": cluster.get("clients"),
+                        "seconds_per_frame": cluster.get("distributed_seconds_per_frame"),
+                        "paper_seconds_per_frame": benchmarks.PAPER_TABLE2["distributed"]})
+        except ImportError:
+            pass
+        benchmarks.write_json(out / "fit.json", fit)
+        print(json.dumps(fit, indent=1))
+    for name, module, func in (("segment", "common.segmentation", "bench_segmentation"),
+                               ("voxels", "common.voxels", "bench_voxels")):
+        try:
+            mod = __import__(module, fromlist=[func])
+        except ImportError:
+            continue
+        rows = getattr(mod, func)()
+        benchmarks.write_json(out / f"{name}.json", rows)
+        print(json.dumps(rows, indent=1))
+    return 0
