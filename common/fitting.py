@@ -54,6 +54,7 @@ class FitOptions:
     max_evals_limb: int = 250
     max_evals_extremity: int = 60
     prerender: bool = True
+    torso_half_resolution: bool = True  # the paper's 160x120 torso energy
 
     def __post_init__(self):
         if self.energy not in ENERGY_BACKENDS:
@@ -197,7 +198,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
     energy_value = None
     for backend in _stage_backends(options):
         if chain == "torso":
-            setup = frame.full_setup(x, half=True)
+            setup = frame.full_setup(x, half=options.torso_half_resolution)
             energy = make_energy(backend, model, setup)
             before = before if before is not None else int(energy(x)[0])
             idx = CHAINS["torso"].params
