@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 
 from common.body import (
-    CHAINS, LIMB_CHAINS, LIMB_PARTS, PARAM_LIMITS, BodyModel, clip_to_limits, forward_kinematics,
+    CHAINS, LIMB_CHAINS, LIMB_PARTS, P, PARAM_LIMITS, BodyModel, clip_to_limits, forward_kinematics,
     hold_limbs_in_world,
 )
 from common import optimize
@@ -55,6 +55,7 @@ class FitOptions:
     max_evals_extremity: int = 60
     prerender: bool = True
     torso_half_resolution: bool = True  # the paper's 160x120 torso energy
+    spine_twist_prior: float = 300.0    # energy units (pixels) per rad^2 of spine twist
 
     def __post_init__(self):
         if self.energy not in ENERGY_BACKENDS:
@@ -180,6 +181,24 @@ def grid_search(energy, x0: np.ndarray, indices, options: FitOptions):
 
 # ------------------------------------------------------------------------ chain solves
 
+def with_spine_prior(energy, weight: float):
+    """The torso energy plus a soft prior against twisting the spine.
+
+    A round pelvis and abdomen make the twist between pelvis and chest almost invisible in
+    silhouettes: without a prior the pelvis heading drifts, traded against spine twist and
+    hip rotations. The prior keeps that trade-off where the anatomy puts it.
+    """
+    if weight <= 0:
+        return energy
+    twist = P["spine_z"]
+
+    def f(params: np.ndarray) -> np.ndarray:
+        p = np.atleast_2d(params)
+        return energy(p) + weight * p[:, twist] ** 2
+
+    return f
+
+
 def _clock():
     return time.perf_counter(), time.process_time()
 
@@ -199,7 +218,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
     for backend in _stage_backends(options):
         if chain == "torso":
             setup = frame.full_setup(x, half=options.torso_half_resolution)
-            energy = make_energy(backend, model, setup)
+            energy = with_spine_prior(make_energy(backend, model, setup), options.spine_twist_prior)
             before = before if before is not None else int(energy(x)[0])
             idx = CHAINS["torso"].params
             steps = np.array([options.torso_step_m] * 3 + [options.torso_step_rad] * 6)

@@ -143,3 +143,36 @@ def print_energy_table(rows: list[dict]) -> None:
         print(f"{r['backend']:8} {r['case']:18} {r['evals_per_second']:10.0f} "
               f"{r['evals_per_second_one_core_batched']:10.0f} {r['evals_per_second_one_core_single']:10.0f} "
               f"{r['paper_evals_per_second']:8.1f}")
+
+
+ACCURACY_CLIPS = ("cmu_12_01_walk.bvh", "05_10.bvh", "06_08.bvh")  # walk, dance, basketball (bundled)
+
+
+def accuracy_rows(frames: int, workdir: Path, clips=ACCURACY_CLIPS, options: FitOptions | None = None,
+                  progress=None) -> list[dict]:
+    """The issue-3 accuracy check: each clip at 30 fps in the 8-camera studio with Cheung noise,
+    skinned surface, fitted single-process from the first frame's truth."""
+    from common.camera import circle_studio
+    from common.sequence import load_sequence
+    from common.synth import SynthOptions, synthesize
+    from server.session import LocalSolver, run_fit
+
+    model = load_body_model()
+    options = options or FitOptions()
+    clip_dir = Path(__file__).resolve().parents[1] / "common" / "data" / "clips"
+    rows = []
+    for clip in clips:
+        seq_dir = workdir / f"accuracy-{Path(clip).stem}"
+        synthesize(model, circle_studio(), clip_dir / clip, seq_dir, SynthOptions(frames=frames, noise="cheung", seed=0))
+        summary = run_fit(model, load_sequence(seq_dir), workdir / f"result-{Path(clip).stem}", options,
+                          LocalSolver(model, options), progress=progress)
+        per_frame = summary["per_frame_error_mm"]
+        rows.append({
+            "clip": clip, "frames": summary["frames"],
+            "mean_joint_error_mm": summary["mean_joint_error_mm"],
+            "max_joint_error_mm": summary["max_joint_error_mm"],
+            "first20_mean_mm": float(np.mean(per_frame[:20])), "last20_mean_mm": float(np.mean(per_frame[-20:])),
+            "seconds_per_frame": summary["seconds_per_frame"],
+            "per_joint_error_mm": summary["per_joint_error_mm"],
+        })
+    return rows

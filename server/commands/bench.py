@@ -31,6 +31,9 @@ def register(sub) -> None:
     s.add_argument("--json", type=Path, default=None)
     v = bsub.add_parser("voxels", help="SPOT voxel reconstruction frames/s")
     v.add_argument("--json", type=Path, default=None)
+    acc = bsub.add_parser("accuracy", help="joint error on walk, dance and basketball clips (virtual studio)")
+    acc.add_argument("--frames", type=int, default=100)
+    acc.add_argument("--json", type=Path, default=None)
     a = bsub.add_parser("all", help="everything, into a folder of JSON files")
     a.add_argument("--out", type=Path, default=Path("bench"))
     a.add_argument("--frames", type=int, default=BENCH_CLIP_FRAMES)
@@ -79,6 +82,10 @@ def run(args) -> int:
         if not args.sequence.exists():
             raise UserError(f"{args.sequence}: no such sequence")
         _emit(bench_cluster(args.sequence, args.frames, args.clients), args.json)
+        return 0
+    if args.bench == "accuracy":
+        with tempfile.TemporaryDirectory() as tmp:
+            _emit(benchmarks.accuracy_rows(args.frames, Path(tmp)), args.json)
         return 0
     if args.bench == "segment":
         from common.segmentation import bench_segmentation
