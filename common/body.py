@@ -163,7 +163,9 @@ def load_body_model() -> BodyModel:
     with resources.files("common.data").joinpath("body_model.npz").open("rb") as fh:
         data = np.load(fh)
         arrays = {k: data[k] for k in data.files}
-    arrays["skin_weights"] = arrays["skin_weights"].astype(np.float32)
+    # stored as float16 to stay small: renormalise so every vertex's weights sum to exactly 1
+    weights = arrays["skin_weights"].astype(np.float64)
+    arrays["skin_weights"] = weights / weights.sum(axis=1, keepdims=True)
     for arr in arrays.values():
         arr.setflags(write=False)
     return BodyModel(**arrays)

@@ -10,11 +10,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 import numpy as np
 
-from common.body import P, BodyModel, forward_kinematics
+from common.body import P, BodyModel, forward_kinematics, rot_z
 from common.bvh import BvhMotion, bvh_global_transforms, end_site_positions, read_bvh, rest_positions
 from common.errors import UserError
-from common.retarget import frame_from, retarget
-from common.skeleton_map import load_joint_map, map_skeleton
+from common.retarget import retarget
+from common.skeleton_map import guess_up_axis, load_joint_map, map_skeleton, up_axis_rotation
 
 REQUIRED_ROLES = (
     "pelvis", "spine_upper", "neck", "head",
@@ -50,11 +50,12 @@ def _joint_of(motion: BvhMotion, point: int) -> int:
 
 
 def source_axes(motion: BvhMotion, roles: dict) -> np.ndarray:
-    """(3, 3) rotation taking the file's axes to ours (x = actor's left, z = up) at rest."""
+    """(3, 3) rotation taking the file's axes to ours: the file's up axis to +z (its floor stays
+    level), then turned about z so that the rest pose's left hip lies towards +x."""
+    up = up_axis_rotation(guess_up_axis(motion, roles))
     rest = np.concatenate(rest_positions(motion))
-    left = rest[roles["l_hip"]] - rest[roles["r_hip"]]
-    up = rest[roles["neck"]] - rest[roles["pelvis"]]
-    return frame_from(left, up).T
+    left = up @ (rest[roles["l_hip"]] - rest[roles["r_hip"]])
+    return rot_z(-np.arctan2(left[1], left[0])) @ up
 
 
 def leg_length(points: dict) -> float:

@@ -102,7 +102,7 @@ def retarget(model: BodyModel, pos: dict, rot: dict) -> np.ndarray:
     out[:, 4:6] = tilt
 
     # spine: shoulders give the chest's lateral axis, hips-centre -> neck its up axis
-    chest_rest = frame_from(J["l_shoulder"] - J["r_shoulder"], J["neck"] - J["spine"])
+    chest_rest = frame_from(J["l_shoulder"] - J["r_shoulder"], J["neck"] - 0.5 * (J["l_hip"] + J["r_hip"]))
     chest_now = frame_from(pos["l_shoulder"] - pos["r_shoulder"], pos["neck"] - hip_mid_now)
     R_chest = chest_now @ chest_rest.T
     out[:, 6:9] = matrix_to_rotvec(np.swapaxes(R_root, -1, -2) @ R_chest)
