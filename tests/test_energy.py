@@ -1,0 +1,200 @@
+"""The cpu XOR energy: equals an explicit popcount, batches, pre-rendering, and the analytic
+ellipsoid silhouettes agree with a tessellated ellipsoid mesh rendered by OpenGL."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from common.body import CHAINS, PARAM_COUNT, clip_to_limits, forward_kinematics, rest_params
+from common.camera import circle_studio
+from common.energy import ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window, ellipsoid_world, make_energy
+from common.fitting import FrameData
+
+# Measured (64x32 sphere): 0.1% of the silhouette; 48x24 (used here, faster) about 0.2%.
+MESH_MISMATCH = 0.01  # XOR pixels / union pixels
+SPHERE_SEGMENTS = (48, 24)  # longitude, latitude divisions
+
+
+def perturbed(base: np.ndarray, rng, n: int, spread: float = 0.15, indices=None) -> np.ndarray:
+    """(n, 35) poses near ``base``: uniform noise on ``indices`` (default: every angle, 3 cm on the root)."""
+    p = np.repeat(np.asarray(base, dtype=np.float64)[None], n, axis=0)
+    idx = np.arange(3, PARAM_COUNT) if indices is None else np.asarray(indices)
+    p[:, idx] += rng.uniform(-spread, spread, (n, len(idx)))
+    if indices is None:
+        p[:, 0:3] += rng.uniform(-0.03, 0.03, (n, 3))
+    return clip_to_limits(p)
+
+
+@pytest.fixture(scope="module")
+def frame(model, small_loaded):
+    seq, truth = small_loaded
+    f = seq.frames[0]
+    return FrameData(model, seq.studio, seq.silhouettes(f)), truth[f].params
+
+
+def setups(frame_data: FrameData, x: np.ndarray):
+    """(name, EnergySetup) for every kind of window the fitter uses."""
+    arm = CHAINS["left_arm"].segments
+    leg = CHAINS["right_leg"].segments
+    return [
+        ("full", frame_data.full_setup(x)),
+        ("half", frame_data.full_setup(x, half=True)),
+        ("arm128_prerender", replace(frame_data.window_setup(x, arm[:2], ARM_WINDOW, True), moving=arm)),
+        ("leg128", replace(frame_data.window_setup(x, leg[:2], ARM_WINDOW, False), moving=leg)),
+        ("head64_prerender", frame_data.window_setup(x, CHAINS["head"].segments, SMALL_WINDOW, True)),
+    ]
+
+
+def test_energy_is_the_popcount_of_render_xor_input(model, frame, rng):
+    data, truth = frame
+    for name, setup in setups(data, truth):
+        energy = CpuEnergy(model, setup)
+        poses = perturbed(truth, rng, 6)
+        for p in poses:
+            rendered = energy.render(p)
+            assert rendered.shape == setup.inputs.shape
+            assert rendered.any(), name
+            expected = np.count_nonzero(rendered ^ setup.inputs)
+            assert int(energy(p)[0]) == expected, name
+
+
+def test_energy_is_not_trivially_zero(model, frame):
+    """At the truth the model covers most of the input; far off it does not."""
+    data, truth = frame
+    energy = CpuEnergy(model, data.full_setup(truth))
+    e_truth = int(energy(truth)[0])
+    away = truth.copy()
+    away[0] += 0.3
+    assert 0 < e_truth < 0.5 * data.masks.sum()
+    assert int(energy(away)[0]) > 2 * e_truth
+
+
+def test_batch_equals_single_and_counts_evaluations(model, frame, rng):
+    data, truth = frame
+    for name, setup in setups(data, truth):
+        energy = make_energy("cpu", model, setup)
+        poses = perturbed(truth, rng, 9)
+        batch = energy(poses)
+        assert batch.shape == (9,) and batch.dtype.kind == "i"
+        single = np.array([int(energy(p)[0]) for p in poses])
+        np.testing.assert_array_equal(batch, single, err_msg=name)
+        assert energy.evaluations == 18
+
+
+def test_prerendered_equals_full_render_in_the_same_window(model, frame, rng):
+    """Pre-rendering the parts that do not move changes the cost, not the value."""
+    data, truth = frame
+    for chain, size in (("left_arm", ARM_WINDOW), ("right_leg", ARM_WINDOW), ("head", SMALL_WINDOW)):
+        segs = CHAINS[chain].segments
+        centre = segs[:2] if chain != "head" else segs
+        setup = replace(data.window_setup(truth, centre, size, True), moving=segs)
+        pre = CpuEnergy(model, setup)
+        full = CpuEnergy(model, replace(setup, prerender=False))
+        assert pre.static_mask.any()  # the torso is in the window and was pre-rendered
+        poses = perturbed(truth, rng, 12, spread=0.3, indices=CHAINS[chain].params)
+        np.testing.assert_array_equal(pre(poses), full(poses), err_msg=chain)
+
+
+def test_prerendered_parts_stay_where_they_were_rendered(model, frame):
+    """Moving a pre-rendered (static) part does not change the pre-rendered energy: the
+    equality above is not an accident of both renders moving everything."""
+    data, truth = frame
+    segs = CHAINS["left_arm"].segments
+    setup = replace(data.window_setup(truth, segs[:2], ARM_WINDOW, True), moving=segs)
+    pre, full = CpuEnergy(model, setup), CpuEnergy(model, replace(setup, prerender=False))
+    moved = truth.copy()
+    moved[0] += 0.05  # the root (torso) moves; the arm goes with it
+    assert pre(truth)[0] == full(truth)[0]
+    assert pre(moved)[0] != full(moved)[0]
+
+
+def test_make_energy_rejects_unknown_backend(model, frame):
+    data, truth = frame
+    with pytest.raises(ValueError, match="nope"):
+        make_energy("nope", model, data.full_setup(truth))
+
+
+# ------------------------------------------------------------- analytic vs tessellated
+
+def unit_sphere(n_lon: int, n_lat: int) -> tuple[np.ndarray, np.ndarray]:
+    """A UV sphere: (V, 3) vertices on the unit sphere, (T, 3) outward-wound triangles."""
+    theta = np.linspace(0.0, np.pi, n_lat + 1)[1:-1]
+    phi = np.linspace(0.0, 2 * np.pi, n_lon, endpoint=False)
+    ring = np.stack([np.outer(np.sin(theta), np.cos(phi)), np.outer(np.sin(theta), np.sin(phi)),
+                     np.repeat(np.cos(theta)[:, None], n_lon, axis=1)], axis=-1).reshape(-1, 3)
+    verts = np.concatenate([[[0.0, 0.0, 1.0]], ring, [[0.0, 0.0, -1.0]]])
+    j = np.arange(n_lon)
+    nxt = (j + 1) % n_lon
+    tris = [np.stack([np.zeros(n_lon, int), 1 + j, 1 + nxt], 1)]
+    for i in range(n_lat - 2):
+        a, b = 1 + i * n_lon + j, 1 + i * n_lon + nxt
+        tris += [np.stack([a, a + n_lon, b], 1), np.stack([b, a + n_lon, b + n_lon], 1)]
+    last, base = len(verts) - 1, 1 + (n_lat - 2) * n_lon
+    tris.append(np.stack([np.full(n_lon, last), base + nxt, base + j], 1))
+    return verts, np.concatenate(tris)
+
+
+def ellipsoid_mesh(model, params: np.ndarray, sphere) -> tuple[np.ndarray, np.ndarray]:
+    """The model's 16 posed ellipsoids as one triangle mesh: (V, 3) world vertices, (T, 3)."""
+    u, tri = sphere
+    pose = forward_kinematics(model, params)
+    centres, A = ellipsoid_world(model, pose.rotations, pose.origins, range(16))
+    verts = (np.einsum("sij,vj->svi", A[0], u) + centres[0][:, None]).reshape(-1, 3)
+    tris = (tri[None] + len(u) * np.arange(16)[:, None, None]).reshape(-1, 3)
+    return verts, tris
+
+
+def test_unit_sphere_mesh_is_closed():
+    verts, tris = unit_sphere(*SPHERE_SEGMENTS)
+    np.testing.assert_allclose(np.linalg.norm(verts, axis=1), 1.0)
+    edges = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)  # every edge shared by exactly two triangles
+
+
+def test_analytic_ellipsoids_match_a_tessellated_mesh(model):
+    from common.render_gl import MeshRenderer
+
+    studio = circle_studio(8, 320, 240)
+    rng = np.random.default_rng(7)
+    sphere = unit_sphere(*SPHERE_SEGMENTS)
+    base = rest_params(model)
+    base[0:2] = 0.0
+    renderer = None
+    for trial in range(3):
+        p = perturbed(base, rng, 1, spread=0.4)[0] if trial else base
+        verts, tris = ellipsoid_mesh(model, p, sphere)
+        if renderer is None:
+            renderer = MeshRenderer(studio, tris)
+        mesh = np.stack(renderer.render_masks(verts))
+        windows = tuple(Window(0, 0, c.width, c.height) for c in studio)
+        energy = CpuEnergy(model, EnergySetup(studio, windows, mesh, tuple(range(16)), p, prerender=False))
+        analytic = energy.render(p)
+        union = np.count_nonzero(analytic | mesh)
+        mismatch = np.count_nonzero(analytic ^ mesh)
+        assert union > 8 * 2000  # the body is in view of every camera
+        assert mismatch / union < MESH_MISMATCH, (trial, mismatch, union)
+        assert int(energy(p)[0]) == mismatch
+        # and the comparison can fail: ellipsoids 5% too fat differ by more than the bound
+        fat = EnergySetup(studio, windows, mesh, tuple(range(16)), p, prerender=False)
+        fat_model = replace(model, ellipsoid_radii=model.ellipsoid_radii * 1.05)
+        assert int(CpuEnergy(fat_model, fat)(p)[0]) / union > MESH_MISMATCH
+
+
+@pytest.mark.xfail(strict=True, reason="CpuEnergy projects ellipsoids with Camera.projection_matrix, which "
+                   "ignores lens distortion: with k1 = -0.2 the cpu silhouettes differ from the distorted "
+                   "render (MeshRenderer, energy_gl) by ~3.5% of the silhouette instead of ~0.25%")
+def test_analytic_ellipsoids_follow_lens_distortion(model):
+    from common.camera import Studio
+    from common.render_gl import MeshRenderer
+
+    studio = Studio(tuple(replace(c, dist=np.array([-0.2, 0.0, 0.0, 0.0, 0.0])) for c in circle_studio(8, 320, 240)))
+    p = rest_params(model)
+    p[0:2] = 0.0
+    verts, tris = ellipsoid_mesh(model, p, unit_sphere(*SPHERE_SEGMENTS))
+    mesh = np.stack(MeshRenderer(studio, tris).render_masks(verts))
+    windows = tuple(Window(0, 0, c.width, c.height) for c in studio)
+    analytic = CpuEnergy(model, EnergySetup(studio, windows, mesh, tuple(range(16)), p, prerender=False)).render(p)
+    assert np.count_nonzero(analytic ^ mesh) / np.count_nonzero(analytic | mesh) < MESH_MISMATCH

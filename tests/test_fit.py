@@ -1,0 +1,233 @@
+"""Fitting: chain solves and frames lower the energy and track the truth; `mocap fit` writes
+its result folder, resumes after a crash, and refuses bad input with one line and exit 2."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.body import CHAINS, JOINT_NAMES, LIMB_ROOTS, PARAM_COUNT, forward_kinematics
+from common.fitting import FitOptions, FrameData, fit_frame, full_energy, solve_chain
+from server.cli import main
+
+from conftest import SMALL_FRAMES
+
+# Measured on the small sequence (4 cameras 160x120, bundled walk, no noise, skinned surface),
+# fitting frames 0-2 from the truth of frame 0: per-frame mean joint error 7.6 / 13.1 / 16.0 mm,
+# mean 12.2 mm, max 39.0 mm; holding the previous frame's truth instead: 25.6 / 25.0 mm.
+MEAN_JOINT_ERROR_MM = 22.0
+MAX_JOINT_ERROR_MM = 60.0
+SUMMARY_KEYS = ("frames", "mode", "clients", "energy_backend", "seconds_per_frame", "wall_seconds",
+                "evaluations_per_frame", "mean_joint_error_mm", "max_joint_error_mm", "per_joint_error_mm")
+RECORD_KEYS = ("frame", "params", "joints", "energy", "seconds")
+
+
+def joint_errors_mm(model, params, truth_frame) -> np.ndarray:
+    fitted = forward_kinematics(model, params).joints[0]
+    true = np.array([truth_frame.joints[n] for n in JOINT_NAMES])
+    return np.linalg.norm(fitted - true, axis=1) * 1000.0
+
+
+@pytest.fixture(scope="module")
+def frames(model, small_loaded):
+    seq, truth = small_loaded
+    return [FrameData(model, seq.studio, seq.silhouettes(f)) for f in seq.frames], truth
+
+
+# --------------------------------------------------------------------------- library
+
+def test_fit_three_frames_from_the_truth_start(model, frames):
+    data, truth = frames
+    assert len(data) == SMALL_FRAMES
+    x = truth[0].params.copy()
+    errors = []
+    for f, frame in enumerate(data):
+        start_energy = full_energy(model, frame, x)
+        result = fit_frame(model, frame, x, FitOptions())
+        assert result.energy <= start_energy, f
+        assert result.energy == full_energy(model, frame, result.params)
+        assert np.isfinite(result.params).all() and result.params.shape == (PARAM_COUNT,)
+        assert result.evaluations > 0 and 1 <= result.iterations <= FitOptions().max_iterations
+        errors.append(joint_errors_mm(model, result.params, truth[f]))
+        x = result.params
+    errors = np.array(errors)
+    assert errors.mean() < MEAN_JOINT_ERROR_MM, errors.mean(axis=1)
+    assert errors.max() < MAX_JOINT_ERROR_MM
+    # fitting beats standing still: the previous frame's true pose is further from the truth
+    stale = np.array([joint_errors_mm(model, truth[f - 1].params, truth[f]).mean() for f in range(1, len(data))])
+    assert errors[1:].mean(axis=1).mean() < stale.mean()
+
+
+@pytest.mark.parametrize("chain", list(CHAINS))
+def test_solve_chain_lowers_its_energy_and_moves_only_its_parameters(model, frames, chain):
+    data, truth = frames
+    start = truth[0].params  # the pose of frame 0, fitted against frame 1's silhouettes
+    r = solve_chain(model, data[1], chain, start, FitOptions())
+    assert r.chain == chain
+    assert r.energy <= r.energy_before
+    assert r.evaluations > 0
+    changed = set(np.nonzero(r.params != start)[0])
+    own = set(CHAINS[chain].params)
+    if chain == "torso":  # the torso also re-expresses the limb roots (hold_limbs_in_world)
+        own |= {first + i for _, _, first in LIMB_ROOTS for i in range(3)}
+    assert changed <= own, sorted(changed - own)
+
+
+def test_solve_chain_is_deterministic(model, frames):
+    data, truth = frames
+    a = solve_chain(model, data[1], "left_leg", truth[0].params, FitOptions())
+    b = solve_chain(model, data[1], "left_leg", truth[0].params, FitOptions())
+    np.testing.assert_array_equal(a.params, b.params)
+    assert (a.energy, a.evaluations) == (b.energy, b.evaluations)
+
+
+def test_frame_data_refuses_mismatched_silhouettes(model, small_loaded):
+    seq, _ = small_loaded
+    masks = seq.silhouettes(seq.frames[0])
+    with pytest.raises(ValueError, match="cameras"):
+        FrameData(model, seq.studio, masks[:-1])
+    with pytest.raises(ValueError, match="cam1"):
+        FrameData(model, seq.studio, masks[:, :-2])
+
+
+def test_fit_options_validate_and_travel():
+    with pytest.raises(ValueError, match="energy"):
+        FitOptions(energy="quantum")
+    with pytest.raises(ValueError, match="grid_steps"):
+        FitOptions(grid_steps=4)
+    with pytest.raises(ValueError, match="bogus"):
+        FitOptions.from_wire({"bogus": 1})
+    opts = FitOptions(max_iterations=3, prerender=False)
+    assert FitOptions.from_wire(json.loads(json.dumps(opts.to_wire()))) == opts
+
+
+# ------------------------------------------------------------------------ mocap fit
+
+def fit(sequence: Path, out: Path, *args: str) -> int:
+    return main(["fit", str(sequence), "--out", str(out), "--quiet", *args])
+
+
+def read_lines(path: Path) -> list[dict]:
+    return [json.loads(line) for line in path.read_text().splitlines()]
+
+
+@pytest.fixture(scope="module")
+def fresh_result(small_sequence, tmp_path_factory):
+    out = tmp_path_factory.mktemp("fit") / "result"
+    assert fit(small_sequence, out, "--frames", "2") == 0
+    return out
+
+
+def test_mocap_fit_writes_the_result_folder(fresh_result, small_loaded):
+    from common.bvh import read_bvh
+
+    _, truth = small_loaded
+    records = read_lines(fresh_result / "poses.jsonl")
+    assert [r["frame"] for r in records] == [0, 1]
+    for r in records:
+        assert set(RECORD_KEYS) <= set(r)
+        assert len(r["params"]) == PARAM_COUNT and np.isfinite(r["params"]).all()
+        assert sorted(r["joints"]) == sorted(JOINT_NAMES)
+        assert isinstance(r["energy"], int) and r["energy"] >= 0
+        assert r["seconds"] > 0
+    summary = json.loads((fresh_result / "summary.json").read_text())
+    assert set(SUMMARY_KEYS) <= set(summary), sorted(set(SUMMARY_KEYS) - set(summary))
+    assert summary["frames"] == 2
+    assert (summary["mode"], summary["clients"], summary["energy_backend"]) == ("single", 0, "cpu")
+    assert summary["seconds_per_frame"] > 0 and summary["wall_seconds"] > 0
+    assert summary["evaluations_per_frame"] > 0
+    assert sorted(summary["per_joint_error_mm"]) == sorted(JOINT_NAMES)
+    # the accuracy in the summary is the accuracy of the records against truth.jsonl
+    errs = np.array([[np.linalg.norm(np.subtract(r["joints"][n], truth[r["frame"]].joints[n])) * 1000
+                      for n in JOINT_NAMES] for r in records])
+    assert summary["mean_joint_error_mm"] == pytest.approx(errs.mean(), rel=1e-9)
+    assert summary["max_joint_error_mm"] == pytest.approx(errs.max(), rel=1e-9)
+    assert summary["mean_joint_error_mm"] < MEAN_JOINT_ERROR_MM
+    motion = read_bvh(fresh_result / "motion.bvh")
+    assert motion.num_frames == 2
+
+
+def test_mocap_fit_resume_after_a_crash(fresh_result, small_sequence, tmp_path):
+    fresh = (fresh_result / "poses.jsonl").read_text().splitlines(keepends=True)
+    out = tmp_path / "result"
+    out.mkdir()
+    torn = fresh[1][: len(fresh[1]) // 3]  # a crash in the middle of writing frame 1
+    (out / "poses.jsonl").write_text(fresh[0] + torn)
+    assert fit(small_sequence, out, "--frames", "2", "--resume") == 0
+    resumed = read_lines(out / "poses.jsonl")
+    first, second = json.loads(fresh[0]), json.loads(fresh[1])
+    assert [r["frame"] for r in resumed] == [0, 1]
+    assert resumed[0] == first  # kept as it was
+    assert resumed[1]["params"] == second["params"]  # the same pose as an uninterrupted run
+    assert resumed[1]["energy"] == second["energy"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 2 and summary["frames_fitted_this_run"] == 1
+    assert (out / "motion.bvh").is_file()
+
+
+def test_mocap_fit_resume_refuses_a_foreign_result(small_sequence, tmp_path, capsys):
+    out = tmp_path / "result"
+    out.mkdir()
+    (out / "poses.jsonl").write_text(json.dumps({"frame": 7, "params": [0.0] * 35}) + "\n")
+    assert fit(small_sequence, out, "--frames", "2", "--resume") == 2
+    err = capsys.readouterr().err
+    assert "poses.jsonl" in err and "resume" in err
+
+
+@pytest.fixture
+def broken_copy(small_sequence, tmp_path) -> Path:
+    seq = tmp_path / "seq"
+    shutil.copytree(small_sequence, seq)
+    return seq
+
+
+def _expect_user_error(capsys, rc: int, *needles: str) -> str:
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("mocap fit: error:")
+    for needle in needles:
+        assert needle in err, err
+    return err
+
+
+def test_fit_missing_sequence_folder(tmp_path, capsys):
+    rc = fit(tmp_path / "no_such_sequence", tmp_path / "out", "--frames", "2")
+    _expect_user_error(capsys, rc, "no_such_sequence")
+
+
+def test_fit_corrupt_calibration(broken_copy, tmp_path, capsys):
+    (broken_copy / "calibration.json").write_text('{"cameras": [')
+    rc = fit(broken_copy, tmp_path / "out", "--frames", "2")
+    _expect_user_error(capsys, rc, str(broken_copy / "calibration.json"))
+
+
+def test_fit_calibration_with_a_bad_rotation(broken_copy, tmp_path, capsys):
+    path = broken_copy / "calibration.json"
+    doc = json.loads(path.read_text())
+    doc["cameras"][1]["R"] = (2.0 * np.array(doc["cameras"][1]["R"])).tolist()
+    path.write_text(json.dumps(doc))
+    rc = fit(broken_copy, tmp_path / "out", "--frames", "2")
+    _expect_user_error(capsys, rc, "calibration.json", "cam2.R")
+
+
+def test_fit_silhouette_of_the_wrong_size(broken_copy, tmp_path, capsys):
+    from common.sequence import write_mask_png
+
+    png = broken_copy / "silhouettes" / "cam2" / "000000.png"
+    write_mask_png(png, np.zeros((60, 80), dtype=bool))
+    rc = fit(broken_copy, tmp_path / "out", "--frames", "2")
+    _expect_user_error(capsys, rc, str(png), "80x60")
+
+
+def test_fit_truncated_png_keeps_the_frames_already_fitted(broken_copy, tmp_path, capsys):
+    png = broken_copy / "silhouettes" / "cam3" / "000001.png"
+    png.write_bytes(png.read_bytes()[:60])
+    out = tmp_path / "out"
+    rc = fit(broken_copy, out, "--frames", "2")
+    _expect_user_error(capsys, rc, str(png))
+    # frame 0 was fitted and written before frame 1's silhouettes were read
+    assert [r["frame"] for r in read_lines(out / "poses.jsonl")] == [0]
