@@ -1,67 +1,209 @@
 """Fitted motion out: BVH (Blender, MotionBuilder), C3D and TRC of joint positions, JSON lines, CSV.
 
-Axis conventions of the files we write: BVH is Y-up, the actor facing +Z at rest, centimetres
-(what Blender's importer and most tools expect; Blender turns it Z-up on import). C3D and TRC
-keep our world: Z-up, millimetres, the same as most lab systems and OpenSim's defaults.
+Axis conventions of the files we write (docs/exports.md has the full table):
+- BVH: Y up, the actor facing +Z in the rest pose, centimetres. Blender's importer (default
+  forward -Z, up Y) turns this into its Z-up world, which is then exactly our world: x to the
+  actor's left at rest, the actor facing -y, z up.
+- C3D: our world unchanged, Z up, millimetres (the usual lab convention; POINT:X_SCREEN/Y_SCREEN
+  say so to viewers such as Mokka).
+- TRC: OpenSim's convention, Y up, the actor's rest forward along +X, Z to its right, millimetres.
+- CSV and JSON lines: our world, Z up, metres.
+
+Every writer takes a ``FittedMotion``: frame numbers, frame rate, per-frame parameters and joint
+positions, and the body model (with the fitted actor's segment lengths) that turns one into the
+other.
 """
 from __future__ import annotations
 
 import csv
 import json
+import warnings
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from common.body import (
-    HEAD_TOP_SEGMENT, JOINT_NAMES, SEGMENT_PARENTS, BodyModel, forward_kinematics,
-    local_rotations,
+    HEAD_TOP_SEGMENT, JOINT_NAMES, PARAM_COUNT, PARAM_NAMES, SEGMENT_PARENTS, BodyModel,
+    forward_kinematics, joints_dict, load_body_model, local_rotations,
 )
-from common.bvh import BvhMotion, write_bvh
+from common.bvh import BvhMotion, bvh_global_transforms, end_site_positions, write_bvh
+from common.errors import UserError
+
+FORMATS = ("bvh", "c3d", "trc", "json", "csv")
+SUFFIXES = {"bvh": ".bvh", "c3d": ".c3d", "trc": ".trc", "json": ".jsonl", "csv": ".csv"}
 
 BVH_UNITS_PER_M = 100.0  # centimetres
+MM_PER_M = 1000.0
 # our world (z up, facing -y) -> BVH world (y up, facing +z)
 TO_BVH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+# our world -> OpenSim (y up, rest forward +x, z to the right)
+TO_OPENSIM = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])
 ROT_CHANNELS = ("Zrotation", "Xrotation", "Yrotation")
-BVH_JOINT_NAMES = (
-    "Hips", "Spine", "Chest", "Head",
+# BVH joints per body segment (a joint sits at its segment's proximal end); the head segment
+# is split into Neck (which carries its rotation) and Head (fixed, HEAD_JOINT_FRACTION of the
+# way to the top of the head), the layout Blender rigs and BVH importers, ours included, expect.
+SEGMENT_BVH_NAMES = (
+    "Hips", "Spine", "Chest", "Neck",
     "LeftArm", "LeftForeArm", "LeftHand", "RightArm", "RightForeArm", "RightHand",
     "LeftUpLeg", "LeftLeg", "LeftFoot", "RightUpLeg", "RightLeg", "RightFoot",
 )
+HEAD_JOINT = "Head"
+HEAD_JOINT_FRACTION = 0.35  # of neck -> head top: about the base of the skull
+BVH_JOINT_NAMES = SEGMENT_BVH_NAMES[:4] + (HEAD_JOINT,) + SEGMENT_BVH_NAMES[4:]  # file (depth-first) order
 EXTREMITY_END_SCALE = 2.0  # End Sites of hands and feet: twice the ellipsoid centre's offset
+ACTOR_TOLERANCE_M = 1e-6   # recorded joints vs forward kinematics of the rebuilt actor
+C3D_LABEL_LENGTH = 16      # characters per C3D point label
+
+
+@dataclass(frozen=True)
+class FittedMotion:
+    """A fitted sequence ready to export.
+
+    frames: (F,) int frame numbers; fps: frames per second; params: (F, 35);
+    joints: (F, 17, 3) world joint positions, metres (as recorded by the fit);
+    model: the actor whose forward kinematics turns params into joints.
+    """
+
+    frames: np.ndarray
+    fps: float
+    params: np.ndarray
+    joints: np.ndarray
+    model: BodyModel
+
+    @property
+    def times(self) -> np.ndarray:
+        """(F,) seconds from the first frame (frame numbers may skip)."""
+        return (self.frames - self.frames[0]) / self.fps
+
+    @classmethod
+    def from_records(cls, records: list[dict], fps: float, source: str = "poses.jsonl",
+                     base: BodyModel | None = None) -> "FittedMotion":
+        """poses.jsonl records (frame, params, joints {name: [x, y, z]}) -> FittedMotion."""
+        if not records:
+            raise UserError(f"{source}: no fitted frames to export")
+        if not (np.isfinite(fps) and fps > 0):
+            raise UserError(f"{source}: frame rate must be positive, got {fps!r}")
+        try:
+            frames = np.array([int(r["frame"]) for r in records])
+            params = np.array([r["params"] for r in records], dtype=np.float64)
+            joints = np.array([[r["joints"][n] for n in JOINT_NAMES] for r in records], dtype=np.float64)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise UserError(f"{source}: not a poses record ({exc!r})") from None
+        if params.shape != (len(records), PARAM_COUNT) or joints.shape != (len(records), len(JOINT_NAMES), 3):
+            raise UserError(f"{source}: expected {PARAM_COUNT} params and {len(JOINT_NAMES)} joints per frame")
+        model = actor_from_joints(base or load_body_model(), params, joints, source)
+        return cls(frames, float(fps), params, joints, model)
+
+
+def actor_from_joints(base: BodyModel, params: np.ndarray, joints: np.ndarray,
+                      source: str = "poses.jsonl") -> BodyModel:
+    """The actor whose segment lengths the recorded joints show: ``base`` rescaled per segment.
+
+    params (F, 35), joints (F, 17, 3). A uniform size change scales the whole body (mesh and
+    ellipsoids); what remains per segment stretches that segment along its rest direction,
+    which leaves every hinge axis as it was. Raises UserError when the joints cannot come from
+    the body model at all (a result made with another model).
+    """
+    parents = np.array(SEGMENT_PARENTS[1:] + (HEAD_TOP_SEGMENT,))
+    children = np.arange(1, 17)
+    rec = np.linalg.norm(joints[:, children] - joints[:, parents], axis=-1).mean(axis=0)  # (16,)
+    rest = np.linalg.norm(base.joint_rest[children] - base.joint_rest[parents], axis=-1)
+    ratio = rec / rest
+    scale = float(np.median(ratio))
+    model = base.scaled(scale) if abs(scale - 1.0) > 1e-12 else base
+    stretch = ratio / scale
+    if np.any(np.abs(stretch - 1.0) > 1e-12):
+        jr = model.joint_rest.copy()
+        offsets = model.joint_rest[children] - model.joint_rest[parents]
+        for i, (c, p) in enumerate(zip(children, parents)):  # parents come first
+            jr[c] = jr[p] + offsets[i] * stretch[i]
+        seg = model.vertex_segment.astype(np.int64)
+        vertices = model.vertices + (jr[seg] - model.joint_rest[seg])
+        model = replace(model, joint_rest=jr, vertices=vertices)
+    err = np.abs(forward_kinematics(model, params).joints - joints).max()
+    if err > ACTOR_TOLERANCE_M:
+        raise UserError(f"{source}: joints differ from the body model's forward kinematics of params by "
+                        f"{err * 1000:.3f} mm; this result was fitted with another body model")
+    return model
+
+
+# ----------------------------------------------------------------------------------------- BVH
+
+def continuous_euler_zxy(R: np.ndarray) -> np.ndarray:
+    """(F, 3, 3) rotations -> (F, 3) intrinsic Z-X-Y Euler angles, degrees, R = Rz Rx Ry.
+
+    Of the two Euler triples of each rotation (and their 360 degree shifts) the one nearest to
+    the previous frame's, so that curves in Blender's graph editor do not jump.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # gimbal lock: scipy still returns a valid triple
+        e = Rotation.from_matrix(R).as_euler("ZXY")
+    alt = np.stack([e[:, 0] + np.pi, np.pi - e[:, 1], e[:, 2] + np.pi], axis=1)
+    out = np.empty_like(e)
+    out[0] = e[0]
+    for f in range(1, len(e)):
+        best, best_d = None, np.inf
+        for cand in (e[f], alt[f]):
+            c = cand + 2.0 * np.pi * np.round((out[f - 1] - cand) / (2.0 * np.pi))
+            d = np.abs(c - out[f - 1]).sum()
+            if d < best_d:
+                best, best_d = c, d
+        out[f] = best
+    return np.degrees(out)
 
 
 def params_to_bvh(model: BodyModel, params: np.ndarray, frame_time: float) -> BvhMotion:
-    """(F, 35) fitted parameters -> a BvhMotion in BVH conventions (Y up, cm)."""
+    """(F, 35) fitted parameters -> a BvhMotion in BVH conventions (Y up, cm).
+
+    One joint per segment at its proximal joint, plus the fixed Head joint; the head, hands and
+    feet end in End Sites (the head's is the head_top joint). Offsets are the actor's rest
+    segments. Joints are in depth-first order, as the file lists them.
+    """
     p = np.atleast_2d(params)
-    F = len(p)
     local = local_rotations(model, p)
     C = TO_BVH
-    offsets = (model.offsets @ C.T) * BVH_UNITS_PER_M
-    offsets[0] = 0.0
-    cols = []
-    root_pos = (p[:, 0:3] @ C.T) * BVH_UNITS_PER_M
+    seg_offsets = (model.offsets @ C.T) * BVH_UNITS_PER_M
+    seg_offsets[0] = 0.0  # the root's position comes from its channels
+    head_top = C @ model.head_top_offset * BVH_UNITS_PER_M
+    seg_euler = [continuous_euler_zxy(C @ local[:, s] @ C.T) for s in range(16)]
+    index = {s: (s if s <= HEAD_TOP_SEGMENT else s + 1) for s in range(16)}  # segment -> BVH joint
+    head = HEAD_TOP_SEGMENT + 1
+    parents = np.empty(17, dtype=np.int64)
+    offsets = np.empty((17, 3))
+    cols = [None] * 17
     for s in range(16):
-        R = C @ local[:, s] @ C.T
-        euler = Rotation.from_matrix(R).as_euler("ZXY", degrees=True)  # intrinsic: Rz Rx Ry
-        if s == 0:
-            cols.append(root_pos)
-        cols.append(euler)
-    values = np.concatenate(cols, axis=1)
-    channels = [("Xposition", "Yposition", "Zposition") + ROT_CHANNELS] + [ROT_CHANNELS] * 15
-    end_parents, end_offsets = [], []
-    children = {p_ for p_ in SEGMENT_PARENTS if p_ >= 0}
-    for s in range(16):
-        if s in children:
-            continue
-        if s == HEAD_TOP_SEGMENT:
-            off = model.head_top_offset
-        else:
-            off = model.ellipsoid_centres[s] * EXTREMITY_END_SCALE
-        end_parents.append(s)
-        end_offsets.append(C @ off * BVH_UNITS_PER_M)
-    return BvhMotion(BVH_JOINT_NAMES, np.array(SEGMENT_PARENTS), offsets, channels,
-                     np.array(end_parents), np.array(end_offsets), frame_time, values, "silhouette-mocap")
+        j = index[s]
+        parents[j] = index[SEGMENT_PARENTS[s]] if SEGMENT_PARENTS[s] >= 0 else -1
+        offsets[j] = seg_offsets[s]
+        cols[j] = seg_euler[s]
+    parents[head], offsets[head] = HEAD_TOP_SEGMENT, HEAD_JOINT_FRACTION * head_top
+    cols[head] = np.zeros((len(p), 3))
+    cols[0] = np.concatenate([(p[:, 0:3] @ C.T) * BVH_UNITS_PER_M, cols[0]], axis=1)
+    channels = [("Xposition", "Yposition", "Zposition") + ROT_CHANNELS] + [ROT_CHANNELS] * 16
+    end_parents = [head]
+    end_offsets = [(1.0 - HEAD_JOINT_FRACTION) * head_top]
+    for s in (6, 9, 12, 15):  # hands and feet
+        end_parents.append(index[s])
+        end_offsets.append(C @ model.ellipsoid_centres[s] * EXTREMITY_END_SCALE * BVH_UNITS_PER_M)
+    return BvhMotion(BVH_JOINT_NAMES, parents, offsets, channels, np.array(end_parents), np.array(end_offsets),
+                     frame_time, np.concatenate(cols, axis=1), "silhouette-mocap")
+
+
+def bvh_to_world_joints(motion: BvhMotion) -> np.ndarray:
+    """A BVH we wrote (possibly re-saved by another tool) -> (F, 17, 3) joints, our world, metres.
+
+    Joints are found by name, so another tool's joint order does not matter.
+    """
+    pos, rot = bvh_global_transforms(motion)
+    ends = end_site_positions(motion, transforms=(pos, rot))
+    out = np.empty((motion.num_frames, len(JOINT_NAMES), 3))
+    for s, name in enumerate(SEGMENT_BVH_NAMES):
+        out[:, s] = pos[:, motion.joint_index(name)]
+    head = motion.joint_index(HEAD_JOINT)
+    out[:, 16] = ends[:, list(motion.end_site_parents).index(head)]
+    return bvh_joint_positions_to_world(out)
 
 
 def bvh_joint_positions_to_world(positions: np.ndarray) -> np.ndarray:
@@ -73,59 +215,74 @@ def write_motion_bvh(path, model: BodyModel, params: np.ndarray, fps: float) -> 
     write_bvh(path, params_to_bvh(model, params, 1.0 / fps))
 
 
-def joint_positions(model: BodyModel, params: np.ndarray) -> np.ndarray:
-    """(F, 35) -> (F, 17, 3) world joint positions, metres."""
-    return forward_kinematics(model, np.atleast_2d(params)).joints
+def write_bvh_export(path, motion: FittedMotion) -> None:
+    write_motion_bvh(path, motion.model, motion.params, motion.fps)
 
 
-def write_trc(path, joints: np.ndarray, fps: float, frames: list[int]) -> None:
-    """OpenSim TRC marker file of joint positions in millimetres, Z up."""
-    F, J, _ = joints.shape
-    names = JOINT_NAMES
+# ------------------------------------------------------------------------- joint positions
+
+def write_trc(path, motion: FittedMotion) -> None:
+    """OpenSim TRC marker file: one marker per joint, millimetres, Y up (OpenSim's axes)."""
+    F, J, _ = motion.joints.shape
+    fps = motion.fps
+    pts = (motion.joints @ TO_OPENSIM.T) * MM_PER_M
     lines = [
         f"PathFileType\t4\t(X/Y/Z)\t{Path(path).name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
         f"{fps:g}\t{fps:g}\t{F}\t{J}\tmm\t{fps:g}\t1\t{F}",
-        "Frame#\tTime\t" + "\t\t\t".join(names) + "\t\t",
+        "Frame#\tTime\t" + "\t\t\t".join(JOINT_NAMES),
         "\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(J)),
         "",
     ]
     for i in range(F):
-        vals = "\t".join(f"{v:.4f}" for v in (joints[i] * 1000.0).reshape(-1))
-        lines.append(f"{i + 1}\t{i / fps:.6f}\t{vals}")
+        vals = "\t".join(f"{v:.5f}" for v in pts[i].reshape(-1))
+        lines.append(f"{i + 1}\t{motion.times[i]:.6f}\t{vals}")
     Path(path).write_text("\n".join(lines) + "\n")
 
 
-def write_csv(path, joints: np.ndarray, params: np.ndarray, frames: list[int], fps: float) -> None:
-    from common.body import PARAM_NAMES
-
+def write_csv(path, motion: FittedMotion) -> None:
+    """One row per frame: frame, time, joint positions (metres, Z up), the 35 parameters."""
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["frame", "time_s"] + [f"{n}_{a}_m" for n in JOINT_NAMES for a in "xyz"] + list(PARAM_NAMES))
-        for i, f in enumerate(frames):
-            w.writerow([f, f"{i / fps:.6f}"] + [f"{v:.6f}" for v in joints[i].reshape(-1)]
-                       + [f"{v:.6f}" for v in params[i]])
+        for i, f in enumerate(motion.frames):
+            w.writerow([int(f), f"{motion.times[i]:.6f}"] + [repr(float(v)) for v in motion.joints[i].reshape(-1)]
+                       + [repr(float(v)) for v in motion.params[i]])
 
 
-def write_jsonl(path, joints: np.ndarray, params: np.ndarray, frames: list[int], fps: float) -> None:
-    from common.body import joints_dict
-
+def write_jsonl(path, motion: FittedMotion) -> None:
+    """One JSON object per line: frame, time, params (35), joints {name: [x, y, z]} (metres, Z up)."""
     with open(path, "w") as fh:
-        for i, f in enumerate(frames):
-            fh.write(json.dumps({"frame": int(f), "time": i / fps, "params": [float(v) for v in params[i]],
-                                 "joints": joints_dict(joints[i])}) + "\n")
+        for i, f in enumerate(motion.frames):
+            fh.write(json.dumps({"frame": int(f), "time": float(motion.times[i]),
+                                 "params": [float(v) for v in motion.params[i]],
+                                 "joints": joints_dict(motion.joints[i])}) + "\n")
 
 
-def write_c3d(path, joints: np.ndarray, fps: float) -> None:
-    """C3D point data of joint positions (millimetres, Z up) via the ``c3d`` package."""
+def write_c3d(path, motion: FittedMotion) -> None:
+    """C3D point data of joint positions: millimetres, Z up, float storage, POINT:RATE = fps."""
     import c3d
 
-    writer = c3d.Writer(point_rate=float(fps), point_units="mm")
-    writer.set_point_labels([n.ljust(16)[:16] for n in JOINT_NAMES])
-    for frame in joints * 1000.0:
+    writer = c3d.Writer(point_rate=float(motion.fps), analog_rate=0.0, point_scale=-1.0, point_units="mm  ")
+    writer.set_point_labels([n[:C3D_LABEL_LENGTH].ljust(C3D_LABEL_LENGTH) for n in JOINT_NAMES])
+    writer.set_screen_axis(X="+X", Y="+Z")  # viewers: x to the right, z up on screen
+    no_analog = np.zeros((0, 0), dtype=np.float32)
+    for frame in motion.joints * MM_PER_M:
         points = np.zeros((len(JOINT_NAMES), 5), dtype=np.float32)
-        points[:, :3] = frame
-        writer.add_frames([(points, np.zeros((0,), dtype=np.float32))])
-    with open(path, "wb") as fh:
+        points[:, :3] = frame  # column 3: residual 0 = valid; column 4: camera mask
+        writer.add_frames([(points, no_analog)])
+    with open(path, "wb") as fh, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "No analog data", UserWarning)  # we write none, on purpose
         writer.write(fh)
 
+
+WRITERS = {"bvh": write_bvh_export, "c3d": write_c3d, "trc": write_trc, "json": write_jsonl, "csv": write_csv}
+
+
+def export_motion(fmt: str, path, motion: FittedMotion) -> Path:
+    """Write ``motion`` as ``fmt`` (one of FORMATS) to ``path``; returns the path."""
+    if fmt not in WRITERS:
+        raise UserError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    path = Path(path)
+    WRITERS[fmt](path, motion)
+    return path

@@ -1,0 +1,62 @@
+"""``mocap report``: RESULT/report.html (self-contained) and the pictures in RESULT/pictures/.
+
+    mocap report RESULT [--sequence SEQ] [--fps FPS] [--frames 0,30,60] [--cameras cam1,cam3] [--out FILE]
+                        [--no-pictures] [--no-gif] [--quiet] [--json]
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from common.errors import UserError
+from server.pictures import make_result_pictures
+from server.report import write_report
+
+
+def _int_list(text: str | None, option: str) -> list[int] | None:
+    if text is None:
+        return None
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise UserError(f"{option}: expected comma-separated frame numbers such as 0,30,60, got {text!r}") from None
+
+
+def _name_list(text: str | None) -> list[str] | None:
+    return None if text is None else [v.strip() for v in text.split(",") if v.strip()]
+
+
+def register(sub) -> None:
+    p = sub.add_parser("report", help="write RESULT/report.html and pictures of a fit",
+                       description="Write a self-contained report page (summary, plots, overlays, 3D player) "
+                                   "and pictures (overlays, 3D views, GIF, plots) of a result folder.")
+    p.add_argument("result", type=Path, help="result folder (poses.jsonl from mocap fit)")
+    p.add_argument("--sequence", type=Path, default=None, help="the fitted sequence, if it moved since the fit")
+    p.add_argument("--fps", type=float, default=None, help="frame rate, when the sequence is not available")
+    p.add_argument("--frames", default=None, help="frame numbers to picture, comma-separated (default: a few)")
+    p.add_argument("--cameras", default=None, help="camera names for overlays, comma-separated (default: up to 4)")
+    p.add_argument("--out", type=Path, default=None, help="report file (default RESULT/report.html)")
+    p.add_argument("--no-pictures", action="store_true", help="only the report page, no RESULT/pictures/")
+    p.add_argument("--no-gif", action="store_true", help="no sequence.gif (the slowest picture)")
+    p.add_argument("--quiet", action="store_true", help="print nothing")
+    p.add_argument("--json", action="store_true", help="print the written paths as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    if args.fps is not None and not args.fps > 0:
+        raise UserError(f"--fps must be positive, got {args.fps}")
+    frames = _int_list(args.frames, "--frames")
+    cameras = _name_list(args.cameras)
+    pictures = []
+    if not args.no_pictures:
+        pictures = make_result_pictures(args.result, args.sequence, frames, cameras, gif=not args.no_gif,
+                                        quiet=args.quiet or args.json, fps=args.fps)
+    report = write_report(args.result, args.sequence, frames, cameras, out=args.out, fps=args.fps)
+    if args.json:
+        print(json.dumps({"report": str(report), "pictures": [str(p) for p in pictures]}, indent=1))
+    elif not args.quiet:
+        if pictures:
+            print(f"wrote {len(pictures)} pictures in {pictures[0].parent}")
+        print(f"report: {report}")
+    return 0
