@@ -25,7 +25,7 @@ from common.body import (
     hold_limbs_in_world,
 )
 from common import optimize
-from common.camera import Studio
+from common.camera import Camera, Studio, distort_normalized
 from common.energy import (
     ARM_WINDOW, SMALL_WINDOW, EnergySetup, Window, centred_window, cut_window, make_energy,
 )
@@ -56,6 +56,8 @@ class FitOptions:
     prerender: bool = True
     torso_half_resolution: bool = True  # the paper's 160x120 torso energy
     spine_twist_prior: float = 300.0    # energy units (pixels) per rad^2 of spine twist
+    torso_grid_steps: int = 5           # grid over pelvis heading x spine twist before Powell
+    torso_grid_range_rad: float = 0.2
 
     def __post_init__(self):
         if self.energy not in ENERGY_BACKENDS:
@@ -98,8 +100,46 @@ class FrameResult:
     wall_seconds: float = 0.0
 
 
+_UNDISTORT_MAPS: dict = {}
+
+
+def undistort_map(cam: Camera) -> np.ndarray:
+    """(H, W) flat indices into the distorted image for each pixel of the ideal pinhole image."""
+    key = (cam.K.tobytes(), cam.dist.tobytes(), cam.width, cam.height)
+    if key not in _UNDISTORT_MAPS:
+        v, u = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
+        fx, s_, cx, fy, cy = cam.K[0, 0], cam.K[0, 1], cam.K[0, 2], cam.K[1, 1], cam.K[1, 2]
+        y = (v - cy) / fy
+        x = (u - cx - s_ * y) / fx
+        xd, yd = distort_normalized(x, y, cam.dist)
+        ud = np.rint(fx * xd + s_ * yd + cx).astype(np.int64)
+        vd = np.rint(fy * yd + cy).astype(np.int64)
+        inside = (ud >= 0) & (ud < cam.width) & (vd >= 0) & (vd < cam.height)
+        _UNDISTORT_MAPS[key] = np.where(inside, vd * cam.width + ud, -1)
+    return _UNDISTORT_MAPS[key]
+
+
+def undistort_masks(studio: Studio, masks: np.ndarray) -> tuple[Studio, np.ndarray]:
+    """Silhouettes resampled into ideal pinhole images (same K, no distortion), and that studio.
+
+    Fitting works in undistorted images so that every energy backend projects with plain
+    pinhole cameras and agrees; a mask is resampled once per frame (nearest pixel).
+    """
+    if not any(c.has_distortion for c in studio):
+        return studio, masks
+    cams, out = [], []
+    for cam, mask in zip(studio, masks):
+        if cam.has_distortion:
+            idx = undistort_map(cam)
+            mask = np.where(idx >= 0, mask.reshape(-1)[np.maximum(idx, 0)], False)
+            cam = replace(cam, dist=np.zeros_like(cam.dist))
+        cams.append(cam)
+        out.append(mask)
+    return Studio(tuple(cams), studio.source), np.stack(out)
+
+
 class FrameData:
-    """One frame's input silhouettes at full and half resolution, and its studio."""
+    """One frame's input silhouettes (undistorted) at full and half resolution, and its studio."""
 
     def __init__(self, model: BodyModel, studio: Studio, masks: np.ndarray):
         self.model = model
@@ -110,6 +150,8 @@ class FrameData:
             if m.shape != (cam.height, cam.width):
                 raise ValueError(f"silhouette of {cam.name} is {m.shape[1]}x{m.shape[0]}, "
                                  f"calibration says {cam.width}x{cam.height}")
+        self.original_studio = studio
+        studio, masks = undistort_masks(studio, masks)
         self.studio = studio
         self.masks = masks
         self.half_studio = Studio(tuple(
@@ -164,16 +206,16 @@ def powell(energy, x0: np.ndarray, indices, steps: np.ndarray, options: FitOptio
     return candidates(res.x[None])[0], res.fun, res.nfev, res.nit
 
 
-def grid_search(energy, x0: np.ndarray, indices, options: FitOptions):
-    """Batched grid over ``indices`` around x0 (the paper's limb grid search).
-
-    Returns (best params (35,), its energy, evaluations).
-    """
+def grid_search(energy, x0: np.ndarray, indices, steps: int, half_range: float, complete=None):
+    """Batched grid of ``steps`` points per parameter over +-half_range around x0 (the paper's
+    limb grid search). Returns (best params (35,), its energy, evaluations)."""
     idx = np.asarray(indices)
-    offsets = np.linspace(-options.grid_range_rad, options.grid_range_rad, options.grid_steps)
+    offsets = np.linspace(-half_range, half_range, steps)
     grid = np.array(list(product(offsets, repeat=len(idx))))
     cand = np.repeat(np.asarray(x0, dtype=np.float64)[None], len(grid), axis=0)
     cand[:, idx] = np.clip(cand[:, idx] + grid, PARAM_LIMITS[idx, 0], PARAM_LIMITS[idx, 1])
+    if complete:
+        cand = complete(cand)
     energies = energy(cand)
     best = int(np.argmin(energies))  # ties -> the first, which is deterministic
     return cand[best], float(energies[best]), len(cand)
@@ -223,8 +265,18 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             idx = CHAINS["torso"].params
             steps = np.array([options.torso_step_m] * 3 + [options.torso_step_rad] * 6)
             reference = x.copy()
-            x, energy_value, n, it = powell(energy, x, idx, steps, options, options.max_evals_torso,
-                                            complete=lambda c: clip_to_limits(hold_limbs_in_world(model, c, reference)))
+
+            def hold(c):
+                return clip_to_limits(hold_limbs_in_world(model, c, reference))
+
+            n = 0
+            if options.torso_grid_steps > 1:
+                # the pelvis heading against the spine twist is the torso's flattest valley:
+                # search it on a grid first, as the paper does for the limbs
+                x, _, n = grid_search(energy, x, (P["root_heading"], P["spine_z"]), options.torso_grid_steps,
+                                      options.torso_grid_range_rad, complete=hold)
+            x, energy_value, n2, it = powell(energy, x, idx, steps, options, options.max_evals_torso, complete=hold)
+            n += n2
         elif chain == "head":
             setup = frame.window_setup(x, CHAINS["head"].segments, SMALL_WINDOW, options.prerender)
             energy = make_energy(backend, model, setup)
@@ -240,7 +292,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             before = before if before is not None else int(energy(x)[0])
             n = 0
             if backend == _stage_backends(options)[0] and options.grid_steps > 1:
-                x, _, n = grid_search(energy, x, proximal, options)
+                x, _, n = grid_search(energy, x, proximal, options.grid_steps, options.grid_range_rad)
             steps = np.full(len(proximal), options.limb_step_rad)
             x, _, n2, it = powell(energy, x, proximal, steps, options, options.max_evals_limb)
             n += n2

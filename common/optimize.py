@@ -65,7 +65,8 @@ def line_search(f: _Counter, x: np.ndarray, fx: float, d: np.ndarray, lo, hi, to
         cands = cands[~np.isin(cands, ts)]
         if cands.size == 0 or f.spent:
             return
-        vals = f(x[None] + cands[:, None] * d[None])
+        # clip the points too: x + t d can land one rounding step outside the box
+        vals = f(np.clip(x[None] + cands[:, None] * d[None], lo, hi))
         ts, fs = np.concatenate([ts, cands]), np.concatenate([fs, vals])
 
     probe(BRACKET)

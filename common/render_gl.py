@@ -110,6 +110,14 @@ void main() { out_value = float(label + 1) / 255.0; }
         self.fbos = {}
         self.moderngl = moderngl
 
+    def set_triangle_labels(self, triangle_labels: np.ndarray) -> None:
+        """(T,) new per-triangle labels (e.g. shading levels) for later render_labels calls."""
+        labels = np.repeat(np.asarray(triangle_labels, dtype=np.float64), 3).astype("f4")
+        if labels.size != self.labels.size:
+            raise ValueError(f"expected {self.labels.size // 3} labels, got {labels.size // 3}")
+        self.labels = labels
+        self.lbo.write(labels.tobytes())
+
     def _fbo(self, width: int, height: int):
         key = (width, height)
         if key not in self.fbos:

@@ -15,7 +15,7 @@ EXIT_OK = 0
 EXIT_USAGE = 2  # bad input: missing/corrupt files, bad calibration, wrong arguments
 
 COMMAND_MODULES = (
-    "calib", "synth", "fit", "server", "bench", "segment", "import_video", "voxels", "live", "export",
+    "calib", "synth", "fit", "server", "bench", "segment", "import_video", "voxels", "live", "export", "report",
 )
 
 

@@ -269,7 +269,7 @@ class ModelPainter:
         else:
             pose = forward_kinematics(self.model, params)
             verts = rigid_vertices(self.model, pose)
-            renderer.lbo.write(np.repeat(self._triangle_labels(verts, cam), 3).astype("f4").tobytes())
+            renderer.set_triangle_labels(self._triangle_labels(verts, cam))
             lab = renderer.render_labels(verts)[0]
             seg = np.where(lab >= 0, lab // SHADE_LEVELS, -1)
             shade = np.where(lab >= 0, lab % SHADE_LEVELS, 0)

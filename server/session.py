@@ -226,7 +226,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                 progress(n + 1, len(frames), f"E={result.energy}")
     records = read_done_frames(poses_path)
     summary = {
-        "sequence": str(seq.path),
+        "sequence": str(seq.path.resolve()),
         "frames": len(records),
         "frames_fitted_this_run": len(stats.seconds),
         "mode": solver.mode,

@@ -72,7 +72,6 @@ def test_powell_never_worse_than_start_and_inside_bounds(problem):
     assert float(f(res.x[None])[0]) == res.fun  # the value reported is the value at x
     assert np.all(res.x >= lo) and np.all(res.x <= hi)
     pts = rec.all_points
-    # up to rounding (see test_powell_evaluates_only_inside_the_bounds, xfail)
     assert np.all(pts >= lo - ULP_SLACK) and np.all(pts <= hi + ULP_SLACK), "evaluated outside the bounds"
     assert res.nfev == len(pts)
     # the budget: checked before every batch, so at most one batch (<= len(BRACKET) points) over
@@ -155,9 +154,6 @@ def test_powell_is_deterministic():
     assert (a.fun, a.nfev, a.nit) == (b.fun, b.nfev, b.nit)
 
 
-@pytest.mark.xfail(strict=True, reason="line_search evaluates x + t*d with t clipped to the box's range but "
-                   "the point itself unclipped: rounding puts ~16% of runs' probes 1 ulp (2.2e-16) outside "
-                   "[lower, upper]; powell then clips x, so fun can belong to a point 1 ulp away")
 def test_powell_evaluates_only_inside_the_bounds():
     rng = np.random.default_rng(1)
     outside = 0
