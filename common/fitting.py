@@ -56,7 +56,7 @@ class FitOptions:
     prerender: bool = True
     torso_half_resolution: bool = True  # the paper's 160x120 torso energy
     spine_twist_prior: float = 300.0    # energy units (pixels) per rad^2 of spine twist
-    torso_grid_steps: int = 5           # grid over pelvis heading x spine twist before Powell
+    torso_grid_steps: int = 1           # >1: grid over pelvis heading x spine twist before Powell (off: measured worse on the walk)
     torso_grid_range_rad: float = 0.2
 
     def __post_init__(self):
