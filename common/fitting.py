@@ -56,6 +56,8 @@ class FitOptions:
     prerender: bool = True
     torso_half_resolution: bool = True  # the paper's 160x120 torso energy
     spine_twist_prior: float = 300.0    # energy units (pixels) per rad^2 of spine twist
+    limb_window_px: int = ARM_WINDOW    # the paper's 128x128 limb windows
+    hinge_grid_full_range: bool = False  # grid elbows/knees over their whole range (rough starts)
     torso_grid_steps: int = 1           # >1: grid over pelvis heading x spine twist before Powell (off: measured worse on the walk)
     torso_grid_range_rad: float = 0.2
 
@@ -206,14 +208,17 @@ def powell(energy, x0: np.ndarray, indices, steps: np.ndarray, options: FitOptio
     return candidates(res.x[None])[0], res.fun, res.nfev, res.nit
 
 
-def grid_search(energy, x0: np.ndarray, indices, steps: int, half_range: float, complete=None):
+def grid_search(energy, x0: np.ndarray, indices, steps: int, half_range: float, complete=None,
+                absolute=()):
     """Batched grid of ``steps`` points per parameter over +-half_range around x0 (the paper's
-    limb grid search). Returns (best params (35,), its energy, evaluations)."""
+    limb grid search); parameters in ``absolute`` span their whole joint range instead.
+    Returns (best params (35,), its energy, evaluations)."""
     idx = np.asarray(indices)
-    offsets = np.linspace(-half_range, half_range, steps)
-    grid = np.array(list(product(offsets, repeat=len(idx))))
-    cand = np.repeat(np.asarray(x0, dtype=np.float64)[None], len(grid), axis=0)
-    cand[:, idx] = np.clip(cand[:, idx] + grid, PARAM_LIMITS[idx, 0], PARAM_LIMITS[idx, 1])
+    x0 = np.asarray(x0, dtype=np.float64)
+    axes = [np.linspace(*PARAM_LIMITS[i], steps) if i in absolute else x0[i] + np.linspace(-half_range, half_range, steps)
+            for i in idx]
+    cand = np.repeat(x0[None], steps ** len(idx), axis=0)
+    cand[:, idx] = np.clip(np.array(list(product(*axes))), PARAM_LIMITS[idx, 0], PARAM_LIMITS[idx, 1])
     if complete:
         cand = complete(cand)
     energies = energy(cand)
@@ -286,13 +291,14 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
                                             options.max_evals_extremity)
         elif chain in LIMB_CHAINS:
             proximal, distal, extremity = LIMB_PARTS[chain]
-            setup = frame.window_setup(x, _limb_centre_segments(chain), ARM_WINDOW, options.prerender)
+            setup = frame.window_setup(x, _limb_centre_segments(chain), options.limb_window_px, options.prerender)
             setup = replace(setup, moving=CHAINS[chain].segments)
             energy = make_energy(backend, model, setup)
             before = before if before is not None else int(energy(x)[0])
             n = 0
             if backend == _stage_backends(options)[0] and options.grid_steps > 1:
-                x, _, n = grid_search(energy, x, proximal, options.grid_steps, options.grid_range_rad)
+                hinge = (proximal[3],) if options.hinge_grid_full_range else ()
+                x, _, n = grid_search(energy, x, proximal, options.grid_steps, options.grid_range_rad, absolute=hinge)
             steps = np.full(len(proximal), options.limb_step_rad)
             x, _, n2, it = powell(energy, x, proximal, steps, options, options.max_evals_limb)
             n += n2

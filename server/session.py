@@ -16,7 +16,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Protocol
 
@@ -29,7 +29,18 @@ from common.sequence import Sequence
 
 POSES_FILE = "poses.jsonl"
 SUMMARY_FILE = "summary.json"
-STANDING_PELVIS_FRACTION = 0.52  # pelvis height / body height when standing
+FIRST_FRAME_ITERATIONS = 6      # torso -> limbs rounds for a first frame started without truth
+FIRST_FRAME_GRID_STEPS = 5      # limb grid points per parameter, first frame
+FIRST_FRAME_GRID_RANGE = 1.0    # radians, +- limb grid half-width, first frame
+FIRST_FRAME_LIMB_WINDOW = 400   # pixels: the limb may be far from where the start pose puts it
+
+
+def first_frame_options(options: FitOptions) -> FitOptions:
+    """A start pose from voxels can have a limb far off: search limbs widely, in big windows,
+    and iterate the first frame to convergence."""
+    return replace(options, max_iterations=max(options.max_iterations, FIRST_FRAME_ITERATIONS),
+                   grid_steps=FIRST_FRAME_GRID_STEPS, grid_range_rad=FIRST_FRAME_GRID_RANGE,
+                   limb_window_px=FIRST_FRAME_LIMB_WINDOW, hinge_grid_full_range=True)
 
 
 class Solver(Protocol):
@@ -38,7 +49,8 @@ class Solver(Protocol):
     mode: str
     clients: int
 
-    def begin_frame(self, frame: int, data: FrameData, start: np.ndarray) -> None: ...
+    def begin_frame(self, frame: int, data: FrameData, start: np.ndarray, options: FitOptions) -> None:
+        """A new frame: its silhouettes, start pose and the options its chains are solved with."""
 
     def solve(self, chains: list, params: np.ndarray, iteration: int) -> Callable[[], list]:
         """Start solving ``chains`` from ``params``; the returned function waits for the results."""
@@ -59,15 +71,16 @@ class LocalSolver:
         self.data: FrameData | None = None
         self.compute_seconds = 0.0
 
-    def begin_frame(self, frame: int, data: FrameData, start: np.ndarray) -> None:
+    def begin_frame(self, frame: int, data: FrameData, start: np.ndarray, options: FitOptions) -> None:
         self.data = data
+        self.frame_options = options
 
     def solve(self, chains: list, params: np.ndarray, iteration: int) -> Callable[[], list]:
-        data = self.data
+        data, options = self.data, self.frame_options
 
         def collect() -> list:
             t0 = time.perf_counter()
-            out = [solve_chain(self.model, data, c, params, self.options) for c in chains]
+            out = [solve_chain(self.model, data, c, params, options) for c in chains]
             self.compute_seconds += time.perf_counter() - t0
             return out
 
@@ -126,7 +139,29 @@ def initial_pose(model: BodyModel, seq: Sequence, data: FrameData, init: str) ->
     if init == "standing":
         centre = silhouette_centre(data)
         return rest_params(model, position=(centre[0], centre[1], model.joint_rest[0, 2]))
+    if init == "voxels":
+        return voxel_initial_pose(model, data)
     raise UserError(f"unknown --init {init!r}")
+
+
+VOXEL_INIT_GRID = 64  # voxels per side for the first-frame initialisation
+
+
+def voxel_initial_pose(model: BodyModel, data: FrameData) -> np.ndarray:
+    """Position, heading and a starting pose from the first frame's SPOT voxels and ellipsoids
+    (Cheung et al.; Bottino's volume fitting), for a sequence without truth or T-pose."""
+    from common.ellipsoid_fit import initial_pose as fit_to_voxels
+    from common.voxels import SpotGrid
+
+    voxels = SpotGrid.build(data.studio, grid=VOXEL_INIT_GRID, q=2).reconstruct(data.masks)
+    try:
+        init = fit_to_voxels(voxels, model)
+    except ValueError as exc:
+        raise UserError(f"automatic initialisation failed on the first frame: {exc}") from None
+    # the fit keeps our actor's size: move the start pose's pelvis to the same height ratio
+    params = init.params.copy()
+    params[2] = params[2] / init.scale
+    return params
 
 
 def read_done_frames(path: Path) -> list[dict]:
@@ -193,7 +228,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         poses_path.unlink()
     truth = seq.truth()
     if init == "auto":
-        init = "truth" if truth else "standing"
+        init = "truth" if truth else "voxels"
     stats = RunStats()
     wall0 = time.perf_counter()
     x = np.asarray(done[-1]["params"], dtype=np.float64) if done else None
@@ -201,10 +236,13 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         for n, frame in enumerate(frames[len(done):], start=len(done)):
             t0 = time.perf_counter()
             data = FrameData(model, seq.studio, seq.silhouettes(frame))
+            frame_options = options
             if x is None:
                 x = initial_pose(model, seq, data, init)
-            solver.begin_frame(frame, data, x)
-            result = fit_frame(model, data, x, options, solver.solve)
+                if init != "truth":
+                    frame_options = first_frame_options(options)
+            solver.begin_frame(frame, data, x, frame_options)
+            result = fit_frame(model, data, x, frame_options, solver.solve)
             x = result.params
             seconds = time.perf_counter() - t0
             joints = forward_kinematics(model, x).joints[0]
