@@ -28,5 +28,14 @@ test-all: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m server.cli bench all --out bench
 
+# The fitting cluster as containers (server + 4 clients) on a private Docker engine; needs root.
+# cluster: the demo sequence, its summary, single process vs distributed (images kept in
+# build/cluster); cluster-test: all of it from nothing, checked, then torn down (deploy/cluster.sh).
+cluster: $(STAMP)
+	PY=$(abspath $(PY)) deploy/cluster.sh demo
+
+cluster-test: $(STAMP)
+	PY=$(abspath $(PY)) deploy/cluster.sh test
+
 clean:
 	rm -rf $(VENV) $(DEMO_DIR) bench/*.json .pytest_cache
