@@ -6,13 +6,15 @@ import sys
 from pathlib import Path
 
 from common.body import load_body_model
+from common.errors import UserError
 from common.export import write_motion_bvh
 from common.fitting import ENERGY_BACKENDS, FitOptions
 from common.sequence import load_sequence
+from server.cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.progress import Progress
 from server.session import LocalSolver, load_records, run_fit
 
-INIT_CHOICES = ("auto", "truth", "standing")
+INIT_CHOICES = ("auto", "truth", "voxels", "standing")
 
 
 def add_fit_arguments(p) -> None:
@@ -66,6 +68,9 @@ def print_summary(summary: dict, out) -> None:
 def register(sub) -> None:
     p = sub.add_parser("fit", help="fit the body model to a sequence")
     add_fit_arguments(p)
+    p.add_argument("--clients", type=int, default=0,
+                   help="start N local limb clients and a server on 127.0.0.1 (default 0: one process)")
+    add_cluster_arguments(p, server=False)
     p.set_defaults(func=run)
 
 
@@ -73,13 +78,22 @@ def run(args) -> int:
     model = load_body_model()
     seq = load_sequence(args.sequence, args.units)
     options = options_from_args(args)
-    solver = LocalSolver(model, options)
     total = min(len(seq.frames), args.frames or len(seq.frames))
     bar = Progress("fit", total, enabled=None if not args.quiet else False)
-    try:
-        summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
-                          max_frames=args.frames, progress=bar)
-    finally:
-        solver.close()
+    if args.clients < 0:
+        raise UserError(f"--clients must be >= 0, got {args.clients}")
+    if args.clients == 0:
+        solver = LocalSolver(model, options)
+        try:
+            summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
+                              max_frames=args.frames, progress=bar)
+        finally:
+            solver.close()
+    else:
+        # SIGTERM unwinds like Ctrl-C, so the local clients are stopped either way
+        with terminate_on_sigterm(), LocalCluster(model, options, args.clients, heartbeat_interval=args.heartbeat,
+                                                  client_timeout=args.client_timeout) as solver:
+            summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
+                              max_frames=args.frames, progress=bar)
     finish(model, seq, args, summary)
     return 0

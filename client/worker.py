@@ -1,0 +1,339 @@
+"""The limb worker: a DEALER that registers with the server and solves the chains it is sent.
+
+Flow (one connection)::
+
+    client                                server
+    REGISTER(client_id, cores, backends) ──►
+                                          ◄── WELCOME(session, heartbeat_interval)
+                                          ◄── FRAME(session, frame, cameras, silhouettes)  once per frame
+                                          ◄── SOLVE(session, frame, iteration, request, params, chains)
+    RESULT(..., chain, params, energy) ──►    one per chain, as each finishes
+    HEARTBEAT(session) ◄─────────────────►    both ways, every interval
+                                          ◄── SHUTDOWN                   the run is over: exit
+
+Reliability follows zguide's Paranoid Pirate worker: the server is presumed gone after
+``HEARTBEAT_LIVENESS`` intervals of silence, and the worker then closes its socket, waits
+(1 s, doubling up to 32 s) and connects afresh with a new REGISTER. A server that does not
+know us (it restarted) answers anything but REGISTER with ERROR "unregistered", and we register
+again at once. Chains are solved on a compute thread so that heartbeats keep flowing during a
+long solve; only the main thread touches the DEALER. Results of a session that is no longer
+current are dropped, never sent.
+
+Every message from the wire goes through ``common.protocol.decode``; bad ones are logged once
+per reason, counted (``Worker.dropped``) and dropped.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from importlib import metadata
+
+import numpy as np
+import zmq
+import zmq.auth
+
+from common.body import BodyModel
+from common.camera import Studio
+from common.fitting import FitOptions, FrameData, solve_chain
+from common.protocol import (
+    MAX_MESSAGE_BYTES, Error, Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve, Welcome,
+    decode, encode,
+)
+
+HEARTBEAT_INTERVAL = 1.0  # seconds, until the server's WELCOME says otherwise
+HEARTBEAT_LIVENESS = 3  # silent intervals before the server counts as gone
+RECONNECT_MIN = 1.0  # seconds before the first reconnect; doubles after every failed one
+RECONNECT_MAX = 32.0  # seconds
+POLL_SECONDS = 0.1  # the longest the main loop sleeps: a stop request waits at most this
+FRAMES_KEPT = 2  # FRAME messages cached: the current frame and the one before
+
+log = logging.getLogger("client")
+
+
+def software_version() -> str:
+    try:
+        return metadata.version("silhouette-mocap")
+    except metadata.PackageNotFoundError:  # running from a source tree
+        return "0+source"
+
+
+@dataclass(frozen=True)
+class CurveKeys:
+    """This client's CURVE key pair and the server's public key (z85 bytes)."""
+
+    public: bytes
+    secret: bytes
+    server: bytes
+
+    @classmethod
+    def load(cls, directory: str) -> "CurveKeys":
+        """``DIR/client.key_secret`` (this client) and ``DIR/server.key`` (the server's public key)."""
+        public, secret = zmq.auth.load_certificate(os.path.join(directory, "client.key_secret"))
+        server, _ = zmq.auth.load_certificate(os.path.join(directory, "server.key"))
+        if secret is None:
+            raise ValueError(f"{directory}/client.key_secret holds no secret key")
+        return cls(public, secret, server)
+
+
+@dataclass(frozen=True)
+class _Job:
+    session: str
+    frame: Frame
+    solve: Solve
+
+
+class Worker:
+    """One client. ``run()`` serves until ``stop()``, a SHUTDOWN, or (with ``exit_with_parent``)
+    the parent process going away; it returns the reason.
+
+    ``stall_seconds``/``stall_requests`` are for fault tests only: the compute thread sleeps
+    that long before each of the first ``stall_requests`` SOLVE requests, while heartbeats go on.
+    """
+
+    def __init__(self, model: BodyModel, connect: str, client_id: str | None = None,
+                 curve: CurveKeys | None = None, context: zmq.Context | None = None,
+                 reconnect_min: float = RECONNECT_MIN, reconnect_max: float = RECONNECT_MAX,
+                 exit_with_parent: bool = False, stall_seconds: float = 0.0, stall_requests: int = 0):
+        self.model = model
+        self.connect = connect
+        self.client_id = client_id or f"{socket.gethostname()}-{os.getpid()}"
+        self.curve = curve
+        self.reconnect_min, self.reconnect_max = reconnect_min, reconnect_max
+        self.parent = os.getppid() if exit_with_parent else None
+        self.stall_seconds, self.stall_requests = stall_seconds, stall_requests
+        self.ctx = context or zmq.Context()
+        self._own_ctx = context is None
+        self._stop = threading.Event()
+        self.dropped: dict[str, int] = {}
+        self.solved = 0
+        self.sessions = 0  # how many times a WELCOME was received (1 + re-registrations)
+        self._jobs: queue.Queue = queue.Queue()
+        self._done: queue.Queue = queue.Queue()
+        # the compute thread pokes the main loop through this pair when a result is ready
+        wake_addr = f"inproc://client-wake-{id(self)}"
+        self._wake_rx = self.ctx.socket(zmq.PAIR)
+        self._wake_rx.linger = 0
+        self._wake_rx.bind(wake_addr)
+        self._wake_tx = self.ctx.socket(zmq.PAIR)
+        self._wake_tx.linger = 0
+        self._wake_tx.connect(wake_addr)
+        self._wake_lock = threading.Lock()
+        self._compute = threading.Thread(target=self._compute_loop, name="client-compute", daemon=True)
+        self._compute.start()
+        # connection state, main thread only
+        self.session = ""
+        self.heartbeat_interval = HEARTBEAT_INTERVAL
+        self._heartbeat_at = 0.0
+        self._frames: dict[tuple[str, int], Frame] = {}
+
+    # ------------------------------------------------------------------ public
+
+    def stop(self) -> None:
+        """Ask ``run`` to return (thread-safe, signal-safe)."""
+        self._stop.set()
+
+    def run(self) -> str:
+        backoff = self.reconnect_min
+        try:
+            while True:
+                sock = self._open()
+                try:
+                    outcome = self._serve(sock)
+                finally:
+                    sock.close(linger=0)
+                if outcome != "lost":
+                    return outcome
+                if self.session:
+                    backoff = self.reconnect_min  # we had a session: a fresh loss, start over
+                log.warning("server %s silent for %.1f s; reconnecting in %.1f s", self.connect,
+                            HEARTBEAT_LIVENESS * self.heartbeat_interval, backoff)
+                self.session = ""
+                self._frames.clear()
+                if self._stop.wait(backoff) or self._parent_gone():
+                    return "stopped"
+                backoff = min(2 * backoff, self.reconnect_max)
+        finally:
+            self._jobs.put(None)
+            self._wake_rx.close(linger=0)
+            with self._wake_lock:
+                self._wake_tx.close(linger=0)
+            if self._own_ctx:
+                self.ctx.term()
+
+    # ------------------------------------------------------------------ connection
+
+    def _open(self) -> zmq.Socket:
+        sock = self.ctx.socket(zmq.DEALER)
+        sock.linger = 0
+        sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
+        if self.curve:
+            sock.curve_publickey, sock.curve_secretkey = self.curve.public, self.curve.secret
+            sock.curve_serverkey = self.curve.server
+        sock.connect(self.connect)
+        self._register(sock)
+        return sock
+
+    def _register(self, sock: zmq.Socket) -> None:
+        self._send(sock, Register(client_id=self.client_id, cores=os.cpu_count() or 1, backends=("cpu",),
+                                  version=software_version()))
+
+    def _send(self, sock: zmq.Socket, msg) -> None:
+        try:
+            sock.send_multipart(encode(msg), zmq.NOBLOCK)
+        except zmq.Again:  # queue full while the server is away: heartbeats and retries cover it
+            pass
+
+    def _serve(self, sock: zmq.Socket) -> str:
+        poller = zmq.Poller()
+        poller.register(sock, zmq.POLLIN)
+        poller.register(self._wake_rx, zmq.POLLIN)
+        now = time.monotonic()
+        server_expiry = now + HEARTBEAT_LIVENESS * self.heartbeat_interval
+        self._heartbeat_at = now + self.heartbeat_interval
+        while True:
+            if self._stop.is_set() or self._parent_gone():
+                self._say_goodbye(sock, "stopped")
+                return "stopped"
+            timeout = max(0.0, min(POLL_SECONDS, self._heartbeat_at - time.monotonic()))
+            events = dict(poller.poll(timeout * 1000))
+            if events.get(self._wake_rx):
+                while self._wake_rx.poll(0):
+                    self._wake_rx.recv()
+            self._send_results(sock)
+            if events.get(sock):
+                while True:
+                    try:
+                        frames = sock.recv_multipart(zmq.NOBLOCK, copy=True)
+                    except zmq.Again:
+                        break
+                    outcome = self._handle(sock, frames)
+                    if outcome:
+                        return outcome
+                    server_expiry = time.monotonic() + HEARTBEAT_LIVENESS * self.heartbeat_interval
+            now = time.monotonic()
+            if now >= self._heartbeat_at:
+                self._send(sock, Heartbeat(session=self.session))
+                self._heartbeat_at = now + self.heartbeat_interval
+            if now >= server_expiry:
+                return "lost"
+
+    def _say_goodbye(self, sock: zmq.Socket, why: str) -> None:
+        """Tell the server we leave, so it re-sends our chain now instead of after the liveness timeout."""
+        if self.session:
+            self._send(sock, Error(code="client_exit", text=why, session=self.session))
+
+    def _parent_gone(self) -> bool:
+        return self.parent is not None and os.getppid() != self.parent
+
+    # ------------------------------------------------------------------ messages
+
+    def _drop(self, reason: str, text: str) -> None:
+        count = self.dropped.get(reason, 0)
+        self.dropped[reason] = count + 1
+        if count == 0:
+            log.warning("dropped a message (%s): %s; further drops of this kind are only counted", reason, text)
+
+    def _handle(self, sock: zmq.Socket, frames: list) -> str | None:
+        try:
+            msg = decode(frames)
+        except ProtocolError as exc:
+            self._drop(exc.reason, exc.text)
+            return None
+        if isinstance(msg, Welcome):
+            if msg.session != self.session:
+                self._frames.clear()
+            self.session, self.heartbeat_interval = msg.session, msg.heartbeat_interval
+            self._heartbeat_at = min(self._heartbeat_at, time.monotonic() + msg.heartbeat_interval)
+            self.sessions += 1
+            log.info("registered with %s, session %s", self.connect, msg.session)
+        elif isinstance(msg, Heartbeat):
+            pass
+        elif isinstance(msg, Shutdown):
+            log.info("server says shut down: %s", msg.reason)
+            self._say_goodbye(sock, "shutdown")
+            return "shutdown"
+        elif isinstance(msg, Error):
+            if msg.code == "unregistered":  # a restarted server: register again now
+                self.session = ""
+                self._register(sock)
+            else:
+                log.warning("server error %s: %s", msg.code, msg.text)
+        elif not isinstance(msg, (Frame, Solve)):
+            self._drop("unexpected", f"{msg.TYPE} is not sent to clients")
+        elif not self.session or msg.session != self.session:
+            self._drop("stale", f"{msg.TYPE} for session {msg.session!r}, ours is {self.session!r}")
+        elif isinstance(msg, Frame):
+            self._frames[(msg.session, msg.frame)] = msg
+            for key in sorted(self._frames, key=lambda k: k[1])[:-FRAMES_KEPT]:
+                del self._frames[key]
+        else:
+            frame = self._frames.get((msg.session, msg.frame))
+            if frame is None:
+                self._send(sock, Error(code="no_frame", text=f"no FRAME {msg.frame} received",
+                                       session=msg.session, frame=msg.frame, iteration=msg.iteration,
+                                       request=msg.request))
+            else:
+                log.debug("solving frame %d iteration %d request %d: %s", msg.frame, msg.iteration,
+                          msg.request, ", ".join(msg.chains))
+                self._jobs.put(_Job(msg.session, frame, msg))
+        return None
+
+    def _send_results(self, sock: zmq.Socket) -> None:
+        while True:
+            try:
+                msg = self._done.get_nowait()
+            except queue.Empty:
+                return
+            if msg.session == self.session:  # a result for an older server is of no use
+                self._send(sock, msg)
+
+    # ------------------------------------------------------------------ compute thread
+
+    def _compute_loop(self) -> None:
+        cache: tuple[tuple[str, int], FrameData] | None = None
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            solve = job.solve
+            if self.stall_requests > 0:
+                self.stall_requests -= 1
+                time.sleep(self.stall_seconds)
+            try:
+                options = FitOptions.from_wire(solve.options)
+                key = (job.session, job.frame.frame)
+                if cache is None or cache[0] != key:
+                    studio = Studio(tuple(c.to_camera() for c in job.frame.cameras), "<wire>")
+                    cache = (key, FrameData(self.model, studio, job.frame.masks()))
+                for chain in solve.chains:
+                    r = solve_chain(self.model, cache[1], chain, np.asarray(solve.params), options)
+                    self.solved += 1
+                    self._finish(Result(session=solve.session, frame=solve.frame, iteration=solve.iteration,
+                                        request=solve.request, chain=r.chain, params=r.params.tolist(),
+                                        energy=float(r.energy), evaluations=r.evaluations,
+                                        cpu_seconds=r.cpu_seconds, wall_seconds=r.wall_seconds,
+                                        **_result_extras(r)))
+            except (ValueError, ProtocolError) as exc:
+                log.warning("cannot solve request %d: %s", solve.request, exc)
+                self._finish(Error(code="solve_failed", text=str(exc)[:1000], session=solve.session,
+                                   frame=solve.frame, iteration=solve.iteration, request=solve.request))
+
+    def _finish(self, msg) -> None:
+        self._done.put(msg)
+        with self._wake_lock:
+            if not self._wake_tx.closed:
+                self._wake_tx.send(b"", zmq.NOBLOCK)
+
+
+# RESULT carries energy_before and iterations once common.protocol.Result has those fields;
+# until then the server records them as unknown (-1, 0).
+_RESULT_EXTRAS = tuple(n for n in ("energy_before", "iterations") if n in Result.__dataclass_fields__)
+
+
+def _result_extras(r) -> dict:
+    return {n: getattr(r, n) for n in _RESULT_EXTRAS}

@@ -1,0 +1,208 @@
+"""Cluster timing: the same frames fitted single-process and by a server with N local clients,
+beside the paper's Table 2 (Theobalt et al. 2003, sequence A).
+
+    python -m server.bench_cluster SEQUENCE --frames 6 --json bench/cluster.json
+
+Rows: single process without pre-rendering (the paper's XOR), single process (XORPR), server
++ N clients on this machine (distributed), and the critical-path speed-up a cluster of one
+server and four limb machines would get: per iteration the server fits the torso, then the
+head while the four limbs are fitted in parallel, so the critical path is
+torso + head + slowest limb (``critical_path_speedup``; ``..._overlapped`` counts
+torso + max(head, slowest limb)), against the sum of all chains, from the single-process run's
+per-chain CPU seconds. Per-process compute / waiting / transfer seconds come from the solvers.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from common.body import load_body_model
+from common.fitting import FitOptions
+from common.sequence import load_sequence
+from server.cluster import LocalCluster
+from server.session import LocalSolver, load_records, run_fit
+
+PAPER_TABLE2 = {  # seconds per frame, sequence A; 1.8 GHz Xeon + GeForce3 per machine
+    "single_xor_seconds_per_frame": 7.98,
+    "single_seconds_per_frame": 3.30,
+    "distributed_seconds_per_frame": 1.16,  # server + 4 clients, 5 machines
+}
+DEFAULT_CLIENTS = 4
+
+
+class _PhaseClock:
+    """Wraps a single-process solver and times, per iteration, the caller's thread between the
+    solver's calls: torso (up to ``solve``, with the full-energy check before it) and head
+    (``solve`` to ``collect``); the limbs' own CPU seconds come from their ChainResults."""
+
+    def __init__(self, inner):
+        self.inner = inner
+        self.mode, self.clients = inner.mode, inner.clients
+        self.iterations: list[dict] = []  # {"frame", "torso", "head", "limbs": {chain: cpu}}
+        self._mark = time.thread_time()
+        self._frame = None
+
+    def begin_frame(self, frame, data, start, options):
+        self._frame = int(frame)
+        self.inner.begin_frame(frame, data, start, options)
+        self._mark = time.thread_time()
+
+    def solve(self, chains, params, iteration):
+        entry = {"frame": self._frame, "torso": time.thread_time() - self._mark}
+        self._mark = time.thread_time()
+        collect = self.inner.solve(chains, params, iteration)
+
+        def timed_collect():
+            entry["head"] = time.thread_time() - self._mark
+            results = collect()
+            entry["limbs"] = {r.chain: r.cpu_seconds for r in results}
+            self.iterations.append(entry)
+            self._mark = time.thread_time()
+            return results
+
+        return timed_collect
+
+    def timing(self):
+        return self.inner.timing()
+
+    def close(self):
+        self.inner.close()
+
+
+def critical_path(iterations: list[dict]) -> dict:
+    """Per-frame serial and critical-path seconds from per-iteration chain CPU seconds."""
+    serial, critical, overlapped, per_chain = {}, {}, {}, {}
+    for it in iterations:
+        f, limbs = it["frame"], it["limbs"]
+        slowest = max(limbs.values())
+        serial[f] = serial.get(f, 0.0) + it["torso"] + it["head"] + sum(limbs.values())
+        critical[f] = critical.get(f, 0.0) + it["torso"] + it["head"] + slowest
+        overlapped[f] = overlapped.get(f, 0.0) + it["torso"] + max(it["head"], slowest)
+        for chain, cpu in [("torso", it["torso"]), ("head", it["head"]), *limbs.items()]:
+            per_chain[chain] = per_chain.get(chain, 0.0) + cpu
+    frames = max(len(serial), 1)
+    total_serial, total_critical = sum(serial.values()), sum(critical.values())
+    return {
+        "serial_chain_seconds_per_frame": total_serial / frames,
+        "critical_path_seconds_per_frame": total_critical / frames,
+        "critical_path_speedup": total_serial / total_critical if total_critical else None,
+        "critical_path_speedup_overlapped": (total_serial / sum(overlapped.values())
+                                             if overlapped else None),
+        "chain_cpu_seconds_per_frame": {c: v / frames for c, v in per_chain.items()},
+    }
+
+
+def _per_frame(processes: list[dict], frames: int) -> list[dict]:
+    keys = ("compute_seconds", "waiting_seconds", "transfer_seconds", "cpu_seconds")
+    return [{**{k: v for k, v in p.items() if k not in keys},
+             **{k.replace("_seconds", "_seconds_per_frame"): p.get(k, 0.0) / max(frames, 1) for k in keys}}
+            for p in processes]
+
+
+def _params(out: Path) -> np.ndarray:
+    return np.array([r["params"] for r in load_records(out)])
+
+
+def bench_cluster(sequence, frames: int | None = None, clients: int = DEFAULT_CLIENTS,
+                  options: FitOptions | None = None, xor: bool = True, out: Path | None = None) -> dict:
+    """Fit the first ``frames`` frames of ``sequence`` single-process (with and, if ``xor``,
+    without pre-rendering) and with ``clients`` local clients; return the comparison."""
+    model = load_body_model()
+    seq = load_sequence(Path(sequence))
+    options = options or FitOptions()
+    with tempfile.TemporaryDirectory(prefix="bench-cluster-") as tmp:
+        root = Path(out) if out else Path(tmp)
+
+        def single(opts: FitOptions, name: str):
+            clock = _PhaseClock(LocalSolver(model, opts))
+            cpu0 = time.process_time()
+            summary = run_fit(model, seq, root / name, opts, clock, max_frames=frames)
+            cpu = time.process_time() - cpu0
+            n = summary["frames_fitted_this_run"]
+            process = {"name": "server", "role": "server", "compute_seconds": summary["wall_seconds"],
+                       "waiting_seconds": 0.0, "transfer_seconds": 0.0, "cpu_seconds": cpu, "chains": None}
+            return summary, clock, _per_frame([process], n)
+
+        single_summary, clock, single_processes = single(options, "single")
+        with LocalCluster(model, options, clients) as solver:
+            dist_summary = run_fit(model, seq, root / "distributed", options, solver, max_frames=frames)
+        n = dist_summary["frames_fitted_this_run"]
+        xor_summary = single(replace(options, prerender=False), "single_xor")[0] if xor else None
+        difference = float(np.abs(_params(root / "single") - _params(root / "distributed")).max())
+
+    result = {
+        "sequence": str(sequence), "frames": n, "clients": clients, "cpus": os.cpu_count(),
+        "load_average": list(os.getloadavg()), "options": options.to_wire(),
+        "single_seconds_per_frame": single_summary["mean_seconds_per_frame"],
+        "single_xor_seconds_per_frame": xor_summary["mean_seconds_per_frame"] if xor_summary else None,
+        "distributed_seconds_per_frame": dist_summary["mean_seconds_per_frame"],
+        **critical_path(clock.iterations),
+        "processes": {"single": single_processes, "distributed": _per_frame(dist_summary["timing"]["processes"], n)},
+        "cluster_counters": {k: v for k, v in dist_summary["timing"].items()
+                             if k not in ("processes", "session", "endpoint")},
+        "max_param_difference": difference,
+        "paper_table2": dict(PAPER_TABLE2, speedup=PAPER_TABLE2["single_seconds_per_frame"]
+                             / PAPER_TABLE2["distributed_seconds_per_frame"]),
+    }
+    result["speedup"] = result["single_seconds_per_frame"] / result["distributed_seconds_per_frame"]
+    return result
+
+
+def format_table(r: dict) -> str:
+    paper = r["paper_table2"]
+
+    def s(v):
+        return "-" if v is None else f"{v:.3f}"
+
+    rows = [
+        ("", "paper, seq. A", "ours"),
+        ("single process, XOR (s/frame)", s(paper["single_xor_seconds_per_frame"]), s(r["single_xor_seconds_per_frame"])),
+        ("single process, XORPR (s/frame)", s(paper["single_seconds_per_frame"]), s(r["single_seconds_per_frame"])),
+        ("distributed (s/frame)", f"{paper['distributed_seconds_per_frame']:.3f} (5 PCs)",
+         f"{s(r['distributed_seconds_per_frame'])} (server + {r['clients']} clients, {r['cpus']} cores)"),
+        ("speed-up, single / distributed", s(paper["speedup"]), s(r["speedup"])),
+        ("critical-path speed-up, 5 machines", "-",
+         f"{s(r['critical_path_speedup'])} (head overlapped: {s(r['critical_path_speedup_overlapped'])})"),
+    ]
+    w0, w1 = max(len(a) for a, _, _ in rows), max(len(b) for _, b, _ in rows)
+    lines = [f"{a.ljust(w0)}  {b.ljust(w1)}  {c}" for a, b, c in rows]
+    lines += ["", f"chain CPU s/frame (single): " + ", ".join(
+        f"{c} {v:.3f}" for c, v in r["chain_cpu_seconds_per_frame"].items())]
+    lines += ["", f"{'process'.ljust(16)} {'compute':>8} {'waiting':>8} {'transfer':>8}  s/frame"]
+    for mode in ("single", "distributed"):
+        for p in r["processes"][mode]:
+            lines.append(f"{(mode[:4] + ' ' + p['name']).ljust(16)} {p['compute_seconds_per_frame']:8.3f} "
+                         f"{p['waiting_seconds_per_frame']:8.3f} {p['transfer_seconds_per_frame']:8.3f}")
+    lines += ["", f"max |single - distributed| parameter difference: {r['max_param_difference']:.3g}",
+              f"{r['frames']} frames, load average {r['load_average'][0]:.2f}"]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m server.bench_cluster", description=__doc__.split("\n\n")[0])
+    p.add_argument("sequence", type=Path)
+    p.add_argument("--frames", type=int, default=None, help="first N frames (default all)")
+    p.add_argument("--clients", type=int, default=DEFAULT_CLIENTS)
+    p.add_argument("--iterations", type=int, default=FitOptions.max_iterations, help="rounds per frame")
+    p.add_argument("--no-xor", action="store_true", help="skip the single-process run without pre-rendering")
+    p.add_argument("--json", type=Path, default=None, help="write the results here")
+    args = p.parse_args(argv)
+    result = bench_cluster(args.sequence, args.frames, args.clients,
+                           FitOptions(max_iterations=args.iterations), xor=not args.no_xor)
+    print(format_table(result))
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

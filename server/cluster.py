@@ -1,0 +1,765 @@
+"""The server side of the fitting cluster (Theobalt et al. 2003, section 5) over ZeroMQ.
+
+``ClusterSolver`` is the ``Solver`` of ``server.session.run_fit`` that hands limb chains to
+clients (``python -m client``) connected to a ROUTER socket. Per frame it sends every client
+the packed silhouettes once (FRAME); per iteration it sends each idle client one chain to
+solve from the current pose (SOLVE) and gathers the RESULTs, while the caller fits the head.
+
+Work sharing: chains wait in a queue and go one at a time to idle clients, longest idle
+first, so with fewer clients than limbs a client takes several chains in turn. With more
+clients than limbs the spare ones stand by (and take over from a client that fails). When a
+chain is queued and no client is free, the server solves it itself after the head: the
+server is worker zero, and with no clients at all this is the single-process mode.
+The limbs are solved Jacobi-style, so who solves a chain never changes its result.
+
+Reliability (zguide's Paranoid Pirate, adapted):
+ - heartbeats both ways every ``heartbeat_interval``; a client silent for ``HEARTBEAT_LIVENESS``
+   intervals is dropped and its chain queued again; clients do the same with the server and
+   reconnect with backoff, then register again (a restarted server answers an unknown peer
+   with ERROR "unregistered", which makes it register at once);
+ - a chain not back within ``client_timeout`` seconds is queued again (another client or the
+   server takes it) and its client gets no new work until it answers;
+ - the first result for a chain wins; results are matched by (session, frame, iteration,
+   request id, chain, sender) and everything else (late, duplicate, stale) is dropped;
+ - every message goes through ``common.protocol.decode``; bad ones are logged once per reason,
+   counted in ``stats()["dropped"]`` and dropped; ``MAXMSGSIZE`` bounds every frame (zmq
+   closes a connection that exceeds it: counted as ``disconnects``, zmq gives no reason);
+ - optional CURVE: ``curve_keys`` names a folder with ``server.key_secret`` and ``clients/``,
+   the public keys allowed to connect; other peers fail the handshake and get nothing.
+
+Threads: a broker thread owns the socket and does all I/O, heartbeats and time-outs; the
+caller's thread only queues work and waits for results (or solves a chain itself), so the
+clients hear from the server while it fits the torso and head.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import secrets
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import zmq
+import zmq.auth
+from zmq.auth.thread import ThreadAuthenticator
+from zmq.utils.monitor import recv_monitor_message
+
+from common.body import BodyModel
+from common.errors import UserError
+from common.fitting import ChainResult, FitOptions, FrameData, solve_chain
+from common.packing import packbits_masks
+from common.protocol import (
+    MAX_MESSAGE_BYTES, Error, Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve, Welcome,
+    camera_specs, decode, encode,
+)
+
+DEFAULT_BIND = "tcp://*:5555"
+LOCAL_BIND = "tcp://127.0.0.1:*"  # a random free port on the loopback interface
+HEARTBEAT_INTERVAL = 1.0  # seconds between heartbeats, both ways
+HEARTBEAT_LIVENESS = 3  # silent intervals before a client counts as dead
+CLIENT_TIMEOUT = 10.0  # seconds a chain may take on a client before it is queued again
+POLL_SECONDS = 0.05  # the broker's longest sleep: time-outs are checked this often
+SHUTDOWN_GRACE = 1.0  # seconds to wait for clients to acknowledge SHUTDOWN
+CLIENT_START_TIMEOUT = 60.0  # seconds for local clients to start and register
+CLIENT_STOP_TIMEOUT = 5.0  # seconds a local client gets to exit after SIGTERM
+AUTH_EVENTS = {zmq.EVENT_HANDSHAKE_FAILED_AUTH: "unauthenticated",
+               zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL: "handshake",
+               zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL: "handshake"}
+
+log = logging.getLogger("server.cluster")
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so that ``finally`` blocks run (see ``terminate_on_sigterm``)."""
+
+
+@contextmanager
+def terminate_on_sigterm():
+    """Within the block, SIGTERM raises ``Terminated`` in the main thread; the old handler after."""
+    def handler(signum, frame):
+        raise Terminated()
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
+# ----------------------------------------------------------------------------- CURVE keys
+
+def create_curve_keys(directory: Path, clients: tuple[str, ...] = ("client",)) -> Path:
+    """Make a key folder: server pair, ``clients/NAME.key`` (the allow-list) and, for the first
+    client name, ``client.key_secret``, the pair ``python -m client --curve-keys DIR`` loads.
+
+    Deployments give clients a copy without ``server.key_secret``.
+    """
+    directory = Path(directory)
+    allowed = directory / "clients"
+    allowed.mkdir(parents=True, exist_ok=True)
+    zmq.auth.create_certificates(directory, "server")
+    for i, name in enumerate(clients):
+        public, secret = zmq.auth.create_certificates(directory, name)
+        shutil.move(public, allowed / f"{name}.key")
+        if i == 0 and name != "client":
+            shutil.move(secret, directory / "client.key_secret")
+    return directory
+
+
+def _server_keys(directory: Path) -> tuple[bytes, bytes, Path]:
+    directory = Path(directory)
+    secret_file, allowed = directory / "server.key_secret", directory / "clients"
+    try:
+        public, secret = zmq.auth.load_certificate(secret_file)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"--curve-keys {directory}: cannot read server.key_secret: {exc}") from None
+    if secret is None:
+        raise UserError(f"--curve-keys {directory}: server.key_secret holds no secret key")
+    if not allowed.is_dir() or not any(allowed.glob("*.key")):
+        raise UserError(f"--curve-keys {directory}: no allowed client keys in clients/*.key")
+    return public, secret, allowed
+
+
+# ----------------------------------------------------------------------------- state
+
+@dataclass
+class _ClientStats:
+    """Per client name, over all its connections."""
+
+    chains: int = 0
+    compute_seconds: float = 0.0   # wall seconds of its chain solves, as it reports them
+    cpu_seconds: float = 0.0
+    transfer_seconds: float = 0.0  # round trip minus the solve: network, codec, queueing
+    bytes_sent: int = 0            # server -> client
+    bytes_received: int = 0
+    first_seen: float = 0.0
+    last_seen: float = 0.0
+    late_results: int = 0
+    stalls: int = 0
+
+
+@dataclass
+class _Peer:
+    identity: bytes
+    client_id: str
+    expiry: float
+    request: int | None = None     # the one request it works on
+    stalled: bool = False          # its request timed out; no work until it answers
+    retired: bool = False          # it failed a request: never given work again this session
+    frame_sent: int | None = None  # the FRAME it holds
+
+
+@dataclass
+class _Request:
+    identity: bytes
+    chain: str
+    sent: float
+    timed_out: bool = False
+
+
+@dataclass
+class _Round:
+    """One dispatch: the limb chains of one iteration of one frame."""
+
+    frame: int
+    iteration: int
+    params: np.ndarray
+    chains: list
+    options: FitOptions
+    wire_options: dict
+    results: dict = field(default_factory=dict)         # chain -> ChainResult, the first to arrive
+    pending: deque = field(default_factory=deque)        # chains nobody works on
+    local: set = field(default_factory=set)              # chains the server is solving
+    requests: dict = field(default_factory=dict)         # request id -> _Request
+    dispatched: bool = False                             # the broker has handed out what it could
+
+    def done(self) -> bool:
+        return all(c in self.results for c in self.chains)
+
+    def active(self, chain: str) -> bool:
+        """Someone is still expected to deliver ``chain``."""
+        return (chain in self.results or chain in self.pending or chain in self.local
+                or any(r.chain == chain and not r.timed_out for r in self.requests.values()))
+
+
+def _chain_result(msg: Result) -> ChainResult:
+    # energy_before and iterations: -1 and 0 until common.protocol.Result carries them
+    return ChainResult(msg.chain, np.asarray(msg.params, dtype=np.float64), getattr(msg, "energy_before", -1),
+                       int(round(msg.energy)), msg.evaluations, getattr(msg, "iterations", 0),
+                       msg.wall_seconds, msg.cpu_seconds)
+
+
+# ----------------------------------------------------------------------------- solver
+
+class ClusterSolver:
+    """Solver over a ROUTER socket; see the module docstring. ``endpoint`` is the bound address."""
+
+    mode = "cluster"
+
+    def __init__(self, model: BodyModel, options: FitOptions, bind: str = DEFAULT_BIND,
+                 heartbeat_interval: float = HEARTBEAT_INTERVAL, client_timeout: float = CLIENT_TIMEOUT,
+                 curve_keys: Path | None = None):
+        self.model = model
+        self.heartbeat_interval, self.client_timeout = heartbeat_interval, client_timeout
+        self.session = secrets.token_hex(8)
+        self._frame_options = options  # each frame's own, from begin_frame
+        self._wire_options = options.to_wire()
+        self._lock = threading.Condition()
+        self._commands: queue.Queue = queue.Queue()
+        self._peers: dict[bytes, _Peer] = {}
+        self._idle: list[bytes] = []  # least recently busy first
+        self._round: _Round | None = None
+        self._frame: tuple[int, list] | None = None  # (frame, encoded FRAME)
+        self._next_request = 0
+        self._peak_clients = 0
+        self._clients_seen: set = set()
+        self._stats: dict[str, _ClientStats] = {}
+        self._counts = {"dropped": {}, "stalls": 0, "lost_clients": 0, "resent": 0, "local_chains": 0,
+                        "disconnects": 0}
+        self._server = {"waiting_seconds": 0.0, "transfer_seconds": 0.0, "local_compute_seconds": 0.0}
+        self._start_wall = self._start_cpu = None
+        self._data: FrameData | None = None
+        self._current_frame = 0
+        self._closed = False
+
+        self.ctx = zmq.Context()
+        self._auth = None
+        try:
+            self.sock = self.ctx.socket(zmq.ROUTER)
+            self.sock.linger = 0
+            self.sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
+            if curve_keys is not None:
+                public, secret, allowed = _server_keys(curve_keys)
+                self._auth = ThreadAuthenticator(self.ctx, log=logging.getLogger("server.cluster.auth"))
+                self._auth.start()
+                self._auth.configure_curve(domain="*", location=str(allowed))
+                self.sock.curve_server = True
+                self.sock.curve_publickey, self.sock.curve_secretkey = public, secret
+            self.monitor = self.sock.get_monitor_socket(
+                zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_AUTH
+                | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL)
+            self.monitor.linger = 0
+            try:
+                self.sock.bind(bind)
+            except zmq.ZMQError as exc:
+                raise UserError(f"--bind {bind}: {exc}") from None
+            self.endpoint = self.sock.last_endpoint.decode()
+            wake = f"inproc://cluster-wake-{self.session}"
+            self._wake_rx = self.ctx.socket(zmq.PAIR)
+            self._wake_rx.linger = 0
+            self._wake_rx.bind(wake)
+            self._wake_tx = self.ctx.socket(zmq.PAIR)
+            self._wake_tx.linger = 0
+            self._wake_tx.connect(wake)
+        except BaseException:
+            self._teardown()
+            raise
+        self._thread = threading.Thread(target=self._broker, name="cluster-broker", daemon=True)
+        self._thread.start()
+        log.info("listening on %s, session %s", self.endpoint, self.session)
+
+    # ------------------------------------------------------------------ Solver protocol
+
+    @property
+    def clients(self) -> int:
+        """The most clients registered at once during the run."""
+        return self._peak_clients
+
+    def client_count(self) -> int:
+        with self._lock:
+            return len(self._peers)
+
+    def wait_for_clients(self, n: int, timeout: float | None = None, check: Callable[[], None] | None = None) -> int:
+        """Block until ``n`` clients are registered (``check()`` may raise meanwhile); returns the count."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            while len(self._peers) < n:
+                if deadline is not None and time.monotonic() > deadline:
+                    raise UserError(f"only {len(self._peers)} of {n} clients registered within {timeout:.0f} s")
+                if check:
+                    check()
+                self._lock.wait(0.2)
+            return len(self._peers)
+
+    def begin_frame(self, frame: int, data: FrameData, start: np.ndarray, options: FitOptions) -> None:
+        t0 = time.perf_counter()
+        if self._start_wall is None:
+            self._start_wall, self._start_cpu = t0, time.process_time()
+        self._data, self._current_frame = data, int(frame)
+        self._frame_options, self._wire_options = options, options.to_wire()
+        msg = Frame(session=self.session, frame=int(frame), cameras=camera_specs(data.studio),
+                    silhouettes=packbits_masks(data.masks), previous_params=np.asarray(start).tolist())
+        self._post(("frame", int(frame), encode(msg)))
+        self._server["transfer_seconds"] += time.perf_counter() - t0
+
+    def solve(self, chains: list, params: np.ndarray, iteration: int) -> Callable[[], list]:
+        rnd = _Round(self._current_frame, int(iteration), np.array(params, dtype=np.float64), list(chains),
+                     self._frame_options, self._wire_options)
+        rnd.pending.extend(rnd.chains)
+        with self._lock:
+            self._round = rnd
+        self._post(("round", rnd))
+        return lambda: self._collect(rnd)
+
+    def timing(self) -> dict:
+        """Per-process compute / waiting / transfer seconds, and the drop and failure counters."""
+        with self._lock:
+            now = time.perf_counter()
+            wall = now - self._start_wall if self._start_wall is not None else 0.0
+            srv = self._server
+            processes = [{
+                "name": "server", "role": "server",
+                "compute_seconds": max(wall - srv["waiting_seconds"] - srv["transfer_seconds"], 0.0),
+                "waiting_seconds": srv["waiting_seconds"],
+                "transfer_seconds": srv["transfer_seconds"],
+                "cpu_seconds": time.process_time() - self._start_cpu if self._start_cpu is not None else 0.0,
+                "chains": self._counts["local_chains"],
+                "local_compute_seconds": srv["local_compute_seconds"],
+            }]
+            for name, s in sorted(self._stats.items()):
+                span = max(s.last_seen - s.first_seen, 0.0)
+                processes.append({
+                    "name": name, "role": "client", "chains": s.chains,
+                    "compute_seconds": s.compute_seconds, "cpu_seconds": s.cpu_seconds,
+                    "transfer_seconds": s.transfer_seconds,
+                    "waiting_seconds": max(span - s.compute_seconds - s.transfer_seconds, 0.0),
+                    "bytes_sent": s.bytes_sent, "bytes_received": s.bytes_received,
+                    "late_results": s.late_results, "stalls": s.stalls,
+                })
+            return {"processes": processes, "session": self.session, "endpoint": self.endpoint,
+                    "clients_seen": len(self._clients_seen), **self._copy_counts()}
+
+    def stats(self) -> dict:
+        """The counters alone: dropped (by reason), stalls, lost_clients, resent, local_chains, ..."""
+        with self._lock:
+            return self._copy_counts()
+
+    def close(self, shutdown: str | None = None) -> None:
+        """Stop serving. With ``shutdown``, tell the clients to exit first (end of the run);
+        without, they keep trying to reconnect (a server that stops to be restarted)."""
+        if self._closed:
+            return
+        self._closed = True
+        if shutdown is not None and self._thread.is_alive():
+            self._post(("shutdown", shutdown))
+            deadline = time.monotonic() + SHUTDOWN_GRACE
+            with self._lock:
+                while self._peers and time.monotonic() < deadline:
+                    self._lock.wait(0.05)
+        self._post(("stop",))
+        self._thread.join(timeout=5.0)
+        self._teardown()
+
+    # ------------------------------------------------------------------ caller's thread
+
+    def _post(self, command: tuple) -> None:
+        self._commands.put(command)
+        self._wake_tx.send(b"")
+
+    def _collect(self, rnd: _Round) -> list:
+        """Wait for ``rnd``'s chains; solve locally those nobody else can take right now."""
+        while True:
+            with self._lock:
+                t0 = time.perf_counter()
+                while not rnd.done() and not (rnd.dispatched and rnd.pending):
+                    if not self._thread.is_alive():
+                        raise RuntimeError("the cluster broker thread died")
+                    self._lock.wait(POLL_SECONDS)
+                self._server["waiting_seconds"] += time.perf_counter() - t0
+                if rnd.done():
+                    if self._round is rnd:
+                        self._round = None
+                    return [rnd.results[c] for c in rnd.chains]
+                chain = rnd.pending.popleft()
+                rnd.local.add(chain)
+            t0 = time.perf_counter()
+            result = solve_chain(self.model, self._data, chain, rnd.params, rnd.options)
+            with self._lock:
+                self._server["local_compute_seconds"] += time.perf_counter() - t0
+                self._counts["local_chains"] += 1
+                rnd.local.discard(chain)
+                rnd.results.setdefault(chain, result)
+                self._lock.notify_all()
+
+    # ------------------------------------------------------------------ broker thread
+
+    def _broker(self) -> None:
+        poller = zmq.Poller()
+        for s in (self.sock, self._wake_rx, self.monitor):
+            poller.register(s, zmq.POLLIN)
+        next_heartbeat = time.monotonic() + self.heartbeat_interval
+        try:
+            while True:
+                events = dict(poller.poll(POLL_SECONDS * 1000))
+                if events.get(self._wake_rx):
+                    while self._wake_rx.poll(0):
+                        self._wake_rx.recv()
+                    if not self._run_commands():
+                        return
+                if events.get(self.monitor):
+                    self._read_monitor()
+                if events.get(self.sock):
+                    self._read_socket()
+                now = time.monotonic()
+                with self._lock:
+                    self._check_peers(now)
+                    self._check_requests(now)
+                    self._assign()
+                    if now >= next_heartbeat:
+                        for ident in list(self._peers):
+                            self._send(ident, Heartbeat(session=self.session))
+                        next_heartbeat = now + self.heartbeat_interval
+                    self._lock.notify_all()
+        except Exception:
+            log.exception("cluster broker failed")
+            raise
+
+    def _run_commands(self) -> bool:
+        while True:
+            try:
+                command = self._commands.get_nowait()
+            except queue.Empty:
+                return True
+            with self._lock:
+                kind = command[0]
+                if kind == "stop":
+                    return False
+                if kind == "frame":
+                    self._frame = (command[1], command[2])
+                    for peer in self._peers.values():
+                        self._send_frame(peer)
+                elif kind == "round":
+                    self._assign()
+                    command[1].dispatched = True
+                elif kind == "shutdown":
+                    for ident in list(self._peers):
+                        self._send(ident, Shutdown(reason=command[1], session=self.session))
+                self._lock.notify_all()
+
+    def _read_monitor(self) -> None:
+        while self.monitor.poll(0):
+            try:
+                event = recv_monitor_message(self.monitor)["event"]
+            except zmq.ZMQError:
+                return
+            with self._lock:
+                if event == zmq.EVENT_DISCONNECTED:
+                    self._counts["disconnects"] += 1
+                elif event in AUTH_EVENTS:
+                    self._drop(AUTH_EVENTS[event], "a peer failed the security handshake", None)
+
+    def _read_socket(self) -> None:
+        while True:
+            try:
+                t0 = time.perf_counter()
+                frames = self.sock.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            ident, body = frames[0], frames[1:]
+            try:
+                msg = decode(body)
+                error = None
+            except ProtocolError as exc:
+                msg, error = None, exc
+            elapsed = time.perf_counter() - t0
+            with self._lock:
+                self._server["transfer_seconds"] += elapsed
+                if error is not None:
+                    self._drop(error.reason, error.text, ident)
+                else:
+                    self._handle(ident, msg, sum(len(f) for f in body))
+                    self._assign()  # before the caller's thread could take a freed chain itself
+                self._lock.notify_all()
+
+    def _send(self, ident: bytes, msg) -> int:
+        t0 = time.perf_counter()
+        parts = encode(msg)
+        self._send_parts(ident, parts)
+        self._server["transfer_seconds"] += time.perf_counter() - t0
+        return sum(len(p) for p in parts)
+
+    def _send_parts(self, ident: bytes, parts: list) -> None:
+        try:
+            self.sock.send_multipart([ident, *parts], zmq.NOBLOCK)
+        except zmq.Again:  # the peer's queue is full: it is not reading, and liveness will tell
+            pass
+        peer = self._peers.get(ident)
+        if peer is not None:
+            self._stats[peer.client_id].bytes_sent += sum(len(p) for p in parts)
+
+    def _send_frame(self, peer: _Peer) -> None:
+        if self._frame is None or peer.frame_sent == self._frame[0]:
+            return
+        t0 = time.perf_counter()
+        self._send_parts(peer.identity, self._frame[1])
+        self._server["transfer_seconds"] += time.perf_counter() - t0
+        peer.frame_sent = self._frame[0]
+
+    def _drop(self, reason: str, text: str, ident: bytes | None) -> None:
+        dropped = self._counts["dropped"]
+        dropped[reason] = dropped.get(reason, 0) + 1
+        if dropped[reason] == 1:
+            peer = self._peers.get(ident) if ident is not None else None
+            who = peer.client_id if peer else (ident.hex() if ident else "a peer")
+            log.warning("dropped a message from %s (%s): %s; further drops of this kind are only counted",
+                        who, reason, text)
+
+    def _copy_counts(self) -> dict:
+        return {k: dict(v) if isinstance(v, dict) else v for k, v in self._counts.items()}
+
+    # ------------------------------------------------------------------ messages (lock held)
+
+    def _handle(self, ident: bytes, msg, size: int) -> None:
+        now = time.monotonic()
+        peer = self._peers.get(ident)
+        if isinstance(msg, Register):
+            self._register(ident, msg, now)
+            return
+        if peer is None:
+            self._drop("unregistered", f"{msg.TYPE} from a peer that has not registered", ident)
+            self._send(ident, Error(code="unregistered", text="register first", session=self.session))
+            return
+        peer.expiry = now + HEARTBEAT_LIVENESS * self.heartbeat_interval
+        stats = self._stats[peer.client_id]
+        stats.bytes_received += size
+        stats.last_seen = time.perf_counter()
+        if isinstance(msg, Heartbeat):
+            return
+        if isinstance(msg, Result):
+            self._on_result(peer, msg)
+        elif isinstance(msg, Error):
+            self._on_error(peer, msg)
+        else:
+            self._drop("unexpected", f"{msg.TYPE} is not sent to the server", ident)
+
+    def _register(self, ident: bytes, msg: Register, now: float) -> None:
+        if ident in self._peers:
+            self._forget(ident, "registered again")
+        self._peers[ident] = _Peer(ident, msg.client_id, now + HEARTBEAT_LIVENESS * self.heartbeat_interval)
+        stats = self._stats.setdefault(msg.client_id, _ClientStats(first_seen=time.perf_counter()))
+        stats.last_seen = time.perf_counter()
+        self._clients_seen.add(msg.client_id)
+        self._idle.append(ident)
+        self._peak_clients = max(self._peak_clients, len(self._peers))
+        self._send(ident, Welcome(session=self.session, heartbeat_interval=self.heartbeat_interval))
+        self._send_frame(self._peers[ident])
+        log.info("client %s registered (%d connected)", msg.client_id, len(self._peers))
+
+    def _on_result(self, peer: _Peer, msg: Result) -> None:
+        rnd = self._round
+        req = rnd.requests.get(msg.request) if rnd is not None else None
+        stats = self._stats[peer.client_id]
+        if msg.request == peer.request or (req is not None and req.identity == peer.identity):
+            stats.chains += 1  # work it was asked to do, whether or not the result is still needed
+            stats.compute_seconds += msg.wall_seconds
+            stats.cpu_seconds += msg.cpu_seconds
+        if msg.request == peer.request:
+            self._release(peer)
+        if (rnd is None or req is None or msg.session != self.session or msg.frame != rnd.frame
+                or msg.iteration != rnd.iteration):
+            self._drop("stale", f"result for frame {msg.frame} iteration {msg.iteration} request "
+                                f"{msg.request}, not the current round", peer.identity)
+            stats.late_results += 1
+            return
+        if req.identity != peer.identity or req.chain != msg.chain:
+            self._drop("mismatch", f"result for {msg.chain} of request {msg.request}, which asked "
+                                   f"{req.chain} of another client" if req.identity != peer.identity
+                                   else f"result for {msg.chain}, request {msg.request} asked {req.chain}",
+                       peer.identity)
+            return
+        stats.transfer_seconds += max(time.monotonic() - req.sent - msg.wall_seconds, 0.0)
+        if msg.chain in rnd.results:
+            self._drop("duplicate", f"{msg.chain} of frame {msg.frame} arrived twice", peer.identity)
+            return
+        rnd.results[msg.chain] = _chain_result(msg)
+        if msg.chain in rnd.pending:
+            rnd.pending.remove(msg.chain)
+
+    def _on_error(self, peer: _Peer, msg: Error) -> None:
+        if msg.code == "client_exit":
+            log.info("client %s left: %s", peer.client_id, msg.text)
+            self._forget(peer.identity, "left")
+            return
+        if msg.code == "no_frame":
+            peer.frame_sent = None
+        else:
+            log.warning("client %s failed request %d (%s: %s); it gets no more work", peer.client_id,
+                        msg.request, msg.code, msg.text)
+            peer.retired = True
+        if msg.request == peer.request:
+            self._requeue(peer.request)
+            self._release(peer)
+
+    def _release(self, peer: _Peer) -> None:
+        """``peer`` is done with its request; it may take more unless it failed one."""
+        peer.request = None
+        peer.stalled = False
+        if not peer.retired and peer.identity not in self._idle:
+            self._idle.append(peer.identity)
+
+    def _forget(self, ident: bytes, why: str) -> None:
+        peer = self._peers.pop(ident)
+        if ident in self._idle:
+            self._idle.remove(ident)
+        if peer.request is not None:
+            self._requeue(peer.request)
+        log.debug("client %s %s", peer.client_id, why)
+
+    def _requeue(self, request: int) -> None:
+        """Queue the chain of ``request`` again unless someone else will still deliver it."""
+        rnd = self._round
+        req = rnd.requests.get(request) if rnd is not None else None
+        if req is None:
+            return
+        req.timed_out = True
+        if not rnd.active(req.chain):
+            rnd.pending.appendleft(req.chain)
+            self._counts["resent"] += 1
+
+    def _check_peers(self, now: float) -> None:
+        for ident, peer in list(self._peers.items()):
+            if now > peer.expiry:
+                log.warning("client %s silent for %.1f s: dropped", peer.client_id,
+                            HEARTBEAT_LIVENESS * self.heartbeat_interval)
+                self._counts["lost_clients"] += 1
+                self._forget(ident, "lost")
+
+    def _check_requests(self, now: float) -> None:
+        rnd = self._round
+        if rnd is None:
+            return
+        for request, req in rnd.requests.items():
+            if req.timed_out or req.chain in rnd.results or now - req.sent <= self.client_timeout:
+                continue
+            peer = self._peers.get(req.identity)
+            if peer is not None:
+                log.warning("client %s stalled on %s (%.1f s): chain re-sent", peer.client_id, req.chain,
+                            now - req.sent)
+                peer.stalled = True
+                self._stats[peer.client_id].stalls += 1
+            self._counts["stalls"] += 1
+            self._requeue(request)
+
+    def _assign(self) -> None:
+        """Hand queued chains to idle clients, longest idle first."""
+        rnd = self._round
+        if rnd is None:
+            return
+        while rnd.pending and self._idle:
+            ident = self._idle.pop(0)
+            peer = self._peers[ident]
+            chain = rnd.pending.popleft()
+            request = self._next_request
+            self._next_request += 1
+            self._send_frame(peer)
+            self._send(ident, Solve(session=self.session, frame=rnd.frame, iteration=rnd.iteration,
+                                    request=request, params=rnd.params.tolist(), chains=(chain,),
+                                    options=rnd.wire_options))
+            peer.request = request
+            rnd.requests[request] = _Request(ident, chain, time.monotonic())
+
+    def _teardown(self) -> None:
+        for name in ("_wake_tx", "_wake_rx", "monitor", "sock"):
+            s = getattr(self, name, None)
+            if s is not None:
+                s.close(linger=0)
+        if self._auth is not None:
+            self._auth.stop()
+        self.ctx.term()
+
+
+# ----------------------------------------------------------------------------- local cluster
+
+def _project_root() -> Path:
+    return Path(__file__).resolve().parent.parent
+
+
+class LocalCluster:
+    """A ClusterSolver on 127.0.0.1 (random port) and ``n`` client subprocesses (``python -m client``).
+
+    ``with LocalCluster(...) as solver:`` waits until every client has registered; on leaving
+    (normally, on an error or on Ctrl-C/SIGTERM) it sends SHUTDOWN, then SIGTERM, then SIGKILL
+    to clients still there after ``CLIENT_STOP_TIMEOUT``.
+    """
+
+    def __init__(self, model: BodyModel, options: FitOptions, clients: int,
+                 heartbeat_interval: float = HEARTBEAT_INTERVAL, client_timeout: float = CLIENT_TIMEOUT,
+                 client_args: tuple[str, ...] = ()):
+        self.model, self.options, self.n = model, options, clients
+        self.heartbeat_interval, self.client_timeout = heartbeat_interval, client_timeout
+        self.client_args = client_args
+        self.solver: ClusterSolver | None = None
+        self.procs: list[subprocess.Popen] = []
+
+    def __enter__(self) -> ClusterSolver:
+        self.solver = ClusterSolver(self.model, self.options, bind=LOCAL_BIND,
+                                    heartbeat_interval=self.heartbeat_interval, client_timeout=self.client_timeout)
+        try:
+            env = dict(os.environ)
+            env["PYTHONPATH"] = os.pathsep.join(p for p in (str(_project_root()), env.get("PYTHONPATH")) if p)
+            for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+                env.setdefault(var, "1")  # one core per client: no thread oversubscription
+            for i in range(self.n):
+                self.procs.append(subprocess.Popen(
+                    [sys.executable, "-m", "client", "--connect", self.solver.endpoint, "--id", f"local-{i + 1}",
+                     "--quiet", "--exit-with-parent", "--reconnect-min", "0.2", *self.client_args],
+                    env=env, stdin=subprocess.DEVNULL))
+            self.solver.wait_for_clients(self.n, CLIENT_START_TIMEOUT, check=self._check_alive)
+        except BaseException:
+            self.__exit__(None, None, None)
+            raise
+        return self.solver
+
+    def _check_alive(self) -> None:
+        for i, p in enumerate(self.procs):
+            if p.poll() is not None:
+                raise UserError(f"local client {i + 1} exited with status {p.returncode} before registering")
+
+    def __exit__(self, *exc) -> None:
+        if self.solver is not None:
+            self.solver.close(shutdown="run finished")
+        stop_processes(self.procs, CLIENT_STOP_TIMEOUT)
+
+
+def stop_processes(procs: list, timeout: float) -> None:
+    """SIGTERM the ones still running, wait up to ``timeout`` in all, SIGKILL the rest."""
+    deadline = time.monotonic() + timeout
+    for p in procs:
+        if p.poll() is None:
+            # they may be exiting on SHUTDOWN already
+            try:
+                p.wait(max(0.0, min(0.5, deadline - time.monotonic())))
+            except subprocess.TimeoutExpired:
+                p.terminate()
+    for p in procs:
+        try:
+            p.wait(max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def add_cluster_arguments(p, server: bool) -> None:
+    """Command-line flags of the cluster: ``mocap server`` (server=True) or ``mocap fit --clients``."""
+    if server:
+        p.add_argument("--bind", default=DEFAULT_BIND, help=f"ROUTER address (default {DEFAULT_BIND})")
+        p.add_argument("--min-clients", type=int, default=1,
+                       help="clients to wait for before the first frame (default 1; 0: start at once)")
+        p.add_argument("--curve-keys", type=Path, default=None, metavar="DIR",
+                       help="CURVE: DIR/server.key_secret, allowed client keys in DIR/clients/*.key")
+    p.add_argument("--client-timeout", type=float, default=CLIENT_TIMEOUT,
+                   help=f"seconds a chain may take on a client before it is re-sent (default {CLIENT_TIMEOUT:g})")
+    p.add_argument("--heartbeat", type=float, default=HEARTBEAT_INTERVAL,
+                   help=f"heartbeat interval, seconds (default {HEARTBEAT_INTERVAL:g}); a peer silent for "
+                        f"{HEARTBEAT_LIVENESS} intervals counts as gone")

@@ -1,0 +1,55 @@
+"""mocap server: fit a sequence with limb clients connecting over ZeroMQ (``mocap client``).
+
+Writes the same result folder as ``mocap fit``. On SIGTERM it stops within seconds, keeping
+the frames already written (continue with ``--resume``) and leaving the clients to reconnect
+to the next server; at the end of a run it tells the clients to exit.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+
+from common.body import load_body_model
+from common.sequence import load_sequence
+from server.cluster import ClusterSolver, Terminated, add_cluster_arguments, terminate_on_sigterm
+from server.commands.fit import add_fit_arguments, finish, options_from_args
+from server.progress import Progress
+from server.session import run_fit
+
+EXIT_TERMINATED = 143  # 128 + SIGTERM
+
+
+def register(sub) -> None:
+    p = sub.add_parser("server", help="fit a sequence with limb clients over the network")
+    add_fit_arguments(p)
+    add_cluster_arguments(p, server=True)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="mocap server: %(message)s")
+    model = load_body_model()
+    seq = load_sequence(args.sequence, args.units)
+    options = options_from_args(args)
+    total = min(len(seq.frames), args.frames or len(seq.frames))
+    bar = Progress("fit", total, enabled=None if not args.quiet else False)
+    with terminate_on_sigterm():
+        solver = ClusterSolver(model, options, bind=args.bind, heartbeat_interval=args.heartbeat,
+                               client_timeout=args.client_timeout, curve_keys=args.curve_keys)
+        shutdown = None
+        try:
+            if args.min_clients > 0:
+                logging.getLogger("server.cluster").info("waiting for %d client(s) on %s", args.min_clients,
+                                                         solver.endpoint)
+                solver.wait_for_clients(args.min_clients)
+            summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
+                              max_frames=args.frames, progress=bar)
+            finish(model, seq, args, summary)  # results on disk before the clients are released
+            shutdown = "run finished"
+        except Terminated:
+            print(f"mocap server: terminated; the frames done are in {args.out}, continue with --resume",
+                  file=sys.stderr)
+            return EXIT_TERMINATED
+        finally:
+            solver.close(shutdown=shutdown)
+    return 0

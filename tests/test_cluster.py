@@ -1,0 +1,122 @@
+"""Server + clients over real sockets on 127.0.0.1 give the single-process poses, and report timing."""
+import json
+import subprocess
+
+import numpy as np
+import pytest
+
+from common.body import LIMB_CHAINS, load_body_model
+from common.fitting import FitOptions
+from common.sequence import load_sequence
+from server.cluster import LOCAL_BIND, ClusterSolver
+from server.session import run_fit
+from test_cluster_support import (FRAMES, HEARTBEAT, PY, ROOT, env, make_sequence, poses, records, reference_fit,
+                                  thread_workers)
+
+TOLERANCE = 1e-9
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_body_model()
+
+
+@pytest.fixture(scope="module")
+def seq_path(tmp_path_factory):
+    return make_sequence(tmp_path_factory.mktemp("cluster") / "seq")
+
+
+@pytest.fixture(scope="module")
+def reference(seq_path, tmp_path_factory):
+    return reference_fit(seq_path, tmp_path_factory.mktemp("cluster") / "single")
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("n", [1, 2, 4, 6])
+def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
+    options = FitOptions()
+    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT)
+    try:
+        with thread_workers(model, solver.endpoint, n) as workers:
+            solver.wait_for_clients(n, timeout=10)
+            summary = run_fit(model, load_sequence(seq_path), tmp_path, options, solver)
+    finally:
+        solver.close(shutdown="done")
+    got = poses(tmp_path)
+    assert got.shape == reference.shape == (FRAMES, 35)
+    assert np.abs(got - reference).max() <= TOLERANCE
+    assert [r["frame"] for r in records(tmp_path)] == list(range(FRAMES))
+    timing = summary["timing"]
+    assert summary["mode"] == "cluster" and summary["clients"] == n
+    clients = [p for p in timing["processes"] if p["role"] == "client"]
+    assert len(clients) == n
+    iterations = sum(r["iterations"] for r in records(tmp_path))
+    limb_solves = iterations * len(LIMB_CHAINS)
+    # every limb solve was done by a client or by the server; with 4+ clients all by clients
+    assert sum(p["chains"] for p in clients) + timing["local_chains"] == limb_solves
+    if n >= len(LIMB_CHAINS):
+        assert timing["local_chains"] == 0
+    assert timing["dropped"] == {} and timing["resent"] == 0
+    for p in timing["processes"]:
+        for k in ("compute_seconds", "waiting_seconds", "transfer_seconds"):
+            assert p[k] >= 0.0
+    assert all(w.dropped == {} for w in workers)
+
+
+@pytest.mark.timeout(60)
+def test_with_no_clients_the_server_solves_everything(model, seq_path, reference, tmp_path):
+    options = FitOptions()
+    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT)
+    try:
+        summary = run_fit(model, load_sequence(seq_path), tmp_path, options, solver, max_frames=1)
+    finally:
+        solver.close()
+    assert np.abs(poses(tmp_path) - reference[:1]).max() <= TOLERANCE
+    assert summary["timing"]["local_chains"] == records(tmp_path)[0]["iterations"] * len(LIMB_CHAINS)
+
+
+@pytest.mark.timeout(60)
+def test_mocap_fit_with_local_clients(seq_path, reference, tmp_path):
+    out = tmp_path / "fit"
+    proc = subprocess.run([PY, "-m", "server.cli", "fit", str(seq_path), "--out", str(out), "--clients", "2",
+                           "--heartbeat", str(HEARTBEAT), "--quiet"],
+                          cwd=ROOT, env=env(), capture_output=True, text=True, timeout=50)
+    assert proc.returncode == 0, proc.stderr
+    assert np.abs(poses(out) - reference).max() <= TOLERANCE
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["mode"] == "cluster" and summary["clients"] == 2
+    assert {p["name"] for p in summary["timing"]["processes"]} == {"server", "local-1", "local-2"}
+    assert (out / "motion.bvh").exists()
+
+
+def test_mocap_fit_refuses_negative_clients(seq_path, tmp_path):
+    proc = subprocess.run([PY, "-m", "server.cli", "fit", str(seq_path), "--out", str(tmp_path), "--clients", "-1"],
+                          cwd=ROOT, env=env(), capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2 and "--clients" in proc.stderr
+
+
+def test_server_refuses_a_busy_address(model):
+    from common.errors import UserError
+
+    first = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND)
+    try:
+        with pytest.raises(UserError, match="--bind"):
+            ClusterSolver(model, FitOptions(), bind=first.endpoint).close()
+    finally:
+        first.close()
+
+
+@pytest.mark.timeout(120)
+def test_bench_cluster_reports_the_comparison(seq_path):
+    from server.bench_cluster import bench_cluster, format_table
+
+    r = bench_cluster(seq_path, frames=1, clients=2, options=FitOptions(max_iterations=1), xor=False)
+    for key in ("single_seconds_per_frame", "distributed_seconds_per_frame", "clients", "critical_path_speedup"):
+        assert r[key] is not None
+    assert r["clients"] == 2 and r["max_param_difference"] <= TOLERANCE
+    assert r["critical_path_speedup"] > 1.0
+    names = [p["name"] for p in r["processes"]["distributed"]]
+    assert names == ["server", "local-1", "local-2"]
+    assert set(r["chain_cpu_seconds_per_frame"]) == {"torso", "head", *LIMB_CHAINS}
+    table = format_table(r)
+    assert "3.300" in table and "1.160" in table

@@ -1,0 +1,148 @@
+"""Faults with real processes on 127.0.0.1: each run still ends with every frame once and the
+single-process poses."""
+import json
+import signal
+import subprocess
+import time
+
+import numpy as np
+import pytest
+
+from test_cluster_support import (PY, ROOT, alive, children, env, free_port, make_sequence, poses, records,
+                                  reference_fit, start_client, start_server, stop, wait_for)
+
+TOLERANCE = 1e-9
+FRAMES = 3
+STOP_SECONDS = 10.0  # what SIGTERM may take, at most
+
+
+@pytest.fixture(scope="module")
+def seq_path(tmp_path_factory):
+    return make_sequence(tmp_path_factory.mktemp("faults") / "seq", frames=FRAMES)
+
+
+@pytest.fixture(scope="module")
+def reference(seq_path, tmp_path_factory):
+    return reference_fit(seq_path, tmp_path_factory.mktemp("faults") / "single")
+
+
+def check_complete(out, reference):
+    frames = [r["frame"] for r in records(out)]
+    assert frames == list(range(FRAMES)), frames  # every frame, once, in order
+    assert np.abs(poses(out) - reference).max() <= TOLERANCE
+
+
+def summary(out) -> dict:
+    return json.loads((out / "summary.json").read_text())
+
+
+def log_has(path, text: str) -> bool:
+    return path.exists() and text in path.read_text()
+
+
+@pytest.mark.timeout(90)
+def test_client_killed_mid_frame(seq_path, reference, tmp_path):
+    port, out = free_port(), tmp_path / "out"
+    endpoint = f"tcp://127.0.0.1:{port}"
+    server = start_server(seq_path, out, port, tmp_path / "server.log", "--min-clients", "2")
+    good = start_client(endpoint, "good", tmp_path / "good.log")
+    # this one holds its first chain long enough to be killed while it has it
+    doomed = start_client(endpoint, "doomed", tmp_path / "doomed.log", "-v", "--test-stall", "30")
+    try:
+        wait_for(lambda: log_has(tmp_path / "doomed.log", "solving frame"), 30, "the doomed client to get a chain")
+        doomed.send_signal(signal.SIGKILL)
+        assert server.wait(60) == 0, (tmp_path / "server.log").read_text()
+        good.wait(STOP_SECONDS)  # released by the server's SHUTDOWN
+    finally:
+        stop([server, good, doomed])
+    check_complete(out, reference)
+    timing = summary(out)["timing"]
+    assert timing["lost_clients"] >= 1 and timing["resent"] >= 1
+
+
+@pytest.mark.timeout(90)
+def test_client_that_stalls(seq_path, reference, tmp_path):
+    port, out = free_port(), tmp_path / "out"
+    endpoint = f"tcp://127.0.0.1:{port}"
+    server = start_server(seq_path, out, port, tmp_path / "server.log", "--min-clients", "2",
+                          "--client-timeout", "1")
+    good = start_client(endpoint, "good", tmp_path / "good.log")
+    slow = start_client(endpoint, "slow", tmp_path / "slow.log", "--test-stall", "3")
+    try:
+        assert server.wait(60) == 0, (tmp_path / "server.log").read_text()
+    finally:
+        stop([server, good, slow])
+    check_complete(out, reference)
+    timing = summary(out)["timing"]
+    assert timing["stalls"] >= 1 and timing["lost_clients"] == 0
+    assert next(p for p in timing["processes"] if p["name"] == "slow")["stalls"] >= 1
+
+
+@pytest.mark.timeout(120)
+def test_server_killed_and_resumed(seq_path, reference, tmp_path):
+    port, out = free_port(), tmp_path / "out"
+    endpoint = f"tcp://127.0.0.1:{port}"
+    slow = ("--test-stall", "0.3", "--test-stall-requests", "1000")  # frames slow enough to kill in between
+    server = start_server(seq_path, out, port, tmp_path / "server.log", "--min-clients", "2")
+    clients = [start_client(endpoint, f"c{i}", tmp_path / f"c{i}.log", *slow) for i in (1, 2)]
+    try:
+        wait_for(lambda: len(records(out)) >= 1, 60, "the first frame")
+        server.send_signal(signal.SIGKILL)
+        server.wait(10)
+        assert len(records(out)) < FRAMES, "the run ended before the kill: slow it down"
+        server = start_server(seq_path, out, port, tmp_path / "server.log", "--min-clients", "2", "--resume")
+        assert server.wait(90) == 0, (tmp_path / "server.log").read_text()
+        for c in clients:
+            c.wait(STOP_SECONDS)  # they reconnected, registered again, and were released at the end
+    finally:
+        stop([server, *clients])
+    check_complete(out, reference)
+    s = summary(out)
+    assert 0 < s["frames_fitted_this_run"] < FRAMES
+    assert all("registered with" in (tmp_path / f"c{i}.log").read_text().split("silent")[-1] for i in (1, 2))
+
+
+@pytest.mark.timeout(90)
+def test_client_joins_late(seq_path, reference, tmp_path):
+    port, out = free_port(), tmp_path / "out"
+    endpoint = f"tcp://127.0.0.1:{port}"
+    server = start_server(seq_path, out, port, tmp_path / "server.log", "--min-clients", "1")
+    early = start_client(endpoint, "early", tmp_path / "early.log", "--test-stall", "0.6",
+                         "--test-stall-requests", "1000")
+    late = None
+    try:
+        wait_for(lambda: len(records(out)) >= 1, 60, "the first frame")
+        late = start_client(endpoint, "late", tmp_path / "late.log")
+        assert server.wait(60) == 0, (tmp_path / "server.log").read_text()
+    finally:
+        stop([p for p in (server, early, late) if p])
+    check_complete(out, reference)
+    processes = {p["name"]: p for p in summary(out)["timing"]["processes"]}
+    assert processes["late"]["chains"] >= 1, processes
+
+
+@pytest.mark.timeout(90)
+def test_sigterm_stops_everything_and_resume_finishes(seq_path, reference, tmp_path):
+    out = tmp_path / "out"
+    cmd = [PY, "-m", "server.cli", "fit", str(seq_path), "--out", str(out), "--clients", "2", "--heartbeat", "0.2",
+           "--quiet"]
+    with open(tmp_path / "fit.log", "w") as log:
+        fit = subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=log, stderr=log)
+    try:
+        wait_for(lambda: len(records(out)) >= 1, 60, "the first frame")
+        kids = children(fit.pid)
+        assert len(kids) == 2
+        t0 = time.monotonic()
+        fit.send_signal(signal.SIGTERM)
+        fit.wait(STOP_SECONDS)
+        wait_for(lambda: not any(alive(k) for k in kids), STOP_SECONDS - (time.monotonic() - t0), "the clients to exit")
+        assert time.monotonic() - t0 < STOP_SECONDS
+        kept = records(out)
+        assert 1 <= len(kept) <= FRAMES
+        with open(tmp_path / "fit.log", "a") as log:
+            resumed = subprocess.run([*cmd, "--resume"], cwd=ROOT, env=env(), stdout=log, stderr=log,
+                                                   timeout=60)
+        assert resumed.returncode == 0, (tmp_path / "fit.log").read_text()
+    finally:
+        stop([fit])
+    check_complete(out, reference)
