@@ -245,7 +245,7 @@ class GlEnergy:
         self.cam_buf = ctx.buffer(self._camera_table().tobytes())
         self.xf_buf = ctx.buffer(reserve=16)
         self.count_buf = ctx.buffer(reserve=16)
-        self._fbos = {}
+        self._fbos, self._uniforms = {}, {}
 
         I = np.asarray(setup.inputs, dtype=bool)
         M = self._render(np.asarray(setup.static_params, dtype=np.float64)[None], "static")[0]
@@ -297,11 +297,13 @@ class GlEnergy:
         prog, info = self.progs[program], self.parts[part]
         chunk = min(B, self.chunk_poses)
         fbo, cols, size = self._atlas(chunk * self.K, cover=program == "cover")
-        for name, value in (("n_cams", self.K), ("n_slots", len(info["slots"])), ("seg_slot", info["seg_slot"]),
-                            ("tile_cols", cols), ("tile_size", (float(self.w), float(self.h))),
-                            ("atlas_size", (float(size[0]), float(size[1]))), ("tile_px", (self.w, self.h))):
-            if name in prog:
-                prog[name].value = value
+        if self._uniforms.get(program) != (part, size):  # programs are ours: set only on change
+            self._uniforms[program] = (part, size)
+            for name, value in (("n_cams", self.K), ("n_slots", len(info["slots"])), ("seg_slot", info["seg_slot"]),
+                                ("tile_cols", cols), ("tile_size", (float(self.w), float(self.h))),
+                                ("atlas_size", (float(size[0]), float(size[1]))), ("tile_px", (self.w, self.h))):
+                if name in prog:
+                    prog[name].value = value
         self.xf_buf.bind_to_storage_buffer(0)
         self.cam_buf.bind_to_storage_buffer(1)
         fbo.use()
