@@ -25,9 +25,11 @@ One call evaluates B candidate poses in all K camera windows with one instanced 
 """
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
-from common.body import BodyModel, forward_kinematics
+from common.body import PARAM_COUNT, BodyModel, forward_kinematics
 from common.energy import MIN_DEPTH_M, EnergySetup, ellipsoid_world
 from common.packing import pack_planes
 from common.render_gl import NEAR_M, gl_context, gl_renderer_name, is_software_renderer
@@ -40,7 +42,7 @@ RIM_SCALE = float(np.sqrt(2.0 * np.pi / (RIM_VERTICES * np.sin(2.0 * np.pi / RIM
 # Tile pixels per draw; larger batches are drawn in chunks. A software renderer runs fastest
 # with a scene that stays in cache; a GPU wants big draws.
 ATLAS_PIXELS_SOFTWARE = 1 << 18
-ATLAS_PIXELS_GPU = 1 << 24
+ATLAS_PIXELS_GPU = 1 << 22
 CAMERA_VEC4S = 7            # storage-buffer entries per camera
 GL_CLIP_DISTANCES = tuple(0x3000 + i for i in range(5))  # GL_CLIP_DISTANCE0..4 (no moderngl name)
 
@@ -183,6 +185,18 @@ void main() { cover = 1.0; }
 
 # ------------------------------------------------------------------------------- energy
 
+# The process has one GL context: programs (per surface) and scratch atlases (per size) are
+# shared by all energies and live as long as it; each energy releases its own buffers.
+_SHARED = {}
+_INSTANCES = itertools.count()
+
+
+def _shared(key, make):
+    if key not in _SHARED:
+        _SHARED[key] = make()
+    return _SHARED[key]
+
+
 class GlEnergy:
     """The ``gl`` backend (see the module docstring), with the interface of ``CpuEnergy``.
 
@@ -195,6 +209,7 @@ class GlEnergy:
     def __init__(self, model: BodyModel, setup: EnergySetup, surface: str = "mesh"):
         import moderngl
 
+        self._gl = []  # this energy's OpenGL objects, released with it: a fit makes many energies
         if surface not in SURFACES:
             raise ValueError(f"unknown surface {surface!r}; expected one of {SURFACES}")
         self.mgl = moderngl
@@ -223,11 +238,12 @@ class GlEnergy:
         local, vseg, tris, tseg = mesh_geometry(model) if surface == "mesh" else rim_geometry()
         vdata = np.empty(len(local), dtype=[("pos", "f4", 3), ("seg", "i4")])
         vdata["pos"], vdata["seg"] = local, vseg
-        self.vbo = ctx.buffer(vdata.tobytes())
+        self.vbo = self._own(ctx.buffer(vdata.tobytes()))
         vs = VERTEX_SHADER.replace("#version 450", "#version 450\n#define RIM", 1) if surface == "ellipsoid" \
             else VERTEX_SHADER
-        self.progs = {"count": ctx.program(vertex_shader=vs, fragment_shader=COUNT_SHADER),
-                      "cover": ctx.program(vertex_shader=vs, fragment_shader=COVER_SHADER)}
+        self.progs = {name: _shared(("program", surface, name),
+                                    lambda fs=fs: ctx.program(vertex_shader=vs, fragment_shader=fs))
+                      for name, fs in (("count", COUNT_SHADER), ("cover", COVER_SHADER))}
         self.parts = {}
         for part, segs in (("moving", self.moving), ("static", static)):
             tri = tris[np.isin(tseg, segs)]
@@ -238,23 +254,27 @@ class GlEnergy:
             seg_slot[slots] = np.arange(len(slots))
             # counter-clockwise seen from outside in the world is clockwise in image coordinates
             # (v down), which are our window coordinates: flip to suit GL's default front face
-            ibo = ctx.buffer(np.ascontiguousarray(tri[:, [0, 2, 1]], dtype=np.int32).tobytes())
-            vaos = {name: ctx.vertex_array(prog, [(self.vbo, "3f 1i", "in_pos", "in_seg")], index_buffer=ibo)
+            ibo = self._own(ctx.buffer(np.ascontiguousarray(tri[:, [0, 2, 1]], dtype=np.int32).tobytes()))
+            vaos = {name: self._own(ctx.vertex_array(prog, [(self.vbo, "3f 1i", "in_pos", "in_seg")], index_buffer=ibo))
                     for name, prog in self.progs.items()}
             self.parts[part] = dict(slots=slots, seg_slot=tuple(int(x) for x in seg_slot), vaos=vaos)
-        self.cam_buf = ctx.buffer(self._camera_table().tobytes())
-        self.xf_buf = ctx.buffer(reserve=16)
-        self.count_buf = ctx.buffer(reserve=16)
-        self._fbos, self._uniforms = {}, {}
+        self.cam_buf = self._own(ctx.buffer(self._camera_table().tobytes()))
+        self.xf_buf = self._own(ctx.buffer(reserve=16))
+        self.count_buf = self._own(ctx.buffer(reserve=16))
+        self._id = next(_INSTANCES)
 
         I = np.asarray(setup.inputs, dtype=bool)
-        M = self._render(np.asarray(setup.static_params, dtype=np.float64)[None], "static")[0]
+        M = self._render(np.asarray(setup.static_params, dtype=np.float64), "static")
         self.static_mask = M
         self.base = int(np.count_nonzero(M ^ I))
         planes = pack_planes(I).astype(np.uint32) | (pack_planes(M).astype(np.uint32) << 8)   # (P, h, w)
-        self.planes = ctx.buffer(planes.tobytes())
+        self.planes = self._own(ctx.buffer(planes.tobytes()))
 
     # ------------------------------------------------------------------ internals
+
+    def _own(self, obj):
+        self._gl.append(obj)
+        return obj
 
     def _camera_table(self) -> np.ndarray:
         """(K * CAMERA_VEC4S, 4) float32, the layout the vertex shader reads."""
@@ -268,15 +288,19 @@ class GlEnergy:
         return np.asarray(rows, dtype=np.float32)
 
     def _atlas(self, tiles: int, cover: bool) -> tuple:
-        """(framebuffer, tile columns, size) of an atlas of at least ``tiles`` h x w tiles."""
+        """(framebuffer, tile columns, size) of an atlas of at least ``tiles`` h x w tiles.
+
+        Tile counts are rounded up to powers of two so that few atlases are ever made.
+        """
+        tiles = min(1 << (tiles - 1).bit_length(), self.chunk_poses * self.K)
         cols = max(1, min(tiles, self.max_cols, int(np.ceil(np.sqrt(tiles * self.h / self.w)))))
         size = (cols * self.w, -(-tiles // cols) * self.h)
-        key = (size, cover)
-        if key not in self._fbos:
+
+        def make():
             color = [self.ctx.renderbuffer(size, components=1, dtype="f1")] if cover else []
-            self._fbos[key] = self.ctx.framebuffer(color_attachments=color,
-                                                   depth_attachment=self.ctx.depth_renderbuffer(size))
-        return self._fbos[key], cols, size
+            return self.ctx.framebuffer(color_attachments=color, depth_attachment=self.ctx.depth_renderbuffer(size))
+
+        return _shared(("atlas", size, cover), make), cols, size
 
     def _upload(self, params: np.ndarray, part: str) -> None:
         """(B, 35) -> the storage buffer of (B, S, 3, 4) world maps of ``part``'s slots."""
@@ -297,8 +321,8 @@ class GlEnergy:
         prog, info = self.progs[program], self.parts[part]
         chunk = min(B, self.chunk_poses)
         fbo, cols, size = self._atlas(chunk * self.K, cover=program == "cover")
-        if self._uniforms.get(program) != (part, size):  # programs are ours: set only on change
-            self._uniforms[program] = (part, size)
+        if prog.extra != (self._id, part, size):  # shared programs: set uniforms only on change
+            prog.extra = (self._id, part, size)
             for name, value in (("n_cams", self.K), ("n_slots", len(info["slots"])), ("seg_slot", info["seg_slot"]),
                                 ("tile_cols", cols), ("tile_size", (float(self.w), float(self.h))),
                                 ("atlas_size", (float(size[0]), float(size[1]))), ("tile_px", (self.w, self.h))):
@@ -321,21 +345,15 @@ class GlEnergy:
             self.ctx.disable(self.mgl.DEPTH_TEST | self.mgl.CULL_FACE)
 
     def _render(self, params: np.ndarray, part: str) -> np.ndarray:
-        """(B, 35) -> (B, K, h, w) bool coverage of ``part`` ("moving" or "static")."""
-        B, K, h, w = len(params), self.K, self.h, self.w
-        out = np.zeros((B, K, h, w), dtype=bool)
+        """(35,) -> (K, h, w) bool coverage of ``part`` ("moving" or "static")."""
+        K, h, w = self.K, self.h, self.w
         if part not in self.parts:
-            return out
-        for first in range(0, B, self.chunk_poses):
-            p = params[first:first + self.chunk_poses]
-            self._upload(p, part)
-            self._draw(len(p), part, "cover")
-            fbo, cols, size = self._atlas(len(p) * K, cover=True)
-            img = np.frombuffer(fbo.read(components=1, dtype="f1", alignment=1), np.uint8).reshape(size[1], size[0])
-            for i in range(len(p) * K):
-                r, c = divmod(i, cols)
-                out[first + i // K, i % K] = img[r * h:(r + 1) * h, c * w:(c + 1) * w] > 0
-        return out
+            return np.zeros((K, h, w), dtype=bool)
+        self._upload(params[None], part)
+        self._draw(1, part, "cover")
+        fbo, cols, size = self._atlas(K, cover=True)
+        img = np.frombuffer(fbo.read(components=1, dtype="f1", alignment=1), np.uint8).reshape(size[1], size[0])
+        return np.stack([img[r * h:(r + 1) * h, c * w:(c + 1) * w] for r, c in (divmod(k, cols) for k in range(K))]) > 0
 
     # ---------------------------------------------------------------------- interface
 
@@ -360,4 +378,15 @@ class GlEnergy:
 
     def render(self, params: np.ndarray) -> np.ndarray:
         """(35,) -> (K, h, w) bool: the model's silhouette windows (moving and static parts)."""
-        return self._render(np.atleast_2d(np.asarray(params, dtype=np.float64))[:1], "moving")[0] | self.static_mask
+        return self._render(np.asarray(params, dtype=np.float64).reshape(-1)[:PARAM_COUNT], "moving") | self.static_mask
+
+    def release(self) -> None:
+        """Free this energy's OpenGL objects now (garbage collection does it otherwise)."""
+        while self._gl:
+            self._gl.pop().release()
+
+    def __del__(self):
+        try:
+            self.release()
+        except Exception:  # at interpreter exit the context may already be gone
+            pass

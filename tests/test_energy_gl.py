@@ -175,3 +175,23 @@ def test_interface(ctx, model, studio):
     assert gl.render(p).shape == setup.inputs.shape and gl.render(p).dtype == bool
     with pytest.raises(ValueError):
         GlEnergy(model, setup, surface="cylinders")
+
+
+def test_energies_release_their_gl_objects_and_leave_the_context_usable(ctx, model, studio):
+    from common.energy_gl import GlEnergy
+
+    p = rest_params(model)
+    windows = part_windows(model, studio, p, ARM.segments, ARM_WINDOW)
+    setup = make_setup(studio, mesh_masks(model, studio, p), windows, ARM.segments, p, prerender=True)
+    candidates = perturbed(p, np.random.default_rng(9), ARM.params, 0.3, 3)
+    first = GlEnergy(model, setup, surface="ellipsoid")
+    expected = first(candidates)
+    del first  # garbage collection releases it
+    for _ in range(3):
+        gl = GlEnergy(model, setup, surface="ellipsoid")
+        np.testing.assert_array_equal(gl(candidates), expected)
+        gl.render(p)
+        gl.release()
+        gl.release()
+        assert ctx.error == "GL_NO_ERROR"
+    assert mesh_masks(model, studio, p).any() and ctx.error == "GL_NO_ERROR"
