@@ -31,6 +31,7 @@ import socket
 import threading
 import time
 from dataclasses import dataclass
+import importlib.util
 from importlib import metadata
 
 import numpy as np
@@ -49,8 +50,12 @@ HEARTBEAT_INTERVAL = 1.0  # seconds, until the server's WELCOME says otherwise
 HEARTBEAT_LIVENESS = 3  # silent intervals before the server counts as gone
 RECONNECT_MIN = 1.0  # seconds before the first reconnect; doubles after every failed one
 RECONNECT_MAX = 32.0  # seconds
-POLL_SECONDS = 0.1  # the longest the main loop sleeps: a stop request waits at most this
+MAX_SLEEP = 1.0  # seconds the main loop sleeps at most (it wakes for messages, results and stop())
 FRAMES_KEPT = 2  # FRAME messages cached: the current frame and the one before
+
+# energy backends this client can try (a failing one is reported as an ERROR, and the server
+# then solves those chains itself)
+BACKENDS = ("cpu", "gl") if importlib.util.find_spec("moderngl") else ("cpu",)
 
 log = logging.getLogger("client")
 
@@ -134,8 +139,9 @@ class Worker:
     # ------------------------------------------------------------------ public
 
     def stop(self) -> None:
-        """Ask ``run`` to return (thread-safe, signal-safe)."""
+        """Ask ``run`` to return (thread-safe, and safe in a signal handler)."""
         self._stop.set()
+        self._poke(blocking=False)  # in a handler the lock may be held below us: MAX_SLEEP then
 
     def run(self) -> str:
         backoff = self.reconnect_min
@@ -179,7 +185,7 @@ class Worker:
         return sock
 
     def _register(self, sock: zmq.Socket) -> None:
-        self._send(sock, Register(client_id=self.client_id, cores=os.cpu_count() or 1, backends=("cpu",),
+        self._send(sock, Register(client_id=self.client_id, cores=os.cpu_count() or 1, backends=BACKENDS,
                                   version=software_version()))
 
     def _send(self, sock: zmq.Socket, msg) -> None:
@@ -199,7 +205,9 @@ class Worker:
             if self._stop.is_set() or self._parent_gone():
                 self._say_goodbye(sock, "stopped")
                 return "stopped"
-            timeout = max(0.0, min(POLL_SECONDS, self._heartbeat_at - time.monotonic()))
+            # sleep until something happens: a wake-up while the compute thread runs costs it the GIL
+            timeout = max(0.0, min(self._heartbeat_at, server_expiry, time.monotonic() + MAX_SLEEP)
+                          - time.monotonic())
             events = dict(poller.poll(timeout * 1000))
             if events.get(self._wake_rx):
                 while self._wake_rx.poll(0):
@@ -301,6 +309,8 @@ class Worker:
             if job is None:
                 return
             solve = job.solve
+            if job.session != self.session:  # the server restarted meanwhile: nobody wants this
+                continue
             if self.stall_requests > 0:
                 self.stall_requests -= 1
                 time.sleep(self.stall_seconds)
@@ -318,16 +328,26 @@ class Worker:
                                         energy=float(r.energy), evaluations=r.evaluations,
                                         cpu_seconds=r.cpu_seconds, wall_seconds=r.wall_seconds,
                                         **_result_extras(r)))
-            except (ValueError, ProtocolError) as exc:
+            except Exception as exc:  # whatever fails, the server must hear of it, and we go on
                 log.warning("cannot solve request %d: %s", solve.request, exc)
                 self._finish(Error(code="solve_failed", text=str(exc)[:1000], session=solve.session,
                                    frame=solve.frame, iteration=solve.iteration, request=solve.request))
 
     def _finish(self, msg) -> None:
         self._done.put(msg)
-        with self._wake_lock:
+        self._poke()
+
+    def _poke(self, blocking: bool = True) -> None:
+        """Wake the main loop from another thread."""
+        if not self._wake_lock.acquire(blocking):
+            return
+        try:
             if not self._wake_tx.closed:
                 self._wake_tx.send(b"", zmq.NOBLOCK)
+        except zmq.Again:  # it has pokes enough to wake up
+            pass
+        finally:
+            self._wake_lock.release()
 
 
 # RESULT carries energy_before and iterations once common.protocol.Result has those fields;

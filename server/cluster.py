@@ -69,7 +69,7 @@ LOCAL_BIND = "tcp://127.0.0.1:*"  # a random free port on the loopback interface
 HEARTBEAT_INTERVAL = 1.0  # seconds between heartbeats, both ways
 HEARTBEAT_LIVENESS = 3  # silent intervals before a client counts as dead
 CLIENT_TIMEOUT = 10.0  # seconds a chain may take on a client before it is queued again
-POLL_SECONDS = 0.05  # the broker's longest sleep: time-outs are checked this often
+MAX_SLEEP = 1.0  # seconds the broker sleeps at most; it wakes for messages, commands and deadlines
 SHUTDOWN_GRACE = 1.0  # seconds to wait for clients to acknowledge SHUTDOWN
 CLIENT_START_TIMEOUT = 60.0  # seconds for local clients to start and register
 CLIENT_STOP_TIMEOUT = 5.0  # seconds a local client gets to exit after SIGTERM
@@ -210,6 +210,10 @@ class ClusterSolver:
     def __init__(self, model: BodyModel, options: FitOptions, bind: str = DEFAULT_BIND,
                  heartbeat_interval: float = HEARTBEAT_INTERVAL, client_timeout: float = CLIENT_TIMEOUT,
                  curve_keys: Path | None = None):
+        if not 0.001 <= heartbeat_interval <= 3600.0:
+            raise UserError(f"--heartbeat must be in [0.001, 3600] seconds, got {heartbeat_interval}")
+        if not client_timeout > 0:
+            raise UserError(f"--client-timeout must be > 0 seconds, got {client_timeout}")
         self.model = model
         self.heartbeat_interval, self.client_timeout = heartbeat_interval, client_timeout
         self.session = secrets.token_hex(8)
@@ -375,7 +379,7 @@ class ClusterSolver:
                 while not rnd.done() and not (rnd.dispatched and rnd.pending):
                     if not self._thread.is_alive():
                         raise RuntimeError("the cluster broker thread died")
-                    self._lock.wait(POLL_SECONDS)
+                    self._lock.wait(MAX_SLEEP)
                 self._server["waiting_seconds"] += time.perf_counter() - t0
                 if rnd.done():
                     if self._round is rnd:
@@ -401,7 +405,10 @@ class ClusterSolver:
         next_heartbeat = time.monotonic() + self.heartbeat_interval
         try:
             while True:
-                events = dict(poller.poll(POLL_SECONDS * 1000))
+                # sleep until the next deadline: waking up takes the GIL from the torso and head fits
+                with self._lock:
+                    sleep = self._next_deadline(next_heartbeat) - time.monotonic()
+                events = dict(poller.poll(max(sleep, 0.0) * 1000))
                 if events.get(self._wake_rx):
                     while self._wake_rx.poll(0):
                         self._wake_rx.recv()
@@ -424,6 +431,14 @@ class ClusterSolver:
         except Exception:
             log.exception("cluster broker failed")
             raise
+
+    def _next_deadline(self, next_heartbeat: float) -> float:
+        deadlines = [next_heartbeat, time.monotonic() + MAX_SLEEP]
+        deadlines += [p.expiry for p in self._peers.values()]
+        if self._round is not None:
+            deadlines += [r.sent + self.client_timeout for r in self._round.requests.values()
+                          if not r.timed_out and r.chain not in self._round.results]
+        return min(deadlines)
 
     def _run_commands(self) -> bool:
         while True:

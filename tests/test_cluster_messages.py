@@ -2,6 +2,7 @@
 the server goes on serving its clients (the poses still match the single-process fit)."""
 import logging
 import math
+import threading
 import time
 
 import msgpack
@@ -185,3 +186,54 @@ def test_curve_keys_folder_is_checked(model, tmp_path):
 
     with pytest.raises(UserError, match="server.key_secret"):
         ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, curve_keys=tmp_path)
+
+
+@pytest.mark.timeout(60)
+def test_a_client_that_fails_a_chain_gets_no_more_work(model, seq_path, reference, tmp_path):
+    from common.protocol import Error, Solve, decode
+
+    solver = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT)
+    ctx = zmq.Context()
+    solves, done = [], threading.Event()
+
+    def failing_client(sock):
+        next_beat = 0.0
+        while not done.is_set():
+            if time.monotonic() > next_beat:
+                sock.send_multipart(encode(Heartbeat(session=solver.session)))
+                next_beat = time.monotonic() + HEARTBEAT / 2
+            if sock.poll(20):
+                msg = decode(sock.recv_multipart())
+                if isinstance(msg, Solve):
+                    solves.append(msg)
+                    sock.send_multipart(encode(Error(code="solve_failed", text="no GPU here", session=msg.session,
+                                                     frame=msg.frame, iteration=msg.iteration,
+                                                     request=msg.request)))
+
+    try:
+        failing = raw_dealer(ctx, solver.endpoint)
+        failing.send_multipart(encode(Register(client_id="failing", cores=1, backends=("cpu",), version="0")))
+        assert b"welcome" in failing.recv_multipart()[0]
+        thread = threading.Thread(target=failing_client, args=(failing,), daemon=True)
+        thread.start()
+        with thread_workers(model, solver.endpoint, 1):
+            solver.wait_for_clients(2, timeout=10)
+            got = fit_one_frame(model, seq_path, solver, tmp_path)
+            stats = solver.stats()
+        done.set()
+        thread.join(5)
+    finally:
+        done.set()
+        ctx.destroy(linger=0)
+        solver.close(shutdown="done")
+    assert len(solves) == 1 and stats["resent"] == 1 and stats["lost_clients"] == 0
+    assert np.abs(got - reference).max() <= TOLERANCE
+
+
+def test_cluster_settings_are_checked(model):
+    from common.errors import UserError
+
+    with pytest.raises(UserError, match="--heartbeat"):
+        ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=0.0)
+    with pytest.raises(UserError, match="--client-timeout"):
+        ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, client_timeout=-1.0)

@@ -27,7 +27,7 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--grid-range", type=float, default=FitOptions.grid_range_rad, help="limb grid half-width, rad")
     p.add_argument("--no-prerender", action="store_true", help="render every part in every evaluation")
     p.add_argument("--init", choices=INIT_CHOICES, default="auto",
-                   help="first-frame start: truth pose if the sequence has one (auto), else standing")
+                   help="first-frame start: truth pose if the sequence has one (auto), else from voxels")
     p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
     p.add_argument("--resume", action="store_true", help="continue a result folder after a crash")
     p.add_argument("--quiet", action="store_true", help="no progress bar, no table")
