@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 import zmq
 
-from common.body import load_body_model
 from common.camera import circle_studio
 from common.fitting import FitOptions, FrameData, solve_chain
 from common.packing import packbits_masks
@@ -20,11 +19,6 @@ from test_cluster_support import PY, ROOT, env, start_client, wait_for
 
 HEARTBEAT = 0.1  # seconds
 RECV_TIMEOUT = 5000  # ms
-
-
-@pytest.fixture(scope="module")
-def model():
-    return load_body_model()
 
 
 class Router(zmq.Socket):

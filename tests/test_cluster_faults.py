@@ -8,17 +8,16 @@ import time
 import numpy as np
 import pytest
 
-from test_cluster_support import (PY, ROOT, alive, children, env, free_port, make_sequence, poses, records,
-                                  reference_fit, start_client, start_server, stop, wait_for)
+from test_cluster_support import (FRAMES, PY, ROOT, alive, children, env, free_port, poses, records, reference_fit,
+                                  start_client, start_server, stop, wait_for)
 
 TOLERANCE = 1e-9
-FRAMES = 3
 STOP_SECONDS = 10.0  # what SIGTERM may take, at most
 
 
 @pytest.fixture(scope="module")
-def seq_path(tmp_path_factory):
-    return make_sequence(tmp_path_factory.mktemp("faults") / "seq", frames=FRAMES)
+def seq_path(small_sequence):
+    return small_sequence
 
 
 @pytest.fixture(scope="module")
@@ -107,11 +106,11 @@ def test_client_joins_late(seq_path, reference, tmp_path):
     port, out = free_port(), tmp_path / "out"
     endpoint = f"tcp://127.0.0.1:{port}"
     server = start_server(seq_path, out, port, tmp_path / "server.log", "--min-clients", "1")
-    early = start_client(endpoint, "early", tmp_path / "early.log", "--test-stall", "0.6",
+    early = start_client(endpoint, "early", tmp_path / "early.log", "-v", "--test-stall", "0.8",
                          "--test-stall-requests", "1000")
     late = None
     try:
-        wait_for(lambda: len(records(out)) >= 1, 60, "the first frame")
+        wait_for(lambda: log_has(tmp_path / "early.log", "solving frame"), 60, "the run to start")
         late = start_client(endpoint, "late", tmp_path / "late.log")
         assert server.wait(60) == 0, (tmp_path / "server.log").read_text()
     finally:

@@ -11,17 +11,16 @@ import pytest
 import zmq
 import zmq.auth
 
-from common.body import load_body_model
 from common.fitting import FitOptions
 from common.packing import packbits_masks
 from common.protocol import (MAX_HEADER_BYTES, MAX_MESSAGE_BYTES, PROTOCOL_VERSION, Frame, Heartbeat, Register,
                              camera_specs, encode)
 from common.camera import circle_studio
 from common.sequence import load_sequence
-from client.worker import CurveKeys, Worker
+from client.worker import CurveKeys
 from server.cluster import LOCAL_BIND, ClusterSolver, create_curve_keys
 from server.session import run_fit
-from test_cluster_support import HEARTBEAT, make_sequence, poses, reference_fit, thread_workers, wait_for
+from test_cluster_support import HEARTBEAT, poses, reference_fit, thread_workers, wait_for
 
 TOLERANCE = 1e-9
 PARAMS = [0.0] * 35
@@ -60,18 +59,13 @@ BAD_MESSAGES = {
 
 
 @pytest.fixture(scope="module")
-def model():
-    return load_body_model()
-
-
-@pytest.fixture(scope="module")
-def seq_path(tmp_path_factory):
-    return make_sequence(tmp_path_factory.mktemp("messages") / "seq", frames=1)
+def seq_path(small_sequence):
+    return small_sequence
 
 
 @pytest.fixture(scope="module")
 def reference(seq_path, tmp_path_factory):
-    return reference_fit(seq_path, tmp_path_factory.mktemp("messages") / "single")
+    return reference_fit(seq_path, tmp_path_factory.mktemp("messages") / "single", max_frames=1)
 
 
 def raw_dealer(ctx: zmq.Context, endpoint: str, **curve) -> zmq.Socket:
@@ -85,7 +79,7 @@ def raw_dealer(ctx: zmq.Context, endpoint: str, **curve) -> zmq.Socket:
 
 
 def fit_one_frame(model, seq_path, solver, out) -> np.ndarray:
-    run_fit(model, load_sequence(seq_path), out, FitOptions(), solver)
+    run_fit(model, load_sequence(seq_path), out, FitOptions(), solver, max_frames=1)
     return poses(out)
 
 

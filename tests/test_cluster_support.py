@@ -1,5 +1,5 @@
-"""Helpers for the cluster and client tests (no tests here): a small sequence, a reference
-single-process fit, in-thread workers and subprocesses on 127.0.0.1."""
+"""Helpers for the cluster and client tests (no tests here): a reference single-process fit,
+in-thread workers and subprocesses on 127.0.0.1. The sequence is conftest's ``small_sequence``."""
 from __future__ import annotations
 
 import json
@@ -18,17 +18,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 PY = sys.executable
 HEARTBEAT = 0.2  # seconds: fast failure detection in tests
-FRAMES = 2
+FRAMES = 3  # conftest.SMALL_FRAMES
 
 
-def make_sequence(path: Path, frames: int = FRAMES) -> Path:
-    subprocess.run([PY, "-m", "server.cli", "synth", "--out", str(path), "--frames", str(frames), "--step", "4",
-                    "--noise", "cheung", "--size", "160x120", "--cameras", "4", "--quiet"],
-                   cwd=ROOT, check=True, timeout=60)
-    return path
-
-
-def reference_fit(seq_path: Path, out: Path, options=None) -> np.ndarray:
+def reference_fit(seq_path: Path, out: Path, max_frames: int | None = None) -> np.ndarray:
     """(F, 35) poses of the single-process fit with default options (what the CLI uses)."""
     from common.body import load_body_model
     from common.fitting import FitOptions
@@ -36,8 +29,8 @@ def reference_fit(seq_path: Path, out: Path, options=None) -> np.ndarray:
     from server.session import LocalSolver, run_fit
 
     model = load_body_model()
-    options = options or FitOptions()
-    run_fit(model, load_sequence(seq_path), out, options, LocalSolver(model, options))
+    options = FitOptions()
+    run_fit(model, load_sequence(seq_path), out, options, LocalSolver(model, options), max_frames=max_frames)
     return poses(out)
 
 

@@ -60,9 +60,24 @@ def print_summary(summary: dict, out) -> None:
     if "mean_joint_error_mm" in summary:
         rows += [("mean joint error", f"{summary['mean_joint_error_mm']:.1f} mm"),
                  ("max joint error", f"{summary['max_joint_error_mm']:.1f} mm")]
+    rows += _cluster_rows(summary)
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
         print(f"  {k.ljust(width)}  {v}", file=out)
+
+
+def _cluster_rows(summary: dict) -> list:
+    """Compute / waiting / transfer per process (s/frame) and the failure counters of a cluster run."""
+    timing, frames = summary.get("timing", {}), max(summary.get("frames_fitted_this_run") or 0, 1)
+    rows = []
+    for p in timing.get("processes", []):
+        split = " / ".join(f"{p[k] / frames:.3f}" for k in ("compute_seconds", "waiting_seconds", "transfer_seconds"))
+        rows.append((f"{p['name']} compute/wait/transfer", f"{split} s/frame, {p['chains']} chains"))
+    if "dropped" in timing:
+        dropped = sum(timing["dropped"].values())
+        rows.append(("dropped / resent / lost", f"{dropped} messages / {timing['resent']} chains / "
+                                                f"{timing['lost_clients']} clients"))
+    return rows
 
 
 def register(sub) -> None:
