@@ -175,12 +175,16 @@ class Worker:
 
     def _open(self) -> zmq.Socket:
         sock = self.ctx.socket(zmq.DEALER)
-        sock.linger = 0
-        sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
-        if self.curve:
-            sock.curve_publickey, sock.curve_secretkey = self.curve.public, self.curve.secret
-            sock.curve_serverkey = self.curve.server
-        sock.connect(self.connect)
+        try:
+            sock.linger = 0
+            sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
+            if self.curve:
+                sock.curve_publickey, sock.curve_secretkey = self.curve.public, self.curve.secret
+                sock.curve_serverkey = self.curve.server
+            sock.connect(self.connect)
+        except zmq.ZMQError:
+            sock.close(linger=0)  # an open socket would keep the context from terminating
+            raise
         self._register(sock)
         return sock
 

@@ -216,3 +216,9 @@ def test_mocap_client_is_python_m_client():
     proc = subprocess.run([PY, "-m", "server.cli", "client", "--help"], cwd=ROOT, env=env(), capture_output=True,
                           text=True, timeout=30)
     assert proc.returncode == 0 and "--connect" in proc.stdout
+
+
+def test_a_bad_address_is_a_usage_error():
+    proc = subprocess.run([PY, "-m", "client", "--connect", "bogus://x"], cwd=ROOT, env=env(), capture_output=True,
+                          text=True, timeout=30)
+    assert proc.returncode == 2 and "bogus://x" in proc.stderr
