@@ -89,7 +89,7 @@ class CurveKeys:
 class _Job:
     session: str
     frame: Frame
-    solve: Solve
+    solve: Solve | None  # None: only prepare the frame's data
 
 
 class Worker:
@@ -281,6 +281,7 @@ class Worker:
             self._drop("stale", f"{msg.TYPE} for session {msg.session!r}, ours is {self.session!r}")
         elif isinstance(msg, Frame):
             self._frames[(msg.session, msg.frame)] = msg
+            self._jobs.put(_Job(msg.session, msg, None))  # unpack it while the server fits the torso
             for key in sorted(self._frames, key=lambda k: k[1])[:-FRAMES_KEPT]:
                 del self._frames[key]
         else:
@@ -312,18 +313,24 @@ class Worker:
             job = self._jobs.get()
             if job is None:
                 return
-            solve = job.solve
             if job.session != self.session:  # the server restarted meanwhile: nobody wants this
                 continue
+            key = (job.session, job.frame.frame)
+            if job.solve is None:
+                try:
+                    if cache is None or cache[0] != key:
+                        cache = (key, self._frame_data(job.frame))
+                except Exception as exc:  # reported with the first SOLVE that needs it
+                    log.warning("cannot use FRAME %d: %s", job.frame.frame, exc)
+                continue
+            solve = job.solve
             if self.stall_requests > 0:
                 self.stall_requests -= 1
                 time.sleep(self.stall_seconds)
             try:
                 options = FitOptions.from_wire(solve.options)
-                key = (job.session, job.frame.frame)
                 if cache is None or cache[0] != key:
-                    studio = Studio(tuple(c.to_camera() for c in job.frame.cameras), "<wire>")
-                    cache = (key, FrameData(self.model, studio, job.frame.masks()))
+                    cache = (key, self._frame_data(job.frame))
                 for chain in solve.chains:
                     r = solve_chain(self.model, cache[1], chain, np.asarray(solve.params), options)
                     self.solved += 1
@@ -336,6 +343,10 @@ class Worker:
                 log.warning("cannot solve request %d: %s", solve.request, exc)
                 self._finish(Error(code="solve_failed", text=str(exc)[:1000], session=solve.session,
                                    frame=solve.frame, iteration=solve.iteration, request=solve.request))
+
+    def _frame_data(self, frame: Frame) -> FrameData:
+        studio = Studio(tuple(c.to_camera() for c in frame.cameras), "<wire>")
+        return FrameData(self.model, studio, frame.masks())
 
     def _finish(self, msg) -> None:
         self._done.put(msg)

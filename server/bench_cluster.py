@@ -190,7 +190,8 @@ def format_table(r: dict) -> str:
 
     rows = [
         ("", "paper, seq. A", "ours"),
-        ("single process, XOR (s/frame)", s(paper["single_xor_seconds_per_frame"]), s(r["single_xor_seconds_per_frame"])),
+        ("single process, XOR (s/frame)", s(paper["single_xor_seconds_per_frame"]),
+         s(r["single_xor_seconds_per_frame"])),
         ("single process, XORPR (s/frame)", s(paper["single_seconds_per_frame"]), s(r["single_seconds_per_frame"])),
         ("distributed (s/frame)", f"{paper['distributed_seconds_per_frame']:.3f} (5 PCs)",
          f"{s(r['distributed_seconds_per_frame'])} (server + {r['clients']} clients, {r['cpus']} cores)"),

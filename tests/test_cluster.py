@@ -10,7 +10,8 @@ from common.fitting import FitOptions
 from common.sequence import load_sequence
 from server.cluster import LOCAL_BIND, ClusterSolver
 from server.session import run_fit
-from test_cluster_support import HEARTBEAT, PY, ROOT, env, poses, records, reference_fit, thread_workers
+from test_cluster_support import (HEARTBEAT, PY, ROOT, THREAD_HEARTBEAT, env, poses, records, reference_fit,
+                                  thread_workers)
 
 TOLERANCE = 1e-9
 EQUAL_FRAMES = 2  # of the small sequence's FRAMES: a second frame sends a second FRAME
@@ -30,7 +31,7 @@ def reference(seq_path, tmp_path_factory):
 @pytest.mark.parametrize("n", [1, 2, 4, 6])
 def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     options = FitOptions()
-    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT)
+    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     try:
         with thread_workers(model, solver.endpoint, n) as workers:
             solver.wait_for_clients(n, timeout=10)

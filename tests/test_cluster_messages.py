@@ -20,7 +20,7 @@ from common.sequence import load_sequence
 from client.worker import CurveKeys
 from server.cluster import LOCAL_BIND, ClusterSolver, create_curve_keys
 from server.session import run_fit
-from test_cluster_support import HEARTBEAT, poses, reference_fit, thread_workers, wait_for
+from test_cluster_support import HEARTBEAT, THREAD_HEARTBEAT, poses, reference_fit, thread_workers, wait_for
 
 TOLERANCE = 1e-9
 PARAMS = [0.0] * 35
@@ -86,7 +86,7 @@ def fit_one_frame(model, seq_path, solver, out) -> np.ndarray:
 @pytest.mark.timeout(60)
 def test_bad_messages_are_dropped_counted_logged_once(model, seq_path, reference, tmp_path, caplog):
     caplog.set_level(logging.WARNING, logger="server.cluster")
-    solver = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT)
+    solver = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     ctx = zmq.Context()
     try:
         with thread_workers(model, solver.endpoint, 2):
@@ -153,7 +153,8 @@ def test_curve_lets_only_allowed_keys_in(model, seq_path, reference, tmp_path):
     zmq.auth.create_certificates(tmp_path / "intruder", "client")
     allowed = CurveKeys.load(keys)
     intruder_public, intruder_secret = zmq.auth.load_certificate(tmp_path / "intruder" / "client.key_secret")
-    solver = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT, curve_keys=keys)
+    solver = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT,
+                           curve_keys=keys)
     ctx = zmq.Context()
     try:
         with thread_workers(model, solver.endpoint, 1, curve=allowed) as (good,), \
@@ -186,7 +187,7 @@ def test_curve_keys_folder_is_checked(model, tmp_path):
 def test_a_client_that_fails_a_chain_gets_no_more_work(model, seq_path, reference, tmp_path):
     from common.protocol import Error, Solve, decode
 
-    solver = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT)
+    solver = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     ctx = zmq.Context()
     solves, done = [], threading.Event()
 
@@ -195,7 +196,7 @@ def test_a_client_that_fails_a_chain_gets_no_more_work(model, seq_path, referenc
         while not done.is_set():
             if time.monotonic() > next_beat:
                 sock.send_multipart(encode(Heartbeat(session=solver.session)))
-                next_beat = time.monotonic() + HEARTBEAT / 2
+                next_beat = time.monotonic() + THREAD_HEARTBEAT / 2
             if sock.poll(20):
                 msg = decode(sock.recv_multipart())
                 if isinstance(msg, Solve):

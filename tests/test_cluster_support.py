@@ -17,7 +17,9 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 PY = sys.executable
-HEARTBEAT = 0.2  # seconds: fast failure detection in tests
+HEARTBEAT = 0.3  # seconds: fast failure detection in tests with client processes
+# in-thread workers share the GIL with the server's fits: a slower beat, so none is taken for dead
+THREAD_HEARTBEAT = 1.0
 FRAMES = 3  # conftest.SMALL_FRAMES
 
 
