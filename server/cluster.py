@@ -735,7 +735,10 @@ class LocalCluster:
                 self.procs.append(subprocess.Popen(
                     [sys.executable, "-m", "client", "--connect", self.solver.endpoint, "--id", f"local-{i + 1}",
                      "--quiet", "--exit-with-parent", "--reconnect-min", "0.2", *self.client_args],
-                    env=env, stdin=subprocess.DEVNULL))
+                    # own sessions: a terminal's Ctrl-C reaches only us, and we stop them in order;
+                    # the kernel's autogroup scheduler also shares the CPU out per session, so each
+                    # client counts as a machine of its own, as in the paper's cluster
+                    env=env, stdin=subprocess.DEVNULL, start_new_session=True))
             self.solver.wait_for_clients(self.n, CLIENT_START_TIMEOUT, check=self._check_alive)
         except BaseException:
             self.__exit__(None, None, None)
