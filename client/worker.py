@@ -336,9 +336,9 @@ class Worker:
                     self.solved += 1
                     self._finish(Result(session=solve.session, frame=solve.frame, iteration=solve.iteration,
                                         request=solve.request, chain=r.chain, params=r.params.tolist(),
-                                        energy=float(r.energy), evaluations=r.evaluations,
-                                        cpu_seconds=r.cpu_seconds, wall_seconds=r.wall_seconds,
-                                        **_result_extras(r)))
+                                        energy=float(r.energy), energy_before=float(r.energy_before),
+                                        evaluations=r.evaluations, iterations=r.iterations,
+                                        cpu_seconds=r.cpu_seconds, wall_seconds=r.wall_seconds))
             except Exception as exc:  # whatever fails, the server must hear of it, and we go on
                 log.warning("cannot solve request %d: %s", solve.request, exc)
                 self._finish(Error(code="solve_failed", text=str(exc)[:1000], session=solve.session,
@@ -364,11 +364,3 @@ class Worker:
         finally:
             self._wake_lock.release()
 
-
-# RESULT carries energy_before and iterations once common.protocol.Result has those fields;
-# until then the server records them as unknown (-1, 0).
-_RESULT_EXTRAS = tuple(n for n in ("energy_before", "iterations") if n in Result.__dataclass_fields__)
-
-
-def _result_extras(r) -> dict:
-    return {n: getattr(r, n) for n in _RESULT_EXTRAS}

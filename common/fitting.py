@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from itertools import product
 from typing import Callable
 
@@ -156,9 +157,15 @@ class FrameData:
         studio, masks = undistort_masks(studio, masks)
         self.studio = studio
         self.masks = masks
-        self.half_studio = Studio(tuple(
-            replace(c.scaled(HALF), width=c.width // 2, height=c.height // 2) for c in studio))
-        self.half_masks = downsample_masks(masks, 2)
+
+    @cached_property
+    def half_studio(self) -> Studio:
+        """The studio at half resolution (image sizes rounded down, as the masks are)."""
+        return Studio(tuple(replace(c.scaled(HALF), width=c.width // 2, height=c.height // 2) for c in self.studio))
+
+    @cached_property
+    def half_masks(self) -> np.ndarray:
+        return downsample_masks(self.masks, 2)
 
     def full_setup(self, params: np.ndarray, half: bool = False) -> EnergySetup:
         studio = self.half_studio if half else self.studio

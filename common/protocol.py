@@ -344,13 +344,16 @@ class Result:
     chain: str
     params: tuple[float, ...]  # (PARAM_COUNT,) the full pose with this chain fitted
     energy: float
+    energy_before: float
     evaluations: int
+    iterations: int
     cpu_seconds: float
     wall_seconds: float
 
     def __post_init__(self):
         _session(self, required=True)
-        _indices(self, "frame", "iteration", "request", "evaluations")
+        _indices(self, "frame", "iteration", "request", "evaluations", "iterations")
+        _set(self, "energy_before", _float(self.energy_before, "result.energy_before"))
         _set(self, "chain", _chain(self.chain, "result.chain"))
         _set(self, "params", _floats(self.params, "result.params", PARAM_COUNT))
         _set(self, "energy", _float(self.energy, "result.energy"))

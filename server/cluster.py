@@ -194,10 +194,8 @@ class _Round:
 
 
 def _chain_result(msg: Result) -> ChainResult:
-    # energy_before and iterations: -1 and 0 until common.protocol.Result carries them
-    return ChainResult(msg.chain, np.asarray(msg.params, dtype=np.float64), getattr(msg, "energy_before", -1),
-                       int(round(msg.energy)), msg.evaluations, getattr(msg, "iterations", 0),
-                       msg.wall_seconds, msg.cpu_seconds)
+    return ChainResult(msg.chain, np.asarray(msg.params, dtype=np.float64), int(round(msg.energy_before)),
+                       int(round(msg.energy)), msg.evaluations, msg.iterations, msg.wall_seconds, msg.cpu_seconds)
 
 
 # ----------------------------------------------------------------------------- solver

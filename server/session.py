@@ -110,6 +110,22 @@ class RunStats:
             self.chain_evaluations[c.chain] = self.chain_evaluations.get(c.chain, 0) + c.evaluations
 
 
+SOLVES_PER_ITERATION = ("torso", "left_arm", "right_arm", "left_leg", "right_leg", "head")
+
+
+def chain_totals(chains: list[ChainResult]) -> dict:
+    """Per chain over a frame's iterations: evaluations and seconds summed, energy first -> last."""
+    out: dict = {}
+    for c in chains:
+        t = out.setdefault(c.chain, {"evaluations": 0, "energy_before": c.energy_before, "energy": c.energy,
+                                     "cpu_seconds": 0.0, "wall_seconds": 0.0})
+        t["evaluations"] += c.evaluations
+        t["cpu_seconds"] += c.cpu_seconds
+        t["wall_seconds"] += c.wall_seconds
+        t["energy"] = c.energy
+    return out
+
+
 def silhouette_centre(data: FrameData) -> np.ndarray:
     """(3,) least-squares intersection of the rays through each silhouette's centroid."""
     A = np.zeros((3, 3))
@@ -250,9 +266,10 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                 "frame": int(frame), "params": [float(v) for v in x], "joints": joints_dict(joints),
                 "energy": int(result.energy), "seconds": seconds, "iterations": result.iterations,
                 "evaluations": result.evaluations,
-                "chains": {c.chain: {"evaluations": c.evaluations, "energy_before": c.energy_before,
-                                     "energy": c.energy, "cpu_seconds": c.cpu_seconds,
-                                     "wall_seconds": c.wall_seconds} for c in result.chains},
+                "chains": chain_totals(result.chains),
+                "solves": [{"chain": c.chain, "iteration": i // len(SOLVES_PER_ITERATION), "evaluations": c.evaluations,
+                            "energy_before": c.energy_before, "energy": c.energy, "cpu_seconds": c.cpu_seconds,
+                            "wall_seconds": c.wall_seconds} for i, c in enumerate(result.chains)],
             }
             fh.write(json.dumps(record) + "\n")
             fh.flush()

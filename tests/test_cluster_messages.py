@@ -28,7 +28,8 @@ PARAMS = [0.0] * 35
 
 def result_header(**overrides) -> dict:
     header = {"v": PROTOCOL_VERSION, "type": "result", "session": "s", "frame": 0, "iteration": 0, "request": 0,
-              "chain": "left_arm", "params": PARAMS, "energy": 1.0, "evaluations": 1, "cpu_seconds": 0.1,
+              "chain": "left_arm", "params": PARAMS, "energy": 1.0, "energy_before": 2.0, "evaluations": 1,
+              "iterations": 1, "cpu_seconds": 0.1,
               "wall_seconds": 0.1}
     header.update(overrides)
     return header

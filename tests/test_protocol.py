@@ -38,7 +38,7 @@ EXAMPLES = [
           options={"grid_steps": 5, "backend": "cpu", "step": 0.05, "prerender": True}),
     Solve(session="s1", frame=0, iteration=0, request=0, params=PARAMS, chains=("head",)),
     Result(session="s1", frame=7, iteration=2, request=41, chain="left_arm", params=PARAMS, energy=1234.0,
-           evaluations=900, cpu_seconds=0.25, wall_seconds=0.3),
+           energy_before=1500.0, evaluations=900, iterations=3, cpu_seconds=0.25, wall_seconds=0.3),
     Heartbeat(),
     Heartbeat(session="s1"),
     Error(code="busy", text="no free core"),
@@ -89,7 +89,7 @@ def test_values_are_normalised():
     assert type(msg.options["steps"]) is int and type(msg.options["scale"]) is float
     assert decode(encode(msg)) == msg
     result = Result(session="s", frame=0, iteration=0, request=0, chain="head", params=PARAMS, energy=3,
-                    evaluations=1, cpu_seconds=0, wall_seconds=0)
+                    energy_before=4, evaluations=1, iterations=1, cpu_seconds=0, wall_seconds=0)
     assert type(result.energy) is float
 
 
@@ -321,7 +321,8 @@ def test_too_large_on_encode(monkeypatch):
      "bad_field"),
     (lambda: Solve(session="s", frame=0, iteration=0, request=0, params=PARAMS, chains=["neck"]), "bad_field"),
     (lambda: Result(session="s", frame=0, iteration=0, request=0, chain="head", params=PARAMS,
-                    energy=math.nan, evaluations=0, cpu_seconds=0.0, wall_seconds=0.0), "non_finite"),
+                    energy=math.nan, energy_before=0.0, evaluations=0, iterations=0, cpu_seconds=0.0,
+                    wall_seconds=0.0), "non_finite"),
     (lambda: make_frame(silhouettes=b"\0"), "byte_length"),
     (lambda: make_frame(silhouettes="text"), "bad_field"),
     (lambda: make_frame(cameras=()), "bad_field"),
@@ -397,8 +398,8 @@ if given is not None:
     @given(name, index, index, index, st.sampled_from(CHAIN_NAMES), params, finite, index, seconds, seconds)
     def test_result_property(session, frame, iteration, request, chain, pose, energy, evaluations, cpu, wall):
         check_round_trip(Result(session=session, frame=frame, iteration=iteration, request=request,
-                                chain=chain, params=pose, energy=energy, evaluations=evaluations,
-                                cpu_seconds=cpu, wall_seconds=wall))
+                                chain=chain, params=pose, energy=energy, energy_before=energy,
+                                evaluations=evaluations, iterations=evaluations, cpu_seconds=cpu, wall_seconds=wall))
 
     @property_test
     @given(st.text(max_size=protocol.MAX_NAME_CHARS), name, text, index, index, index)
