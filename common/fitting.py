@@ -56,7 +56,7 @@ class FitOptions:
     max_evals_extremity: int = 60
     prerender: bool = True
     torso_half_resolution: bool = True  # the paper's 160x120 torso energy
-    spine_twist_prior: float = 300.0    # energy units (pixels) per rad^2 of spine twist
+    spine_twist_prior: float = 1500.0   # energy units (pixels) per rad^2 of spine twist
     limb_window_px: int = ARM_WINDOW    # the paper's 128x128 limb windows
     hinge_grid_full_range: bool = False  # grid elbows/knees over their whole range (rough starts)
     torso_grid_steps: int = 1           # >1: grid over pelvis heading x spine twist before Powell (off: measured worse on the walk)
