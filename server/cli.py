@@ -15,7 +15,8 @@ EXIT_OK = 0
 EXIT_USAGE = 2  # bad input: missing/corrupt files, bad calibration, wrong arguments
 
 COMMAND_MODULES = (
-    "calib", "synth", "fit", "server", "bench", "segment", "import_video", "voxels", "live", "export", "report",
+    "calib", "synth", "fit", "server", "keys", "bench", "segment", "import_video", "voxels", "live", "export",
+    "report",
 )
 
 
