@@ -197,6 +197,9 @@ build_images() {
     say "building $IMAGE (log: $STATE/build.log)"
     DOCKER_BUILDKIT=0 dk build --network host "${args[@]}" -f "$STATE/context/deploy/Dockerfile" \
         -t "$IMAGE" "$STATE/context" >"$STATE/build.log" 2>&1 || { tail -n 30 "$STATE/build.log" >&2; die "image build failed"; }
+    # the layers of earlier builds would pile up in a kept data root; the context has done its job
+    dk image prune -f >/dev/null
+    rm -rf "$STATE/context"
     say "$IMAGE: $(dk image inspect "$IMAGE" --format '{{.Size}}' | awk '{printf "%.0f MB", $1 / 1e6}')"
 }
 
