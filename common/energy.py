@@ -195,6 +195,31 @@ class EnergySetup:
     moving: tuple
     static_params: np.ndarray
     prerender: bool = True
+    volume_points: np.ndarray | None = None  # (n, 3) surface voxel centres, for the volume energy
+
+
+class VolumeEnergy:
+    """Bottino's volume energy: weighted squared distances from the surface voxels to the
+    closest segment ellipsoid, metres^2 (the ``volume`` backend; windows do not apply)."""
+
+    backend = "volume"
+
+    def __init__(self, model: BodyModel, setup: EnergySetup):
+        from common.ellipsoid_fit import segment_weights
+
+        if setup.volume_points is None or len(setup.volume_points) == 0:
+            raise ValueError("the volume energy needs surface voxels (EnergySetup.volume_points)")
+        self.model, self.setup = model, setup
+        self.points = np.asarray(setup.volume_points, dtype=np.float64)
+        self.weights = segment_weights(model)
+        self.evaluations = 0
+
+    def __call__(self, params: np.ndarray) -> np.ndarray:
+        from common.ellipsoid_fit import volume_energy
+
+        p = np.atleast_2d(params)
+        self.evaluations += len(p)
+        return np.array([volume_energy(self.model, x, self.points, self.weights) for x in p])
 
 
 class CpuEnergy:
@@ -247,7 +272,7 @@ class CpuEnergy:
         return self._render(params, self.moving) | self.static_mask
 
 
-ENERGY_BACKENDS = {"cpu": CpuEnergy}
+ENERGY_BACKENDS = {"cpu": CpuEnergy, "volume": VolumeEnergy}
 
 
 def make_energy(backend: str, model: BodyModel, setup: EnergySetup):
@@ -258,4 +283,4 @@ def make_energy(backend: str, model: BodyModel, setup: EnergySetup):
     try:
         return ENERGY_BACKENDS[backend](model, setup)
     except KeyError:
-        raise ValueError(f"unknown energy backend {backend!r}; expected cpu or gl") from None
+        raise ValueError(f"unknown energy backend {backend!r}; expected cpu, gl or volume") from None

@@ -33,7 +33,8 @@ from common.energy import (
 from common.packing import downsample_masks
 
 HALF = 0.5  # torso works at half resolution (paper: 160x120 of 320x240)
-ENERGY_BACKENDS = ("cpu", "gl", "coarse-to-fine")
+ENERGY_BACKENDS = ("cpu", "gl", "coarse-to-fine", "volume")
+VOLUME_GRID = 64  # voxels per side for the volume energy's SPOT reconstruction
 
 
 @dataclass(frozen=True)
@@ -104,6 +105,7 @@ class FrameResult:
 
 
 _UNDISTORT_MAPS: dict = {}
+_SPOT_GRIDS: dict = {}  # lookup tables per studio, built once per process
 
 
 def undistort_map(cam: Camera) -> np.ndarray:
@@ -166,6 +168,16 @@ class FrameData:
     @cached_property
     def half_masks(self) -> np.ndarray:
         return downsample_masks(self.masks, 2)
+
+    @cached_property
+    def surface_points(self) -> np.ndarray:
+        """(n, 3) centres of the frame's SPOT surface voxels (for the volume energy)."""
+        from common.voxels import SpotGrid
+
+        key = (VOLUME_GRID, tuple((c.name, c.K.tobytes(), c.R.tobytes(), c.t.tobytes()) for c in self.studio))
+        if key not in _SPOT_GRIDS:
+            _SPOT_GRIDS[key] = SpotGrid.build(self.studio, grid=VOLUME_GRID, q=2)
+        return _SPOT_GRIDS[key].reconstruct(self.masks).surface_points()
 
     def full_setup(self, params: np.ndarray, half: bool = False) -> EnergySetup:
         studio = self.half_studio if half else self.studio
@@ -270,9 +282,13 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
     before = None
     energy_value = None
     for backend in _stage_backends(options):
+        make = make_energy
+        if backend == "volume":  # one energy over the whole body's voxels: no windows
+            def make(backend, model, setup):
+                return make_energy("volume", model, replace(setup, volume_points=frame.surface_points))
         if chain == "torso":
             setup = frame.full_setup(x, half=options.torso_half_resolution)
-            energy = with_spine_prior(make_energy(backend, model, setup), options.spine_twist_prior)
+            energy = with_spine_prior(make(backend, model, setup), options.spine_twist_prior if backend != "volume" else 0.0)
             before = before if before is not None else int(energy(x)[0])
             idx = CHAINS["torso"].params
             steps = np.array([options.torso_step_m] * 3 + [options.torso_step_rad] * 6)
@@ -291,7 +307,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             n += n2
         elif chain == "head":
             setup = frame.window_setup(x, CHAINS["head"].segments, SMALL_WINDOW, options.prerender)
-            energy = make_energy(backend, model, setup)
+            energy = make(backend, model, setup)
             before = before if before is not None else int(energy(x)[0])
             steps = np.full(2, options.extremity_step_rad)
             x, energy_value, n, it = powell(energy, x, CHAINS["head"].params, steps, options,
@@ -300,7 +316,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             proximal, distal, extremity = LIMB_PARTS[chain]
             setup = frame.window_setup(x, _limb_centre_segments(chain), options.limb_window_px, options.prerender)
             setup = replace(setup, moving=CHAINS[chain].segments)
-            energy = make_energy(backend, model, setup)
+            energy = make(backend, model, setup)
             before = before if before is not None else int(energy(x)[0])
             n = 0
             if backend == _stage_backends(options)[0] and options.grid_steps > 1:
@@ -310,7 +326,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             x, _, n2, it = powell(energy, x, proximal, steps, options, options.max_evals_limb)
             n += n2
             ext_setup = frame.window_setup(x, extremity, SMALL_WINDOW, options.prerender)
-            ext_energy = make_energy(backend, model, ext_setup)
+            ext_energy = make(backend, model, ext_setup)
             x, _, n3, it3 = powell(ext_energy, x, distal, np.full(len(distal), options.extremity_step_rad),
                                    options, options.max_evals_extremity)
             n += n3
