@@ -106,7 +106,8 @@ class Worker:
                  exit_with_parent: bool = False, stall_seconds: float = 0.0, stall_requests: int = 0):
         self.model = model
         self.connect = connect
-        self.client_id = client_id or f"{socket.gethostname()}-{os.getpid()}"
+        # host and pid repeat across containers (own pid spaces, shared host names): add a nonce
+        self.client_id = client_id or f"{socket.gethostname()}-{os.getpid()}-{os.urandom(3).hex()}"
         self.curve = curve
         self.reconnect_min, self.reconnect_max = reconnect_min, reconnect_max
         self.parent = os.getppid() if exit_with_parent else None
