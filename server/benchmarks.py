@@ -176,3 +176,35 @@ def accuracy_rows(frames: int, workdir: Path, clips=ACCURACY_CLIPS, options: Fit
             "per_joint_error_mm": summary["per_joint_error_mm"],
         })
     return rows
+
+
+def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0) -> list[dict]:
+    """Automatic initialisation (issue 7): per clip, from frame 1 and from a random frame, fit
+    ``frames`` frames starting from the voxels (no truth) and from the truth; report the first
+    frame's error and both runs' mean errors."""
+    from common.bvh import read_bvh
+    from common.camera import circle_studio
+    from common.sequence import load_sequence
+    from common.synth import SynthOptions, synthesize
+    from server.session import LocalSolver, run_fit
+
+    model = load_body_model()
+    options = FitOptions()
+    rng = np.random.default_rng(seed)
+    rows = []
+    for clip in clips:
+        total = read_bvh(clip).num_frames
+        for label, start in (("start", 1), ("random", int(rng.integers(1, max(2, total - 4 * frames))))):
+            seq_dir = workdir / f"init-{clip.stem}-{label}"
+            synthesize(model, circle_studio(), clip, seq_dir,
+                       SynthOptions(frames=frames, start=start, noise="cheung", seed=seed))
+            seq = load_sequence(seq_dir)
+            auto = run_fit(model, seq, workdir / f"auto-{clip.stem}-{label}", options, LocalSolver(model, options),
+                           init="voxels")
+            given = run_fit(model, seq, workdir / f"truth-{clip.stem}-{label}", options, LocalSolver(model, options),
+                            init="truth")
+            rows.append({"clip": clip.name, "start_frame": start, "frames": auto["frames"],
+                         "first_frame_error_mm": auto["per_frame_error_mm"][0],
+                         "auto_mean_joint_error_mm": auto["mean_joint_error_mm"],
+                         "truth_start_mean_joint_error_mm": given["mean_joint_error_mm"]})
+    return rows

@@ -34,6 +34,10 @@ def register(sub) -> None:
     acc = bsub.add_parser("accuracy", help="joint error on walk, dance and basketball clips (virtual studio)")
     acc.add_argument("--frames", type=int, default=100)
     acc.add_argument("--json", type=Path, default=None)
+    ini = bsub.add_parser("init", help="automatic first-frame initialisation on every clip")
+    ini.add_argument("clips", type=Path, nargs="*", help="BVH clips (default: the bundled ones)")
+    ini.add_argument("--frames", type=int, default=10)
+    ini.add_argument("--json", type=Path, default=None)
     a = bsub.add_parser("all", help="everything, into a folder of JSON files")
     a.add_argument("--out", type=Path, default=Path("bench"))
     a.add_argument("--frames", type=int, default=BENCH_CLIP_FRAMES)
@@ -86,6 +90,15 @@ def run(args) -> int:
     if args.bench == "accuracy":
         with tempfile.TemporaryDirectory() as tmp:
             _emit(benchmarks.accuracy_rows(args.frames, Path(tmp)), args.json)
+        return 0
+    if args.bench == "init":
+        clip_dir = Path(__file__).resolve().parents[2] / "common" / "data" / "clips"
+        clips = args.clips or sorted(clip_dir.glob("*.bvh"))
+        missing = [c for c in clips if not c.exists()]
+        if missing:
+            raise UserError(f"{missing[0]}: no such clip")
+        with tempfile.TemporaryDirectory() as tmp:
+            _emit(benchmarks.init_rows(clips, args.frames, Path(tmp)), args.json)
         return 0
     if args.bench == "segment":
         from common.segmentation import bench_segmentation
