@@ -340,23 +340,27 @@ def forward_kinematics(model: BodyModel, params: np.ndarray) -> Pose:
 LIMB_ROOTS = ((4, 2, 11), (7, 2, 17), (10, 0, 23), (13, 0, 29))
 
 
-def hold_limbs_in_world(model: BodyModel, params: np.ndarray, reference: np.ndarray) -> np.ndarray:
+def hold_limbs_in_world(model: BodyModel, params: np.ndarray, reference: np.ndarray,
+                        reference_rotations: np.ndarray | None = None) -> np.ndarray:
     """(B, 35) torso candidates -> the same with shoulder and hip rotations changed so that the
     upper arms and thighs keep the world orientation they have at ``reference`` (35,).
+    reference_rotations: (16, 3, 3) the reference's segment rotations, when the caller has them
+    (the torso's line searches call this for every batch of candidates).
 
     Moving the torso then carries the limbs along by their attachment points only, instead of
     swinging them with it: the torso and limb sub-problems decouple (no drift of the pelvis
     heading traded against hip rotations).
     """
     p = np.array(np.atleast_2d(params), dtype=np.float64)
-    ref = forward_kinematics(model, reference)
+    if reference_rotations is None:
+        reference_rotations = forward_kinematics(model, reference).rotations[0]
     B = len(p)
     tilt = np.concatenate([p[:, 4:6], np.zeros((B, 1))], axis=1)
     R_pelvis = rot_z(p[:, 3]) @ rotvec_to_matrix(tilt)
     R_chest = R_pelvis @ rotvec_to_matrix(p[:, 6:9])
     parents = {0: R_pelvis, 2: R_chest}
     for seg, parent, first in LIMB_ROOTS:
-        local = np.swapaxes(parents[parent], -1, -2) @ ref.rotations[0, seg]
+        local = np.swapaxes(parents[parent], -1, -2) @ reference_rotations[seg]
         p[:, first:first + 3] = matrix_to_rotvec(local)
     return p
 

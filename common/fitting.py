@@ -281,11 +281,12 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
     evals = iters = 0
     before = None
     energy_value = None
-    for backend in _stage_backends(options):
-        make = make_energy
+    def make(backend, model, setup):
         if backend == "volume":  # one energy over the whole body's voxels: no windows
-            def make(backend, model, setup):
-                return make_energy("volume", model, replace(setup, volume_points=frame.surface_points))
+            setup = replace(setup, volume_points=frame.surface_points)
+        return make_energy(backend, model, setup)
+
+    for backend in _stage_backends(options):
         if chain == "torso":
             setup = frame.full_setup(x, half=options.torso_half_resolution)
             energy = with_spine_prior(make(backend, model, setup), options.spine_twist_prior if backend != "volume" else 0.0)
@@ -293,9 +294,10 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             idx = CHAINS["torso"].params
             steps = np.array([options.torso_step_m] * 3 + [options.torso_step_rad] * 6)
             reference = x.copy()
+            reference_rotations = forward_kinematics(model, reference).rotations[0]
 
             def hold(c):
-                return clip_to_limits(hold_limbs_in_world(model, c, reference))
+                return clip_to_limits(hold_limbs_in_world(model, c, reference, reference_rotations))
 
             n = 0
             if options.torso_grid_steps > 1:

@@ -201,7 +201,7 @@ def format_table(r: dict) -> str:
     ]
     w0, w1 = max(len(a) for a, _, _ in rows), max(len(b) for _, b, _ in rows)
     lines = [f"{a.ljust(w0)}  {b.ljust(w1)}  {c}" for a, b, c in rows]
-    lines += ["", f"chain CPU s/frame (single): " + ", ".join(
+    lines += ["", "chain CPU s/frame (single): " + ", ".join(
         f"{c} {v:.3f}" for c, v in r["chain_cpu_seconds_per_frame"].items())]
     lines += ["", f"{'process'.ljust(16)} {'compute':>8} {'waiting':>8} {'transfer':>8}  s/frame"]
     for mode in ("single", "distributed"):
