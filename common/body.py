@@ -23,7 +23,7 @@ spot (pirouettes) never wraps.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from importlib import resources
 
 import numpy as np
@@ -132,13 +132,14 @@ class BodyModel:
     ellipsoid_radii: np.ndarray
     scale: float = 1.0
 
-    @property
+    @cached_property
     def offsets(self) -> np.ndarray:
-        """(16, 3) each segment's origin relative to its parent's, rest pose."""
+        """(16, 3) each segment's origin relative to its parent's, rest pose (read-only)."""
         off = self.joint_rest[:16].copy()
         for s, p in enumerate(SEGMENT_PARENTS):
             if p >= 0:
                 off[s] = self.joint_rest[s] - self.joint_rest[p]
+        off.setflags(write=False)
         return off
 
     @property
@@ -198,19 +199,54 @@ def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices -> (..., 3) rotation vectors with angle in [0, pi]."""
-    from scipy.spatial.transform import Rotation
+    """(..., 3, 3) rotation matrices -> (..., 3) rotation vectors with angle in [0, pi].
 
+    Through the quaternion by Shepperd's method (as scipy does), in plain numpy: the torso's
+    line searches call this for every batch of candidates, where scipy's per-call overhead
+    costs more than the arithmetic.
+    """
     R = np.asarray(R, dtype=np.float64)
-    flat = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec()
-    return flat.reshape(R.shape[:-2] + (3,))
+    M = R.reshape(-1, 3, 3)
+    n = len(M)
+    diag = np.stack([M[:, 0, 0], M[:, 1, 1], M[:, 2, 2]], axis=1)
+    trace = diag.sum(axis=1)
+    choice = np.argmax(np.concatenate([diag, trace[:, None]], axis=1), axis=1)
+    q = np.empty((n, 4))
+    rows = np.arange(n)
+    for i in range(3):  # the largest diagonal element picks the numerically safe formula
+        sel = rows[choice == i]
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q[sel, i] = 1.0 - trace[sel] + 2.0 * M[sel, i, i]
+        q[sel, j] = M[sel, j, i] + M[sel, i, j]
+        q[sel, k] = M[sel, k, i] + M[sel, i, k]
+        q[sel, 3] = M[sel, k, j] - M[sel, j, k]
+    sel = rows[choice == 3]
+    q[sel, 0] = M[sel, 2, 1] - M[sel, 1, 2]
+    q[sel, 1] = M[sel, 0, 2] - M[sel, 2, 0]
+    q[sel, 2] = M[sel, 1, 0] - M[sel, 0, 1]
+    q[sel, 3] = 1.0 + trace[sel]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 3] < 0] *= -1.0
+    sin_half = np.linalg.norm(q[:, :3], axis=1)
+    angle = 2.0 * np.arctan2(sin_half, q[:, 3])
+    small = angle <= 1e-3
+    a2 = angle * angle
+    scale = np.where(small, 2.0 + a2 / 12.0 + 7.0 * a2 * a2 / 2880.0,
+                     angle / np.sin(np.where(small, 1.0, angle) / 2.0))
+    return (scale[:, None] * q[:, :3]).reshape(R.shape[:-2] + (3,))
 
 
 def rot_z(angle: np.ndarray) -> np.ndarray:
+    """(...,) angles -> (..., 3, 3) rotations about the vertical axis."""
+    angle = np.asarray(angle, dtype=np.float64)
     c, s = np.cos(angle), np.sin(angle)
-    zero, one = np.zeros_like(c), np.ones_like(c)
-    return np.stack([np.stack([c, -s, zero], -1), np.stack([s, c, zero], -1),
-                     np.stack([zero, zero, one], -1)], -2)
+    out = np.zeros(angle.shape + (3, 3))
+    out[..., 0, 0] = c
+    out[..., 0, 1] = -s
+    out[..., 1, 0] = s
+    out[..., 1, 1] = c
+    out[..., 2, 2] = 1.0
+    return out
 
 
 # ------------------------------------------------------------------------ joint axes

@@ -84,12 +84,20 @@ def image_conics(P: np.ndarray, centres: np.ndarray, A: np.ndarray) -> tuple:
     Qs[..., :3, 3] = -centres
     Qs[..., 3, :3] = -centres
     Qs[..., 3, 3] = -1.0
-    Cs = np.einsum("kij,bsjl,kml->bksim", P, Qs, P)  # dual conics (B, K, S, 3, 3)
-    # adjugate of the dual conic = conic up to a scale whose sign we fix below
-    c0, c1, c2 = Cs[..., 0], Cs[..., 1], Cs[..., 2]
-    adj = np.stack([np.cross(c1, c2), np.cross(c2, c0), np.cross(c0, c1)], axis=-2)
-    ch = np.concatenate([centres, np.ones((B, S, 1))], axis=-1)
-    x = np.einsum("kij,bsj->bksi", P, ch)  # projected centres (homogeneous)
+    # two matrix products: numpy's three-operand einsum is several times slower here
+    PQ = P[None, :, None] @ Qs[:, None]                               # (B, K, S, 3, 4)
+    Cs = PQ @ np.swapaxes(P, -1, -2)[None, :, None]                   # dual conics (B, K, S, 3, 3)
+    # adjugate of the (symmetric) dual conic = conic up to a scale whose sign we fix below
+    d00, d01, d02 = Cs[..., 0, 0], Cs[..., 0, 1], Cs[..., 0, 2]
+    d11, d12, d22 = Cs[..., 1, 1], Cs[..., 1, 2], Cs[..., 2, 2]
+    adj = np.empty_like(Cs)
+    adj[..., 0, 0] = d11 * d22 - d12 * d12
+    adj[..., 1, 1] = d00 * d22 - d02 * d02
+    adj[..., 2, 2] = d00 * d11 - d01 * d01
+    adj[..., 0, 1] = adj[..., 1, 0] = d02 * d12 - d01 * d22
+    adj[..., 0, 2] = adj[..., 2, 0] = d01 * d12 - d02 * d11
+    adj[..., 1, 2] = adj[..., 2, 1] = d01 * d02 - d00 * d12
+    x = np.einsum("kij,bsj->bksi", P[:, :, :3], centres) + P[None, :, None, :, 3]  # projected centres
     depth = x[..., 2]
     inside_val = np.einsum("bksi,bksij,bksj->bks", x, adj, x)
     sign = np.where(inside_val > 0, -1.0, 1.0)
@@ -121,28 +129,27 @@ def conic_row_spans(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.
     wy0 = y0[None, :, None]
     first = np.clip(np.ceil(y_lo - wy0), 0, rows).astype(np.int64)
     last = np.clip(np.floor(y_hi - wy0) + 1, 0, rows).astype(np.int64)
-    count = np.where(ellipse, last - first, 0)
-    n_max = int(count.max()) if count.size else 0
-    if n_max <= 0:
+    # one entry per covered row of each conic (no padding to the tallest conic)
+    count = np.where(ellipse, last - first, 0).reshape(-1)
+    total = int(count.sum())
+    if total <= 0:
         empty = np.zeros(0, dtype=np.int64)
         return empty, empty, empty, empty
-    j = np.arange(n_max)
-    row = first[..., None] + j                       # (B, K, S, n) window rows
-    valid = j < count[..., None]
-    y = (row + wy0[..., None]).astype(np.float64)    # image rows
-    a = c00[..., None]
-    b = 2.0 * (c01[..., None] * y + c02[..., None])
-    c = (c11[..., None] * y + 2.0 * c12[..., None]) * y + c22[..., None]
-    disc = np.maximum(b * b - 4.0 * a * c, 0.0)
-    root = np.sqrt(disc)
-    inv2a = 0.5 / np.where(valid, a, 1.0)
-    wx0 = x0[None, :, None, None]
+    conic = np.repeat(np.arange(count.size), count)  # (T,) flat (b, k, s) index of each row
+    ends = np.cumsum(count)
+    row = first.reshape(-1)[conic] + (np.arange(total) - (ends - count)[conic])  # window rows
+    cam = (conic // S) % K
+    y = (row + y0[cam]).astype(np.float64)           # image rows
+    a = c00.reshape(-1)[conic]
+    b = 2.0 * (c01.reshape(-1)[conic] * y + c02.reshape(-1)[conic])
+    c = (c11.reshape(-1)[conic] * y + 2.0 * c12.reshape(-1)[conic]) * y + c22.reshape(-1)[conic]
+    root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
+    inv2a = 0.5 / a
+    wx0 = x0[cam]
     start = np.clip(np.ceil((-b - root) * inv2a - wx0), 0, width).astype(np.int64)
     end = np.clip(np.floor((-b + root) * inv2a - wx0) + 1, 0, width).astype(np.int64)
-    keep = valid & (end > start)
-    batch = np.broadcast_to(np.arange(B)[:, None, None, None], keep.shape)[keep]
-    cam = np.broadcast_to(np.arange(K)[None, :, None, None], keep.shape)[keep]
-    return batch, cam * rows + row[keep], start[keep], end[keep]
+    keep = end > start
+    return (conic // (K * S))[keep], (cam * rows + row)[keep], start[keep], end[keep]
 
 
 def union_span_sums(batch, row_id, start, end, prefix: np.ndarray, batch_size: int) -> np.ndarray:
