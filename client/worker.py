@@ -333,7 +333,8 @@ class Worker:
                 if cache is None or cache[0] != key:
                     cache = (key, self._frame_data(job.frame))
                 for chain in solve.chains:
-                    r = solve_chain(self.model, cache[1], chain, np.asarray(solve.params), options)
+                    r = solve_chain(self.model, cache[1], chain, np.asarray(solve.params), options,
+                                    iteration=solve.iteration)
                     self.solved += 1
                     self._finish(Result(session=solve.session, frame=solve.frame, iteration=solve.iteration,
                                         request=solve.request, chain=r.chain, params=r.params.tolist(),
@@ -347,7 +348,7 @@ class Worker:
 
     def _frame_data(self, frame: Frame) -> FrameData:
         studio = Studio(tuple(c.to_camera() for c in frame.cameras), "<wire>")
-        return FrameData(self.model, studio, frame.masks())
+        return FrameData(self.model, studio, frame.masks(), index=frame.frame)
 
     def _finish(self, msg) -> None:
         self._done.put(msg)

@@ -207,24 +207,20 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     """
     R = np.asarray(R, dtype=np.float64)
     M = R.reshape(-1, 3, 3)
-    n = len(M)
-    diag = np.stack([M[:, 0, 0], M[:, 1, 1], M[:, 2, 2]], axis=1)
-    trace = diag.sum(axis=1)
-    choice = np.argmax(np.concatenate([diag, trace[:, None]], axis=1), axis=1)
-    q = np.empty((n, 4))
-    rows = np.arange(n)
-    for i in range(3):  # the largest diagonal element picks the numerically safe formula
-        sel = rows[choice == i]
-        j, k = (i + 1) % 3, (i + 2) % 3
-        q[sel, i] = 1.0 - trace[sel] + 2.0 * M[sel, i, i]
-        q[sel, j] = M[sel, j, i] + M[sel, i, j]
-        q[sel, k] = M[sel, k, i] + M[sel, i, k]
-        q[sel, 3] = M[sel, k, j] - M[sel, j, k]
-    sel = rows[choice == 3]
-    q[sel, 0] = M[sel, 2, 1] - M[sel, 1, 2]
-    q[sel, 1] = M[sel, 0, 2] - M[sel, 2, 0]
-    q[sel, 2] = M[sel, 1, 0] - M[sel, 0, 1]
-    q[sel, 3] = 1.0 + trace[sel]
+    m00, m01, m02 = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
+    m10, m11, m12 = M[:, 1, 0], M[:, 1, 1], M[:, 1, 2]
+    m20, m21, m22 = M[:, 2, 0], M[:, 2, 1], M[:, 2, 2]
+    trace = m00 + m11 + m22
+    # all four of Shepperd's formulas, then per matrix the one of the largest diagonal element
+    # (numerically safe): cheaper than selecting rows first for the small batches we see
+    cands = np.stack([
+        np.stack([1.0 - trace + 2.0 * m00, m10 + m01, m20 + m02, m21 - m12], axis=1),
+        np.stack([m01 + m10, 1.0 - trace + 2.0 * m11, m21 + m12, m02 - m20], axis=1),
+        np.stack([m02 + m20, m12 + m21, 1.0 - trace + 2.0 * m22, m10 - m01], axis=1),
+        np.stack([m21 - m12, m02 - m20, m10 - m01, 1.0 + trace], axis=1),
+    ], axis=1)                                                      # (n, choice, 4)
+    choice = np.argmax(np.stack([m00, m11, m22, trace], axis=1), axis=1)
+    q = cands[np.arange(len(M)), choice]
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q[q[:, 3] < 0] *= -1.0
     sin_half = np.linalg.norm(q[:, :3], axis=1)
@@ -395,9 +391,11 @@ def hold_limbs_in_world(model: BodyModel, params: np.ndarray, reference: np.ndar
     R_pelvis = rot_z(p[:, 3]) @ rotvec_to_matrix(tilt)
     R_chest = R_pelvis @ rotvec_to_matrix(p[:, 6:9])
     parents = {0: R_pelvis, 2: R_chest}
-    for seg, parent, first in LIMB_ROOTS:
-        local = np.swapaxes(parents[parent], -1, -2) @ reference_rotations[seg]
-        p[:, first:first + 3] = matrix_to_rotvec(local)
+    local = np.stack([np.swapaxes(parents[parent], -1, -2) @ reference_rotations[seg]
+                      for seg, parent, _ in LIMB_ROOTS], axis=1)  # (B, 4, 3, 3)
+    rotvecs = matrix_to_rotvec(local)  # one call for the four limbs
+    for i, (_, _, first) in enumerate(LIMB_ROOTS):
+        p[:, first:first + 3] = rotvecs[:, i]
     return p
 
 

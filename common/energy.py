@@ -222,11 +222,22 @@ class VolumeEnergy:
         self.evaluations = 0
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
-        from common.ellipsoid_fit import volume_energy
+        """(B, 35) or (35,) -> (B,) energies; all candidates' ellipsoids in one distance pass."""
+        from common.ellipsoid_fit import shell_distances
 
         p = np.atleast_2d(params)
-        self.evaluations += len(p)
-        return np.array([volume_energy(self.model, x, self.points, self.weights) for x in p])
+        B = len(p)
+        self.evaluations += B
+        pose = forward_kinematics(self.model, p)
+        m = self.model
+        centres = pose.origins + np.einsum("bsij,sj->bsi", pose.rotations, m.ellipsoid_centres)  # (B, 16, 3)
+        axes = pose.rotations @ m.ellipsoid_axes                                                  # (B, 16, 3, 3)
+        radii = np.broadcast_to(np.asarray(m.ellipsoid_radii, dtype=np.float64), (B, 16, 3))
+        d = shell_distances(self.points, centres.reshape(-1, 3), axes.reshape(-1, 3, 3),
+                            radii.reshape(-1, 3)).reshape(len(self.points), B, 16)
+        j = np.argmin(d, axis=2)                                        # (n, B) the closest segment
+        closest = np.take_along_axis(d, j[..., None], axis=2)[..., 0]
+        return np.sum(self.weights[j] * closest ** 2, axis=0)
 
 
 class CpuEnergy:

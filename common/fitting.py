@@ -62,12 +62,16 @@ class FitOptions:
     hinge_grid_full_range: bool = False  # grid elbows/knees over their whole range (rough starts)
     torso_grid_steps: int = 1           # >1: grid over pelvis heading x spine twist before Powell (off: measured worse on the walk)
     torso_grid_range_rad: float = 0.2
+    redetect_limbs: bool = True         # search one limb per frame over its whole range (lost limbs)
+    hypotheses: int = 1                 # 2: fit each frame with both first-round torso schedules, keep the better
 
     def __post_init__(self):
         if self.energy not in ENERGY_BACKENDS:
             raise ValueError(f"energy must be one of {ENERGY_BACKENDS}, got {self.energy!r}")
         if self.grid_steps < 1 or self.grid_steps % 2 == 0:
             raise ValueError("grid_steps must be odd and >= 1")
+        if not 1 <= self.hypotheses <= len(SCHEDULES):
+            raise ValueError(f"hypotheses must be 1..{len(SCHEDULES)}, got {self.hypotheses}")
 
     def to_wire(self) -> dict:
         return dict(self.__dict__)
@@ -146,8 +150,9 @@ def undistort_masks(studio: Studio, masks: np.ndarray) -> tuple[Studio, np.ndarr
 class FrameData:
     """One frame's input silhouettes (undistorted) at full and half resolution, and its studio."""
 
-    def __init__(self, model: BodyModel, studio: Studio, masks: np.ndarray):
+    def __init__(self, model: BodyModel, studio: Studio, masks: np.ndarray, index: int = 0):
         self.model = model
+        self.index = int(index)  # the frame number: picks the limb re-detected this frame
         masks = np.asarray(masks, dtype=bool)
         if masks.shape[0] != len(studio):
             raise ValueError(f"{masks.shape[0]} silhouettes for {len(studio)} cameras")
@@ -274,7 +279,7 @@ def _stage_backends(options: FitOptions) -> tuple:
 
 
 def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarray,
-                options: FitOptions) -> ChainResult:
+                options: FitOptions, iteration: int = 0, position_only: bool = False) -> ChainResult:
     """Optimize one chain's parameters with every other parameter held at ``params``."""
     wall0, cpu0 = _clock()
     x = np.array(params, dtype=np.float64)
@@ -299,8 +304,10 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             def hold(c):
                 return clip_to_limits(hold_limbs_in_world(model, c, reference, reference_rotations))
 
+            if position_only:
+                idx, steps = idx[:3], steps[:3]
             n = 0
-            if options.torso_grid_steps > 1:
+            if options.torso_grid_steps > 1 and not position_only:
                 # the pelvis heading against the spine twist is the torso's flattest valley:
                 # search it on a grid first, as the paper does for the limbs
                 x, _, n = grid_search(energy, x, (P["root_heading"], P["spine_z"]), options.torso_grid_steps,
@@ -335,12 +342,51 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             it += it3
             energy_value = float(energy(x)[0])
             n += 1
+            if (options.redetect_limbs and iteration == 0 and backend == _stage_backends(options)[0]
+                    and frame.index % len(LIMB_CHAINS) == LIMB_CHAINS.index(chain)):
+                x, n4 = redetect_limb(model, frame, chain, x, options, make)
+                n += n4
+                energy_value = float(energy(x)[0])
         else:
             raise ValueError(f"unknown chain {chain!r}")
         evals += n + 1
         iters += it
     wall1, cpu1 = _clock()
     return ChainResult(chain, x, int(before), int(round(energy_value)), evals, iters, wall1 - wall0, cpu1 - cpu0)
+
+
+REDETECT_STEPS = 5        # grid points per shoulder/hip parameter (the hinge gets 3)
+REDETECT_MARGIN = 0.15    # the grid keeps this fraction of each joint range away from its limits
+REDETECT_STARTS = 2       # best grid points refined by Powell
+REDETECT_STEP_RAD = 0.3   # Powell's first step from a grid point (half the grid spacing)
+
+
+def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions, make):
+    """Search one limb over its whole range on the whole images, and keep what explains the
+    images better than the tracked limb. A limb that moved faster than the local search, or
+    flipped into the mirror pose of an elbow or knee, is lost for good otherwise; re-detecting
+    one limb per frame in turn bounds how long it stays lost at a fixed cost per frame.
+    Returns (params (35,), evaluations)."""
+    proximal, distal, _ = LIMB_PARTS[chain]
+    setup = replace(frame.full_setup(x), moving=CHAINS[chain].segments, prerender=True)
+    energy = make("cpu" if options.energy == "coarse-to-fine" else options.energy, model, setup)
+    lo, hi = PARAM_LIMITS[list(proximal)].T
+    pad = REDETECT_MARGIN * (hi - lo)
+    axes = [np.linspace(lo[i] + pad[i], hi[i] - pad[i], REDETECT_STEPS if i < 3 else 3) for i in range(4)]
+    cand = np.repeat(x[None], np.prod([len(a) for a in axes]), axis=0)
+    cand[:, list(proximal)] = np.array(list(product(*axes)))
+    energies = energy(cand)
+    best_x, best_e = x, float(energy(x)[0])
+    n = len(cand) + 1
+    for k in np.argsort(energies, kind="stable")[:REDETECT_STARTS]:
+        y, _, n2, _ = powell(energy, cand[k], proximal, np.full(len(proximal), REDETECT_STEP_RAD), options,
+                             options.max_evals_limb)
+        y, e, n3, _ = powell(energy, y, distal, np.full(len(distal), options.extremity_step_rad), options,
+                             options.max_evals_extremity)
+        n += n2 + n3
+        if e < best_e:
+            best_x, best_e = y, e
+    return best_x, n
 
 
 def full_energy(model: BodyModel, frame: FrameData, params: np.ndarray) -> int:
@@ -356,7 +402,7 @@ Dispatch = Callable[[list, np.ndarray, int], Callable[[], list]]
 
 def solve_locally(model: BodyModel, frame: FrameData, options: FitOptions) -> Dispatch:
     def dispatch(chains: list, params: np.ndarray, iteration: int):
-        return lambda: [solve_chain(model, frame, c, params, options) for c in chains]
+        return lambda: [solve_chain(model, frame, c, params, options, iteration=iteration) for c in chains]
 
     return dispatch
 
@@ -370,16 +416,38 @@ def merge_chains(params: np.ndarray, results: list) -> np.ndarray:
     return out
 
 
+SCHEDULES = ("held", "position-first")  # the first round's torso: all 9 parameters, or the root position
+
+
 def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: FitOptions,
               dispatch: Dispatch | None = None) -> FrameResult:
-    """Fit one frame from ``start`` (the previous frame's pose). ``dispatch`` solves limb chains."""
+    """Fit one frame from ``start`` (the previous frame's pose). ``dispatch`` solves limb chains.
+
+    With ``options.hypotheses`` = 2 the frame is fitted twice, with either schedule of the first
+    round's torso, and the result with the lower full energy is kept (the first on a tie).
+    The limbs start where they were in the previous frame, so in the first round they pull the
+    torso towards last frame's pose: turning the pelvis to meet a swinging thigh is the walk's
+    typical error; moving only the root first avoids it, but lags behind a turning dancer.
+    Neither wins everywhere; the energy picks per frame.
+    """
     wall0 = time.perf_counter()
     dispatch = dispatch or solve_locally(model, frame, options)
+    results = [_fit_schedule(model, frame, start, options, dispatch, schedule == "position-first")
+               for schedule in SCHEDULES[:options.hypotheses]]
+    best = min(results, key=lambda r: r.energy)
+    best.chains = [c for r in results for c in r.chains]
+    best.evaluations = sum(r.evaluations for r in results)
+    best.wall_seconds = time.perf_counter() - wall0
+    return best
+
+
+def _fit_schedule(model: BodyModel, frame: FrameData, start: np.ndarray, options: FitOptions,
+                  dispatch: Dispatch, position_first: bool) -> FrameResult:
     x = np.array(start, dtype=np.float64)
     best = full_energy(model, frame, x)
     result = FrameResult(x, best, 0, 0)
     for it in range(options.max_iterations):
-        torso = solve_chain(model, frame, "torso", x, options)
+        torso = solve_chain(model, frame, "torso", x, options, position_only=position_first and it == 0)
         after_torso = torso.params
         # the limbs go out first so that clients work while the server fits the head
         collect_limbs = dispatch(list(LIMB_CHAINS), after_torso, it)
@@ -393,8 +461,7 @@ def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: Fi
         improved = best - e_new
         if e_new <= best:
             x, best = x_new, e_new
-        if improved < options.min_improvement * max(best, 1):
+        if improved < options.min_improvement * max(best, 1) and not (position_first and it == 0):
             break
     result.params, result.energy = x, best
-    result.wall_seconds = time.perf_counter() - wall0
     return result

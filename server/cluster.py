@@ -394,7 +394,7 @@ class ClusterSolver:
                 chain = rnd.pending.popleft()
                 rnd.local.add(chain)
             t0 = time.perf_counter()
-            result = solve_chain(self.model, self._data, chain, rnd.params, rnd.options)
+            result = solve_chain(self.model, self._data, chain, rnd.params, rnd.options, iteration=rnd.iteration)
             with self._lock:
                 self._server["local_compute_seconds"] += time.perf_counter() - t0
                 self._counts["local_chains"] += 1

@@ -80,7 +80,7 @@ class LocalSolver:
 
         def collect() -> list:
             t0 = time.perf_counter()
-            out = [solve_chain(self.model, data, c, params, options) for c in chains]
+            out = [solve_chain(self.model, data, c, params, options, iteration=iteration) for c in chains]
             self.compute_seconds += time.perf_counter() - t0
             return out
 
@@ -251,7 +251,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     with open(poses_path, "a") as fh:
         for n, frame in enumerate(frames[len(done):], start=len(done)):
             t0 = time.perf_counter()
-            data = FrameData(model, seq.studio, seq.silhouettes(frame))
+            data = FrameData(model, seq.studio, seq.silhouettes(frame), index=frame)
             frame_options = options
             if x is None:
                 x = initial_pose(model, seq, data, init)

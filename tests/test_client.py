@@ -82,7 +82,7 @@ def frame_and_data(model, frame=0):
     start[2] = 0.9
     msg = Frame(session="s1", frame=frame, cameras=camera_specs(studio), silhouettes=packbits_masks(masks),
                 previous_params=start.tolist())
-    return msg, FrameData(model, studio, masks), start
+    return msg, FrameData(model, studio, masks, index=frame), start
 
 
 OPTIONS = FitOptions(max_evals_limb=30, max_evals_extremity=10, grid_steps=1)
@@ -94,13 +94,14 @@ def test_solves_chains_with_the_engine_code(model, router, worker):
     frame, data, start = frame_and_data(model)
     send(router, ident, frame)
     chains = ("left_arm", "right_leg")
-    send(router, ident, Solve(session="s1", frame=0, iteration=1, request=7, params=start.tolist(), chains=chains,
+    # iteration 0 of frame 0: the left arm's turn to be re-detected, which the client must do too
+    send(router, ident, Solve(session="s1", frame=0, iteration=0, request=7, params=start.tolist(), chains=chains,
                               options=OPTIONS.to_wire()))
     results = [receive(router, Result)[1] for _ in chains]
     assert [r.chain for r in results] == list(chains)
     for r in results:
-        expected = solve_chain(model, data, r.chain, start, OPTIONS)
-        assert (r.session, r.frame, r.iteration, r.request) == ("s1", 0, 1, 7)
+        expected = solve_chain(model, data, r.chain, start, OPTIONS, iteration=0)
+        assert (r.session, r.frame, r.iteration, r.request) == ("s1", 0, 0, 7)
         assert np.array_equal(np.array(r.params), expected.params)
         assert r.energy == expected.energy and r.evaluations == expected.evaluations
 

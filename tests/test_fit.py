@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.body import CHAINS, JOINT_NAMES, LIMB_ROOTS, PARAM_COUNT, forward_kinematics
+from common.body import CHAINS, JOINT_NAMES, LIMB_CHAINS, LIMB_ROOTS, P, PARAM_COUNT, forward_kinematics
 from common.fitting import FitOptions, FrameData, fit_frame, full_energy, solve_chain
 from server.cli import main
 
@@ -84,6 +84,40 @@ def test_solve_chain_is_deterministic(model, frames):
     assert (a.energy, a.evaluations) == (b.energy, b.evaluations)
 
 
+def test_two_hypotheses_keep_the_lower_energy(model, frames):
+    data, truth = frames
+    one = fit_frame(model, data[1], truth[0].params, FitOptions())
+    two = fit_frame(model, data[1], truth[0].params, FitOptions(hypotheses=2))
+    assert two.energy <= one.energy
+    assert two.energy == full_energy(model, data[1], two.params)
+    assert len(two.chains) > len(one.chains) and two.evaluations > one.evaluations
+
+
+def test_redetection_finds_a_lost_arm(model, small_loaded):
+    """An arm swung 1.5 rad away is beyond the local grid and Powell; the whole-range search of
+    the limb whose turn it is this frame brings it back, and the others are left alone."""
+    seq, truth = small_loaded
+    f = seq.frames[1]
+    true = truth[f].params
+    lost = true.copy()
+    lost[P["l_shoulder_x"]:P["l_shoulder_x"] + 3] += (1.5, 0.0, 0.0)
+    turn = FrameData(model, seq.studio, seq.silhouettes(f), index=LIMB_CHAINS.index("left_arm"))
+    tracked = solve_chain(model, turn, "left_arm", lost, FitOptions(redetect_limbs=False))
+    found = solve_chain(model, turn, "left_arm", lost, FitOptions())
+    elbow_wrist = [JOINT_NAMES.index("l_elbow"), JOINT_NAMES.index("l_wrist")]
+    tracked_mm = joint_errors_mm(model, tracked.params, truth[f])[elbow_wrist]
+    found_mm = joint_errors_mm(model, found.params, truth[f])[elbow_wrist]
+    assert found.energy < tracked.energy
+    assert tracked_mm.max() > 100.0, tracked_mm  # lost without it
+    assert found_mm.max() < 40.0, found_mm
+    not_its_turn = FrameData(model, seq.studio, seq.silhouettes(f), index=LIMB_CHAINS.index("left_arm") + 1)
+    later = solve_chain(model, not_its_turn, "left_arm", lost, FitOptions())
+    np.testing.assert_array_equal(later.params, tracked.params)
+    # only the first round re-detects: later rounds start from a fitted limb
+    second = solve_chain(model, turn, "left_arm", lost, FitOptions(), iteration=1)
+    np.testing.assert_array_equal(second.params, tracked.params)
+
+
 def test_frame_data_refuses_mismatched_silhouettes(model, small_loaded):
     seq, _ = small_loaded
     masks = seq.silhouettes(seq.frames[0])
@@ -98,6 +132,8 @@ def test_fit_options_validate_and_travel():
         FitOptions(energy="quantum")
     with pytest.raises(ValueError, match="grid_steps"):
         FitOptions(grid_steps=4)
+    with pytest.raises(ValueError, match="hypotheses"):
+        FitOptions(hypotheses=3)
     with pytest.raises(ValueError, match="bogus"):
         FitOptions.from_wire({"bogus": 1})
     opts = FitOptions(max_iterations=3, prerender=False)

@@ -33,9 +33,14 @@ def register(sub) -> None:
     v.add_argument("--json", type=Path, default=None)
     acc = bsub.add_parser("accuracy", help="joint error on walk, dance and basketball clips (virtual studio)")
     acc.add_argument("--frames", type=int, default=100)
+    acc.add_argument("--hypotheses", type=int, choices=(1, 2), default=1, help="as mocap fit --hypotheses")
+    acc.add_argument("--no-redetect", action="store_true", help="as mocap fit --no-redetect")
     acc.add_argument("--json", type=Path, default=None)
     ini = bsub.add_parser("init", help="automatic first-frame initialisation on every clip")
-    ini.add_argument("clips", type=Path, nargs="*", help="BVH clips (default: the bundled ones)")
+    ini.add_argument("clips", type=Path, nargs="*",
+                     help="BVH clips (default: all of ../shared/data/mocap if there, else the bundled ones)")
+    ini.add_argument("--bundled", action="store_true", help="the bundled clips, even where shared data exists")
+    ini.add_argument("--tpose", action="store_true", help="also start at frame 0 (the CMU clips' added T-pose)")
     ini.add_argument("--frames", type=int, default=10)
     ini.add_argument("--json", type=Path, default=None)
     a = bsub.add_parser("all", help="everything, into a folder of JSON files")
@@ -89,16 +94,22 @@ def run(args) -> int:
         return 0
     if args.bench == "accuracy":
         with tempfile.TemporaryDirectory() as tmp:
-            _emit(benchmarks.accuracy_rows(args.frames, Path(tmp)), args.json)
+            from common.fitting import FitOptions
+
+            options = FitOptions(hypotheses=args.hypotheses, redetect_limbs=not args.no_redetect)
+            _emit(benchmarks.accuracy_rows(args.frames, Path(tmp), options=options), args.json)
         return 0
     if args.bench == "init":
         clip_dir = Path(__file__).resolve().parents[2] / "common" / "data" / "clips"
-        clips = args.clips or sorted(clip_dir.glob("*.bvh"))
+        clips = args.clips or (not args.bundled and benchmarks.shared_clips()) or sorted(clip_dir.glob("*.bvh"))
         missing = [c for c in clips if not c.exists()]
         if missing:
             raise UserError(f"{missing[0]}: no such clip")
         with tempfile.TemporaryDirectory() as tmp:
-            _emit(benchmarks.init_rows(clips, args.frames, Path(tmp)), args.json)
+            rows = benchmarks.init_rows(clips, args.frames, Path(tmp), tpose=args.tpose)
+        if args.json:
+            benchmarks.write_json(args.json, rows)
+        benchmarks.print_init_table(rows)
         return 0
     if args.bench == "segment":
         from common.segmentation import bench_segmentation

@@ -26,6 +26,11 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--grid-steps", type=int, default=FitOptions.grid_steps, help="grid points per limb parameter")
     p.add_argument("--grid-range", type=float, default=FitOptions.grid_range_rad, help="limb grid half-width, rad")
     p.add_argument("--no-prerender", action="store_true", help="render every part in every evaluation")
+    p.add_argument("--hypotheses", type=int, choices=(1, 2), default=FitOptions.hypotheses,
+                   help="2: fit each frame with both first-round torso schedules and keep the better "
+                        "(more accurate, twice the time)")
+    p.add_argument("--no-redetect", action="store_true",
+                   help="do not search one limb per frame over its whole range (lost-limb recovery)")
     p.add_argument("--init", choices=INIT_CHOICES, default="auto",
                    help="first-frame start: truth pose if the sequence has one (auto), else from voxels")
     p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
@@ -36,7 +41,8 @@ def add_fit_arguments(p) -> None:
 
 def options_from_args(args) -> FitOptions:
     return FitOptions(energy=args.energy, max_iterations=args.iterations, grid_steps=args.grid_steps,
-                      grid_range_rad=args.grid_range, prerender=not args.no_prerender)
+                      grid_range_rad=args.grid_range, prerender=not args.no_prerender,
+                      hypotheses=args.hypotheses, redetect_limbs=not args.no_redetect)
 
 
 def finish(model, seq, args, summary: dict) -> None:
