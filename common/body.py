@@ -347,22 +347,42 @@ def local_rotations(model: BodyModel, params: np.ndarray) -> np.ndarray:
     return R
 
 
-def forward_kinematics(model: BodyModel, params: np.ndarray) -> Pose:
-    """(B, 35) or (35,) parameters -> Pose with a leading batch axis of B (1 for a single vector)."""
+@lru_cache(maxsize=64)
+def _with_ancestors(segments: tuple) -> tuple:
+    """The segments and all their ancestors, parents first."""
+    need = set()
+    for s in segments:
+        while s >= 0 and s not in need:
+            need.add(s)
+            s = SEGMENT_PARENTS[s]
+    return tuple(sorted(need))  # a parent's index is below its children's
+
+
+def forward_kinematics(model: BodyModel, params: np.ndarray, segments: tuple | None = None) -> Pose:
+    """(B, 35) or (35,) parameters -> Pose with a leading batch axis of B (1 for a single vector).
+
+    segments: compute only these segments (and their ancestors); the others' rotations,
+    origins and joints are NaN. The energies use this for the few parts that move.
+    """
     p = np.atleast_2d(np.asarray(params, dtype=np.float64))
     if p.shape[1] != PARAM_COUNT:
         raise ValueError(f"expected {PARAM_COUNT} parameters, got {p.shape[1]}")
     local = local_rotations(model, p)
     offsets = model.offsets
     B = p.shape[0]
-    rot = np.empty_like(local)
-    org = np.empty((B, 16, 3))
-    rot[:, 0] = local[:, 0]
-    org[:, 0] = p[:, 0:3]
-    for s in range(1, 16):
+    order = range(16) if segments is None else _with_ancestors(tuple(segments))
+    if segments is None:
+        rot, org = np.empty_like(local), np.empty((B, 16, 3))
+    else:
+        rot, org = np.full_like(local, np.nan), np.full((B, 16, 3), np.nan)
+    for s in order:
         parent = SEGMENT_PARENTS[s]
-        rot[:, s] = rot[:, parent] @ local[:, s]
-        org[:, s] = org[:, parent] + rot[:, parent] @ offsets[s]
+        if parent < 0:
+            rot[:, s] = local[:, s]
+            org[:, s] = p[:, 0:3]
+        else:
+            rot[:, s] = rot[:, parent] @ local[:, s]
+            org[:, s] = org[:, parent] + rot[:, parent] @ offsets[s]
     head_top = org[:, HEAD_TOP_SEGMENT] + rot[:, HEAD_TOP_SEGMENT] @ model.head_top_offset
     joints = np.concatenate([org, head_top[:, None]], axis=1)
     return Pose(rot, org, joints)

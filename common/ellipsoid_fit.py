@@ -53,6 +53,7 @@ INIT_XTOL = 2e-3  # Powell's tolerance on parameters (metres, radians)
 INIT_MAXFEV = 200  # energy evaluations per Powell run at most
 INIT_STARTS_KEPT = 2  # of a limb's start values, the best (by energy) this many are solved
 HULL_WEIGHT = 1.0  # hull_energy relative to Bottino's term (per voxel)
+GUARD_WEIGHT = 10.0  # an arm sunk into the trunk, relative to the same depth outside the volume
 SEGMENT_SAMPLES = 24  # surface samples per segment ellipsoid for hull_energy
 ROBUST_DISTANCE = 0.06  # metres: scale of the bounded loss of the trunk-only stage
 SCALE_RANGE = (0.8, 1.25)  # actor height over the model's, accepted at initialisation
@@ -76,9 +77,10 @@ LIMB_SEGMENTS = {  # parent, upper segment, the next segment (whose joint ends t
 # the model faces -y, z up.
 ARM_FAN = ((0.3, 0.0, -1.0), (1.0, 0.0, -0.6), (1.0, 0.0, 0.0), (0.3, -1.0, -0.6), (0.3, 0.6, -1.0),
            (0.3, -1.0, 0.2), (0.5, 0.0, 1.0))
-LEG_FAN = ((0.1, 0.0, -1.0), (0.1, -0.6, -1.0), (0.1, 0.5, -1.0), (0.5, 0.0, -1.0), (0.1, -1.0, -0.3))
+LEG_FAN = ((0.1, 0.0, -1.0), (0.1, -0.6, -1.0), (0.1, 0.5, -1.0), (0.5, 0.0, -1.0), (0.1, -1.0, -0.3),
+           (-0.3, 0.0, -1.0), (-0.3, -0.5, -1.0), (0.1, 1.0, -0.5), (1.0, 0.0, -0.5))  # ... crossed, arabesque, a la seconde
 ARM_BENDS = (0.0, 1.2)  # elbow flexion starts, radians
-LEG_BENDS = (0.0, 0.8)  # knee flexion starts
+LEG_BENDS = (0.0, 0.8, 1.6)  # knee flexion starts
 
 
 @dataclass(frozen=True)
@@ -474,7 +476,8 @@ def _hull_scale(target: VolumeTarget) -> float:
 class InitialPose:
     """First-frame initialisation from voxels.
 
-    params (35,) the starting pose for ``model`` (the default actor scaled by ``scale``);
+    params (35,) the starting pose for ``model`` (the given actor, or the default one scaled
+    by ``scale``);
     heading radians; energy: volume_energy + hull_energy at params; shells: the ellipsoid
     fit it started from; evaluations: energy evaluations spent.
     """
@@ -491,8 +494,10 @@ class InitialPose:
 def initial_pose(voxels, model: BodyModel | None = None, seed: int = 0) -> InitialPose:
     """Position, heading, scale and a starting pose of a standing actor from one frame's voxels.
 
-    voxels: a ``common.voxels.VoxelResult`` with surface voxels. The six shells come first
-    (``activate``); scale is the actor's height over the model's; the pelvis starts over
+    voxels: a ``common.voxels.VoxelResult`` with surface voxels; model: the actor's body,
+    whose size is kept (scale 1); without one, the default body is scaled by the actor's
+    height over its own (exact for a standing actor only: a crouch looks small). The six
+    shells come first (``activate``); the pelvis starts over
     the voxels' centroid at the model's pelvis height; the heading, up to front and back,
     is the widest horizontal direction of the chest (shoulder to shoulder), and both
     candidates are solved. Per candidate, Powell minimises volume_energy + hull_energy in
@@ -508,8 +513,8 @@ def initial_pose(voxels, model: BodyModel | None = None, seed: int = 0) -> Initi
     vz = float(voxels.voxel_size[2])
     floor = points[:, 2].min() - vz / 2
     height = points[:, 2].max() + vz / 2 - floor
-    scale = float(np.clip(height / base.height, *SCALE_RANGE))
-    body = base.scaled(scale)
+    scale = 1.0 if model is not None else float(np.clip(height / base.height, *SCALE_RANGE))
+    body = base.scaled(scale) if scale != 1.0 else base
     target = VolumeTarget.from_voxels(voxels, seed=seed)
     weights = segment_weights(body)
     occupied = voxels.centres(voxels.occupied)
@@ -574,12 +579,16 @@ def _limb_starts(model: BodyModel, params, limb: str, shells: EllipsoidFit) -> l
         aim = _aim(model, params, limb, rot @ (np.array(d) * [side, 1.0, 1.0]))
         starts += [np.concatenate([aim, [b]]) for b in bends]
     if shells.labelled:
-        e = SHELL_NAMES.index(limb)
-        u = shells.axes[e][:, 0]
+        # The shell of this kind of limb nearest the joint: the labels' left and right rest on
+        # the feet's direction, which can be wrong, and a start through the trunk is no start.
         joint = forward_kinematics(model, params).joints[0][LIMB_SEGMENTS[limb][1]]
+        kind = [e for e, name in enumerate(SHELL_NAMES) if name.endswith(limb[-3:])]
+        e = min(kind, key=lambda k: np.linalg.norm(shells.centres[k] - joint))
+        u = shells.axes[e][:, 0]
         if u @ (shells.centres[e] - joint) < 0:
             u = -u
         starts.append(np.concatenate([_aim(model, params, limb, u), [0.0]]))
+        starts.append(np.concatenate([_aim(model, params, limb, shells.centres[e] - joint), [0.0]]))
     return starts
 
 
@@ -601,8 +610,11 @@ def _fit_body(model: BodyModel, params, target: VolumeTarget, weights, shells: E
                              [p[list(TRUNK_PARAMS)]])
             n += k
         for limb, (idx, segments) in LIMB_GROUPS.items():
-            starts = [p[list(idx)]] if polish else _limb_starts(model, p, limb, shells)
-            p, _, k = _solve(model, p, idx, segments, target, weights, rest_depth, starts)
+            # again with the fan: a limb first solved beside limbs still at rest may have
+            # taken their voxels; the current value stays among the solved starts
+            starts = _limb_starts(model, p, limb, shells)
+            p, _, k = _solve(model, p, idx, segments, target, weights, rest_depth, starts,
+                             keep=p[list(idx)] if polish else None)
             n += k
     p, _, k = _solve(model, p, NECK_PARAMS, (3,), target, weights, rest_depth, [p[list(NECK_PARAMS)]])
     n += k
@@ -610,7 +622,7 @@ def _fit_body(model: BodyModel, params, target: VolumeTarget, weights, shells: E
 
 
 def _solve(model: BodyModel, p, idx, segments, target: VolumeTarget, weights, rest_depth, starts,
-           robust: bool = False):
+           robust: bool = False, keep=None):
     """Powell over p[idx] moving ``segments``; returns (params, energy, evaluations).
 
     Distances to the other segments are fixed while these move, so only the moving ones are
@@ -649,9 +661,11 @@ def _solve(model: BodyModel, p, idx, segments, target: VolumeTarget, weights, re
         inside = np.maximum(_depth_inside(samples[guarded], c[TRUNK_CORE], a[TRUNK_CORE], r[TRUNK_CORE])
                             - allowed, 0.0)
         return float(data + hull * (np.sum(weights[seg, None] * out ** 2)
-                                    + np.sum(weights[seg[guarded], None] * inside ** 2)))
+                                    + GUARD_WEIGHT * np.sum(weights[seg[guarded], None] * inside ** 2)))
 
     ranked = sorted(starts, key=energy)[:INIT_STARTS_KEPT] if len(starts) > 1 else starts
+    if keep is not None:
+        ranked = [keep, *ranked]
     best = None
     for x0 in ranked:
         res = minimize(energy, x0, method="Powell", options={"xtol": INIT_XTOL, "ftol": 1e-6, "maxfev": INIT_MAXFEV})

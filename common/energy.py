@@ -269,7 +269,7 @@ class CpuEnergy:
         self.base = int(np.count_nonzero(M ^ setup.inputs))
 
     def _spans(self, params: np.ndarray, segments) -> tuple:
-        pose = forward_kinematics(self.model, params)
+        pose = forward_kinematics(self.model, params, tuple(segments))
         centres, A = ellipsoid_world(self.model, pose.rotations, pose.origins, segments)
         C, drawable = image_conics(self.P, centres, A)
         return conic_row_spans(C, drawable, self.y0, self.x0, self.rows, self.width)
