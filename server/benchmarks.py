@@ -163,12 +163,13 @@ def accuracy_rows(frames: int, workdir: Path, clips=ACCURACY_CLIPS, options: Fit
     rows = []
     for clip in clips:
         seq_dir = workdir / f"accuracy-{Path(clip).stem}"
-        synthesize(model, circle_studio(), clip_dir / clip, seq_dir, SynthOptions(frames=frames, noise="cheung", seed=0))
-        summary = run_fit(model, load_sequence(seq_dir), workdir / f"result-{Path(clip).stem}", options,
+        if not (seq_dir / "sequence.json").exists():  # the same sequences for every backend compared
+            synthesize(model, circle_studio(), clip_dir / clip, seq_dir, SynthOptions(frames=frames, noise="cheung", seed=0))
+        summary = run_fit(model, load_sequence(seq_dir), workdir / f"result-{Path(clip).stem}-{options.energy}", options,
                           LocalSolver(model, options), progress=progress)
         per_frame = summary["per_frame_error_mm"]
         rows.append({
-            "clip": clip, "frames": summary["frames"],
+            "clip": clip, "energy_backend": options.energy, "frames": summary["frames"],
             "mean_joint_error_mm": summary["mean_joint_error_mm"],
             "max_joint_error_mm": summary["max_joint_error_mm"],
             "first20_mean_mm": float(np.mean(per_frame[:20])), "last20_mean_mm": float(np.mean(per_frame[-20:])),

@@ -59,6 +59,24 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     assert all(w.dropped == {} for w in workers)
 
 
+@pytest.mark.timeout(90)
+def test_two_hypotheses_same_poses_as_single_process(model, seq_path, tmp_path):
+    """Both schedules dispatch the same frame's iteration 0 in turn: the rounds must not mix."""
+    from server.session import LocalSolver
+
+    options = FitOptions(hypotheses=2)
+    seq = load_sequence(seq_path)
+    run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options), max_frames=EQUAL_FRAMES)
+    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    try:
+        with thread_workers(model, solver.endpoint, 2):
+            solver.wait_for_clients(2, timeout=10)
+            run_fit(model, seq, tmp_path / "cluster", options, solver, max_frames=EQUAL_FRAMES)
+    finally:
+        solver.close(shutdown="done")
+    np.testing.assert_array_equal(poses(tmp_path / "cluster"), poses(tmp_path / "single"))
+
+
 @pytest.mark.timeout(60)
 def test_with_no_clients_the_server_solves_everything(model, seq_path, reference, tmp_path):
     options = FitOptions()

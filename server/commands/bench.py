@@ -35,6 +35,8 @@ def register(sub) -> None:
     acc.add_argument("--frames", type=int, default=100)
     acc.add_argument("--hypotheses", type=int, choices=(1, 2), default=1, help="as mocap fit --hypotheses")
     acc.add_argument("--no-redetect", action="store_true", help="as mocap fit --no-redetect")
+    acc.add_argument("--energy", default="cpu",
+                     help="energy backends to compare on the same sequences, comma separated (e.g. cpu,volume)")
     acc.add_argument("--json", type=Path, default=None)
     ini = bsub.add_parser("init", help="automatic first-frame initialisation on every clip")
     ini.add_argument("clips", type=Path, nargs="*",
@@ -96,8 +98,15 @@ def run(args) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             from common.fitting import FitOptions
 
-            options = FitOptions(hypotheses=args.hypotheses, redetect_limbs=not args.no_redetect)
-            _emit(benchmarks.accuracy_rows(args.frames, Path(tmp), options=options), args.json)
+            rows = []
+            for backend in [b for b in args.energy.split(",") if b]:
+                try:
+                    options = FitOptions(energy=backend, hypotheses=args.hypotheses,
+                                         redetect_limbs=not args.no_redetect)
+                except ValueError as exc:
+                    raise UserError(f"--energy: {exc}") from None
+                rows += benchmarks.accuracy_rows(args.frames, Path(tmp), options=options)
+            _emit(rows, args.json)
         return 0
     if args.bench == "init":
         clip_dir = Path(__file__).resolve().parents[2] / "common" / "data" / "clips"
