@@ -1,7 +1,8 @@
 """The server's frame loop: fit every frame of a sequence, write results frame by frame.
 
 The torso and head are solved here; limb chains go to a ``Solver`` (local, or a cluster of
-clients). ``mocap fit`` is this loop with the local solver: single-process mode is the server
+clients). A frame whose energy jumps above the recent frames' is a loss of tracking: it is
+fitted again from its voxels, as a first frame is, and the better fit kept. ``mocap fit`` is this loop with the local solver: single-process mode is the server
 with zero clients.
 
 Result folder:
@@ -180,6 +181,26 @@ def voxel_initial_pose(model: BodyModel, data: FrameData) -> np.ndarray:
     return params
 
 
+LOSS_ENERGY_RATIO = 1.25  # a frame's energy this far above the recent median: tracking is lost
+LOSS_HISTORY = 10         # frames in that median
+LOSS_MIN_HISTORY = 3
+
+
+def tracking_lost(energies: list, energy: float) -> bool:
+    """Whether ``energy`` jumps above the median of the last frames' energies (silhouette
+    noise moves it by a few per cent; a body fitted beside the actor adds its whole area)."""
+    recent = energies[-LOSS_HISTORY:]
+    return len(recent) >= LOSS_MIN_HISTORY and energy > LOSS_ENERGY_RATIO * float(np.median(recent))
+
+
+def recovery_start(model: BodyModel, data: FrameData) -> np.ndarray | None:
+    """A start pose from the frame's voxels, or None where they give none (no actor in view)."""
+    try:
+        return voxel_initial_pose(model, data)
+    except UserError:
+        return None
+
+
 def read_done_frames(path: Path) -> list[dict]:
     """Complete lines of an existing poses.jsonl (a torn last line from a crash is dropped)."""
     if not path.exists():
@@ -248,6 +269,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     stats = RunStats()
     wall0 = time.perf_counter()
     x = np.asarray(done[-1]["params"], dtype=np.float64) if done else None
+    energies = [int(d["energy"]) for d in done]
     with open(poses_path, "a") as fh:
         for n, frame in enumerate(frames[len(done):], start=len(done)):
             t0 = time.perf_counter()
@@ -259,13 +281,26 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                     frame_options = first_frame_options(options)
             solver.begin_frame(frame, data, x, frame_options)
             result = fit_frame(model, data, x, frame_options, solver.solve)
+            recovered = False
+            start = recovery_start(model, data) if tracking_lost(energies, result.energy) else None
+            if start is not None:
+                # the whole body lost: start again from the voxels, as on a first frame
+                solver.begin_frame(frame, data, start, first_frame_options(options))
+                again = fit_frame(model, data, start, first_frame_options(options), solver.solve)
+                again.chains = result.chains + again.chains
+                again.evaluations += result.evaluations
+                if again.energy < result.energy:
+                    result, recovered = again, True
+                else:
+                    result.chains, result.evaluations = again.chains, again.evaluations
+            energies.append(result.energy)
             x = result.params
             seconds = time.perf_counter() - t0
             joints = forward_kinematics(model, x).joints[0]
             record = {
                 "frame": int(frame), "params": [float(v) for v in x], "joints": joints_dict(joints),
                 "energy": int(result.energy), "seconds": seconds, "iterations": result.iterations,
-                "evaluations": result.evaluations,
+                "evaluations": result.evaluations, "recovered": recovered,
                 "chains": chain_totals(result.chains),
                 "solves": [{"chain": c.chain, "iteration": i // len(SOLVES_PER_ITERATION), "evaluations": c.evaluations,
                             "energy_before": c.energy_before, "energy": c.energy, "cpu_seconds": c.cpu_seconds,
@@ -292,6 +327,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "mean_seconds_per_frame": float(np.mean(stats.seconds)) if stats.seconds else None,
         "wall_seconds": time.perf_counter() - wall0,
         "evaluations_per_frame": float(np.mean(stats.evaluations)) if stats.evaluations else None,
+        "frames_recovered": sum(1 for r in records if r.get("recovered")),
         "chain_cpu_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_cpu.items()},
         "chain_wall_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_wall.items()},
         "chain_evaluations_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_evaluations.items()},

@@ -267,3 +267,48 @@ def test_fit_truncated_png_keeps_the_frames_already_fitted(broken_copy, tmp_path
     _expect_user_error(capsys, rc, str(png))
     # frame 0 was fitted and written before frame 1's silhouettes were read
     assert [r["frame"] for r in read_lines(out / "poses.jsonl")] == [0]
+
+
+# ------------------------------------------------------------------ loss of tracking
+
+def test_tracking_lost_is_a_jump_over_the_recent_median():
+    from server.session import tracking_lost
+
+    assert not tracking_lost([1000, 1010], 5000)  # too little history to judge
+    assert not tracking_lost([1000, 1010, 990, 1005], 1100)
+    assert tracking_lost([1000, 1010, 990, 1005], 1400)
+    assert not tracking_lost([5000] * 9 + [1000, 1000, 1000], 1400)  # the last ten frames count
+
+
+@pytest.fixture(scope="module")
+def five_frames(tmp_path_factory, model):
+    from common.camera import circle_studio
+    from common.synth import SynthOptions, synthesize
+    from conftest import WALK_CLIP
+
+    out = tmp_path_factory.mktemp("five") / "seq"
+    synthesize(model, circle_studio(6, 240, 180), WALK_CLIP, out,
+               SynthOptions(frames=5, start=1, step=4, noise="none", surface="skinned", seed=0))
+    return out
+
+
+@pytest.mark.timeout(300)
+def test_a_lost_body_is_found_again_from_the_voxels(model, five_frames, tmp_path):
+    """Three frames fitted, then the last pose thrown 0.6 m aside (as if tracking had jumped
+    off the actor): the next frame's energy jumps, the fit restarts from the frame's voxels and
+    lands on the actor again."""
+    from common.sequence import load_sequence
+    from server.session import LocalSolver, run_fit
+
+    seq = load_sequence(five_frames)
+    options = FitOptions()
+    run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=3)
+    lines = read_lines(tmp_path / "poses.jsonl")
+    assert not any(r["recovered"] for r in lines)
+    lines[-1]["params"][0] += 0.6
+    (tmp_path / "poses.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+    summary = run_fit(model, seq, tmp_path, options, LocalSolver(model, options), resume=True, max_frames=4)
+    last = read_lines(tmp_path / "poses.jsonl")[-1]
+    assert last["recovered"] and summary["frames_recovered"] == 1
+    truth = seq.truth()[last["frame"]]
+    assert joint_errors_mm(model, np.array(last["params"]), truth).mean() < 50.0
