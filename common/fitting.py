@@ -147,6 +147,17 @@ def undistort_masks(studio: Studio, masks: np.ndarray) -> tuple[Studio, np.ndarr
     return Studio(tuple(cams), studio.source), np.stack(out)
 
 
+def spot_grid(studio: Studio, masks: np.ndarray, grid: int):
+    """SPOT lookup tables for a box around the actor; built once per studio and box."""
+    from common.voxels import SpotGrid, actor_bounds
+
+    bounds = actor_bounds(studio, masks)
+    key = (grid, bounds.tobytes(), tuple((c.name, c.K.tobytes(), c.R.tobytes(), c.t.tobytes()) for c in studio))
+    if key not in _SPOT_GRIDS:
+        _SPOT_GRIDS[key] = SpotGrid.build(studio, grid=grid, q=2, bounds=bounds)
+    return _SPOT_GRIDS[key]
+
+
 class FrameData:
     """One frame's input silhouettes (undistorted) at full and half resolution, and its studio."""
 
@@ -177,12 +188,7 @@ class FrameData:
     @cached_property
     def surface_points(self) -> np.ndarray:
         """(n, 3) centres of the frame's SPOT surface voxels (for the volume energy)."""
-        from common.voxels import SpotGrid
-
-        key = (VOLUME_GRID, tuple((c.name, c.K.tobytes(), c.R.tobytes(), c.t.tobytes()) for c in self.studio))
-        if key not in _SPOT_GRIDS:
-            _SPOT_GRIDS[key] = SpotGrid.build(self.studio, grid=VOLUME_GRID, q=2)
-        return _SPOT_GRIDS[key].reconstruct(self.masks).surface_points()
+        return spot_grid(self.studio, self.masks, VOLUME_GRID).reconstruct(self.masks).surface_points()
 
     def full_setup(self, params: np.ndarray, half: bool = False) -> EnergySetup:
         studio = self.half_studio if half else self.studio

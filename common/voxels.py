@@ -57,6 +57,40 @@ def default_bounds(studio: Studio) -> np.ndarray:
     return np.stack([lo, lo + DEFAULT_EXTENT])
 
 
+BOUNDS_LATTICE_M = 0.25  # actor-centred boxes snap to this lattice, so their lookup tables repeat
+
+
+def silhouette_centre(studio: Studio, masks: np.ndarray) -> np.ndarray | None:
+    """(3,) the point closest (least squares) to the rays through each silhouette's centroid,
+    metres; None when fewer than two cameras see a silhouette."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for cam, mask in zip(studio, masks):
+        ys, xs = np.nonzero(mask)
+        if xs.size == 0:
+            continue
+        ray = cam.R.T @ np.linalg.solve(cam.K, np.array([xs.mean(), ys.mean(), 1.0]))
+        ray /= np.linalg.norm(ray)
+        proj = np.eye(3) - np.outer(ray, ray)
+        A += proj
+        b += proj @ cam.center
+    if np.linalg.matrix_rank(A) < 3:
+        return None
+    return np.linalg.solve(A, b)
+
+
+def actor_bounds(studio: Studio, masks: np.ndarray) -> np.ndarray:
+    """(2, 3) a DEFAULT_EXTENT box centred on the actor (the silhouettes' centre, snapped to
+    BOUNDS_LATTICE_M), z from 0: the studio's default box misses an actor who walks out of
+    the middle of a large capture area. Falls back to ``default_bounds``."""
+    centre = silhouette_centre(studio, masks)
+    if centre is None:
+        return default_bounds(studio)
+    c = np.round(centre[:2] / BOUNDS_LATTICE_M) * BOUNDS_LATTICE_M
+    lo = np.array([c[0] - DEFAULT_EXTENT[0] / 2, c[1] - DEFAULT_EXTENT[1] / 2, 0.0])
+    return np.stack([lo, lo + DEFAULT_EXTENT])
+
+
 def false_acceptance_probability(xi: float, q: int, k: int) -> float:
     """Eq. 3: an outside voxel passes all K cameras, each on at least one of Q false pixels."""
     return float((1.0 - (1.0 - xi) ** q) ** k)

@@ -23,9 +23,10 @@ from typing import Callable, Protocol
 
 import numpy as np
 
+from common import voxels
 from common.body import JOINT_NAMES, BodyModel, forward_kinematics, joints_dict, rest_params
 from common.errors import InputFileError, UserError
-from common.fitting import ChainResult, FitOptions, FrameData, fit_frame, solve_chain
+from common.fitting import ChainResult, FitOptions, FrameData, fit_frame, solve_chain, spot_grid
 from common.sequence import Sequence
 
 POSES_FILE = "poses.jsonl"
@@ -128,22 +129,11 @@ def chain_totals(chains: list[ChainResult]) -> dict:
 
 
 def silhouette_centre(data: FrameData) -> np.ndarray:
-    """(3,) least-squares intersection of the rays through each silhouette's centroid."""
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
-    for cam, mask in zip(data.studio, data.masks):
-        ys, xs = np.nonzero(mask)
-        if xs.size == 0:
-            continue
-        u, v = xs.mean(), ys.mean()
-        ray = cam.R.T @ np.linalg.solve(cam.K, np.array([u, v, 1.0]))
-        ray /= np.linalg.norm(ray)
-        proj = np.eye(3) - np.outer(ray, ray)
-        A += proj
-        b += proj @ cam.center
-    if np.linalg.matrix_rank(A) < 3:
+    """(3,) where the rays through the silhouettes' centroids meet (the actor, roughly)."""
+    centre = voxels.silhouette_centre(data.studio, data.masks)
+    if centre is None:
         raise UserError("cannot locate the actor: fewer than two cameras see a silhouette in the first frame")
-    return np.linalg.solve(A, b)
+    return centre
 
 
 def initial_pose(model: BodyModel, seq: Sequence, data: FrameData, init: str) -> np.ndarray:
@@ -168,11 +158,10 @@ def voxel_initial_pose(model: BodyModel, data: FrameData) -> np.ndarray:
     """Position, heading and a starting pose from the first frame's SPOT voxels and ellipsoids
     (Cheung et al.; Bottino's volume fitting), for a sequence without truth or T-pose."""
     from common.ellipsoid_fit import initial_pose as fit_to_voxels
-    from common.voxels import SpotGrid
 
-    voxels = SpotGrid.build(data.studio, grid=VOXEL_INIT_GRID, q=2).reconstruct(data.masks)
+    grid = spot_grid(data.studio, data.masks, VOXEL_INIT_GRID).reconstruct(data.masks)
     try:
-        init = fit_to_voxels(voxels, model)
+        init = fit_to_voxels(grid, model)
     except ValueError as exc:
         raise UserError(f"automatic initialisation failed on the first frame: {exc}") from None
     # the fit keeps our actor's size: move the start pose's pelvis to the same height ratio

@@ -204,3 +204,41 @@ def test_fitting_undistorts_so_analytic_ellipsoids_follow_lens_distortion(model)
     assert np.count_nonzero(analytic ^ mesh) / np.count_nonzero(analytic | mesh) < RESAMPLED_MISMATCH
     # without the resampling the mismatch is ~3.5% (k1 = -0.2)
     assert np.count_nonzero(analytic ^ distorted) / np.count_nonzero(analytic | distorted) > RESAMPLED_MISMATCH
+
+
+# ------------------------------------------------------------------ volume energy (Bottino)
+
+def test_surface_distances_agree_with_the_closest_point_near_the_surface(model):
+    """The first-order distance the volume energy uses, against Newton's exact closest point."""
+    from common.ellipsoid_fit import segment_ellipsoids, shell_distances
+    from common.energy import surface_distances
+
+    rng = np.random.default_rng(3)
+    centres, axes, radii = segment_ellipsoids(model, rest_params(model))
+    # points within 2 cm of each ellipsoid's surface, inside and out
+    directions = rng.normal(size=(16, 200, 3))
+    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    surface = centres[:, None] + np.einsum("sij,snj->sni", axes, directions * radii[:, None])
+    points = (surface + rng.uniform(-0.02, 0.02, (16, 200, 1)) * directions).reshape(-1, 3)
+    exact = shell_distances(points, centres, axes, radii).T           # (16, n)
+    approx = surface_distances(points, centres, axes, radii)
+    own = np.repeat(np.arange(16), 200)
+    err_mm = np.abs(approx - exact)[own, np.arange(len(points))] * 1000
+    assert np.median(err_mm) < 0.5 and np.percentile(err_mm, 95) < 3.0, (np.median(err_mm), err_mm.max())
+
+
+def test_volume_energy_prefers_the_truth_and_measures_static_parts_once(model, frame):
+    from common.energy import VolumeEnergy
+
+    data, truth = frame
+    points = data.surface_points
+    assert len(points) > 100
+    full = VolumeEnergy(model, replace(data.full_setup(truth), volume_points=points))
+    rng = np.random.default_rng(4)
+    others = perturbed(truth, rng, 16, spread=0.3)
+    assert full(truth)[0] < full(others).min()
+    arm = CHAINS["left_arm"]
+    limb = VolumeEnergy(model, replace(data.full_setup(truth), volume_points=points, moving=arm.segments,
+                                       prerender=True))
+    moved = perturbed(truth, rng, 8, spread=0.5, indices=arm.params)
+    np.testing.assert_allclose(limb(moved), full(moved), rtol=1e-12)
