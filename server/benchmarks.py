@@ -184,8 +184,10 @@ TPOSE_FRAME = 0  # the CMU conversions' frame 0: an added T-pose
 SHARED_CLIPS = Path(__file__).resolve().parents[2] / "shared" / "data" / "mocap"  # ../shared beside the checkout
 
 
-def shared_clips(root: Path = SHARED_CLIPS) -> list[Path]:
-    """The shared data's BVH clips (``root/*/*.bvh``), sorted; empty when it is missing."""
+def shared_clips(root: Path | None = None) -> list[Path]:
+    """The shared data's BVH clips (``root/*/*.bvh``, default SHARED_CLIPS), sorted; empty
+    when it is missing."""
+    root = SHARED_CLIPS if root is None else root
     return sorted(root.glob("*/*.bvh")) if root.is_dir() else []
 
 
@@ -219,7 +221,7 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
                        SynthOptions(frames=frames, start=start, noise="cheung", seed=seed))
             seq = load_sequence(seq_dir)
             auto_dir = workdir / f"auto-{clip.stem}-{label}"
-            auto = run_fit(model, seq, auto_dir, options, LocalSolver(model, options), init="voxels")
+            auto = run_fit(model, seq, auto_dir, options, LocalSolver(model, options), init="auto")
             given = run_fit(model, seq, workdir / f"truth-{clip.stem}-{label}", options, LocalSolver(model, options),
                             init="truth")
             first = auto["per_frame_error_mm"][0]

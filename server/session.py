@@ -137,7 +137,8 @@ def silhouette_centre(data: FrameData) -> np.ndarray:
 
 
 def initial_pose(model: BodyModel, seq: Sequence, data: FrameData, init: str) -> np.ndarray:
-    """The first frame's start pose: 'truth' (the sequence's truth), or 'standing' at the silhouettes."""
+    """The first frame's start pose: 'truth' (the sequence's truth), 'auto' (automatic
+    initialisation from the frame's voxels), or 'standing' at the silhouettes."""
     if init == "truth":
         truth = seq.truth()
         if truth is None or seq.frames[0] not in truth:
@@ -146,7 +147,7 @@ def initial_pose(model: BodyModel, seq: Sequence, data: FrameData, init: str) ->
     if init == "standing":
         centre = silhouette_centre(data)
         return rest_params(model, position=(centre[0], centre[1], model.joint_rest[0, 2]))
-    if init == "voxels":
+    if init == "auto":
         return voxel_initial_pose(model, data)
     raise UserError(f"unknown --init {init!r}")
 
@@ -239,7 +240,7 @@ def accuracy(records: list[dict], truth: dict | None) -> dict:
 
 
 def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions, solver: Solver,
-            init: str = "auto", resume: bool = False, max_frames: int | None = None, progress=None) -> dict:
+            init: str | None = None, resume: bool = False, max_frames: int | None = None, progress=None) -> dict:
     """Fit the sequence's frames in order; returns the summary (also written to summary.json)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     poses_path = out_dir / POSES_FILE
@@ -253,8 +254,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     elif poses_path.exists():
         poses_path.unlink()
     truth = seq.truth()
-    if init == "auto":
-        init = "truth" if truth else "voxels"
+    if init is None:  # the truth's first pose where there is one, else automatic initialisation
+        init = "truth" if truth else "auto"
     stats = RunStats()
     wall0 = time.perf_counter()
     x = np.asarray(done[-1]["params"], dtype=np.float64) if done else None

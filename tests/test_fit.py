@@ -312,3 +312,15 @@ def test_a_lost_body_is_found_again_from_the_voxels(model, five_frames, tmp_path
     assert last["recovered"] and summary["frames_recovered"] == 1
     truth = seq.truth()[last["frame"]]
     assert joint_errors_mm(model, np.array(last["params"]), truth).mean() < 50.0
+
+
+@pytest.mark.timeout(300)
+def test_init_auto_ignores_the_truth_and_is_scored_by_it(five_frames, tmp_path):
+    """--init auto starts from the voxels even though the sequence has truth, which then only
+    scores; without --init the truth's first pose is the start."""
+    assert fit(five_frames, tmp_path / "auto", "--frames", "2", "--init", "auto") == 0
+    auto = json.loads((tmp_path / "auto" / "summary.json").read_text())
+    assert auto["init"] == "auto"
+    assert auto["per_frame_error_mm"][0] < 50.0, auto["per_frame_error_mm"]
+    assert fit(five_frames, tmp_path / "given", "--frames", "1") == 0
+    assert json.loads((tmp_path / "given" / "summary.json").read_text())["init"] == "truth"

@@ -14,7 +14,7 @@ from server.cluster import LocalCluster, add_cluster_arguments, terminate_on_sig
 from server.progress import Progress
 from server.session import LocalSolver, load_records, run_fit
 
-INIT_CHOICES = ("auto", "truth", "voxels", "standing")
+INIT_CHOICES = ("auto", "truth", "standing")
 
 
 def add_fit_arguments(p) -> None:
@@ -31,8 +31,9 @@ def add_fit_arguments(p) -> None:
                         "(more accurate, twice the time)")
     p.add_argument("--no-redetect", action="store_true",
                    help="do not search one limb per frame over its whole range (lost-limb recovery)")
-    p.add_argument("--init", choices=INIT_CHOICES, default="auto",
-                   help="first-frame start: truth pose if the sequence has one (auto), else from voxels")
+    p.add_argument("--init", choices=INIT_CHOICES, default=None,
+                   help="first-frame start: auto (from the voxels; the truth then only scores), truth, or "
+                        "standing (default: the truth's first pose if the sequence has one, else auto)")
     p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
     p.add_argument("--resume", action="store_true", help="continue a result folder after a crash")
     p.add_argument("--quiet", action="store_true", help="no progress bar, no table")
