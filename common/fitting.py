@@ -14,6 +14,7 @@ the limb solves handed to a ``dispatch`` callable (local by default).
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from itertools import product
@@ -109,7 +110,8 @@ class FrameResult:
 
 
 _UNDISTORT_MAPS: dict = {}
-_SPOT_GRIDS: dict = {}  # lookup tables per studio, built once per process
+_SPOT_GRIDS: OrderedDict = OrderedDict()  # lookup tables per studio and box, the most recent kept
+SPOT_GRIDS_KEPT = 4  # each about 20 MB (64^3, 8 cameras); an actor crossing the studio needs a few
 
 
 def undistort_map(cam: Camera) -> np.ndarray:
@@ -155,6 +157,9 @@ def spot_grid(studio: Studio, masks: np.ndarray, grid: int):
     key = (grid, bounds.tobytes(), tuple((c.name, c.K.tobytes(), c.R.tobytes(), c.t.tobytes()) for c in studio))
     if key not in _SPOT_GRIDS:
         _SPOT_GRIDS[key] = SpotGrid.build(studio, grid=grid, q=2, bounds=bounds)
+        while len(_SPOT_GRIDS) > SPOT_GRIDS_KEPT:
+            _SPOT_GRIDS.popitem(last=False)
+    _SPOT_GRIDS.move_to_end(key)
     return _SPOT_GRIDS[key]
 
 
@@ -364,7 +369,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
 REDETECT_STEPS = 5        # grid points per shoulder/hip parameter (the hinge gets 3)
 REDETECT_MARGIN = 0.15    # the grid keeps this fraction of each joint range away from its limits
 REDETECT_STARTS = 2       # best grid points refined by Powell
-REDETECT_STEP_RAD = 0.3   # Powell's first step from a grid point (half the grid spacing)
+REDETECT_STEP_RAD = 0.3   # Powell's first step from a grid point, rad
 
 
 def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions, make):
