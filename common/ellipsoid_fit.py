@@ -77,10 +77,9 @@ LIMB_SEGMENTS = {  # parent, upper segment, the next segment (whose joint ends t
 # the model faces -y, z up.
 ARM_FAN = ((0.3, 0.0, -1.0), (1.0, 0.0, -0.6), (1.0, 0.0, 0.0), (0.3, -1.0, -0.6), (0.3, 0.6, -1.0),
            (0.3, -1.0, 0.2), (0.5, 0.0, 1.0))
-LEG_FAN = ((0.1, 0.0, -1.0), (0.1, -0.6, -1.0), (0.1, 0.5, -1.0), (0.5, 0.0, -1.0), (0.1, -1.0, -0.3),
-           (-0.3, 0.0, -1.0), (-0.3, -0.5, -1.0), (0.1, 1.0, -0.5), (1.0, 0.0, -0.5))  # ... crossed, arabesque, a la seconde
+LEG_FAN = ((0.1, 0.0, -1.0), (0.1, -0.6, -1.0), (0.1, 0.5, -1.0), (0.5, 0.0, -1.0), (0.1, -1.0, -0.3))
 ARM_BENDS = (0.0, 1.2)  # elbow flexion starts, radians
-LEG_BENDS = (0.0, 0.8, 1.6)  # knee flexion starts
+LEG_BENDS = (0.0, 0.8)  # knee flexion starts
 
 
 @dataclass(frozen=True)
@@ -479,7 +478,10 @@ class InitialPose:
     params (35,) the starting pose for ``model`` (the given actor, or the default one scaled
     by ``scale``);
     heading radians; energy: volume_energy + hull_energy at params; shells: the ellipsoid
-    fit it started from; evaluations: energy evaluations spent.
+    fit it started from; evaluations: energy evaluations spent; candidates (C, 35): every
+    solved front/back candidate, best (lowest energy, ``params``) first: the volume energy
+    tells front from back poorly when limbs are bent or hidden, so a caller with silhouettes
+    can weigh the other one too.
     """
 
     params: np.ndarray
@@ -489,6 +491,7 @@ class InitialPose:
     energy: float
     shells: EllipsoidFit
     evaluations: int
+    candidates: np.ndarray
 
 
 def initial_pose(voxels, model: BodyModel | None = None, seed: int = 0) -> InitialPose:
@@ -503,7 +506,10 @@ def initial_pose(voxels, model: BodyModel | None = None, seed: int = 0) -> Initi
     candidates are solved. Per candidate, Powell minimises volume_energy + hull_energy in
     stages: the trunk alone against the voxels (robust loss, so the limbs' voxels do not
     pull it); each limb from a fan of directions (and, where labelled, its shell) with the
-    rest of the body fixed; the trunk again with all segments; each limb again; the neck.
+    rest of the body fixed; the trunk again with all segments; each limb again, from the fan
+    and from where it is (a limb solved beside limbs still at rest may have taken their
+    voxels); the neck. Starts from shells use the shell of that kind nearest the limb's joint,
+    not its label (left and right come from the feet, which can mislead).
     """
     base = load_body_model() if model is None else model
     points = voxels.surface_points()
@@ -522,15 +528,16 @@ def initial_pose(voxels, model: BodyModel | None = None, seed: int = 0) -> Initi
     position = (centroid[0], centroid[1], floor + body.joint_rest[0, 2] - body.vertices[:, 2].min())
     lateral = _chest_lateral(occupied, floor, height)
     h = float(np.arctan2(lateral[1], lateral[0]))  # turns the model's left (+x) onto `lateral`
-    best = None
+    solved = []
     evaluations = 0
     for heading in (h, h + np.pi):
         p, energy, n = _fit_body(body, rest_params(body, position, heading), target, weights, shells)
         evaluations += n
-        if best is None or energy < best[1]:
-            best = (p, energy)
-    params, energy = best
-    return InitialPose(params, body, scale, float(params[3]), energy, shells, evaluations)
+        solved.append((energy, p))
+    solved.sort(key=lambda t: t[0])
+    energy, params = solved[0]
+    return InitialPose(params, body, scale, float(params[3]), energy, shells, evaluations,
+                       np.array([p for _, p in solved]))
 
 
 def _depth_inside(samples, centres, axes, radii) -> np.ndarray:
@@ -628,10 +635,12 @@ def _solve(model: BodyModel, p, idx, segments, target: VolumeTarget, weights, re
     Distances to the other segments are fixed while these move, so only the moving ones are
     measured (the pre-rendering idea of the XOR energy, in 3D). ``robust``: fit the segments
     alone with a bounded loss (Geman-McClure, scale ROBUST_DISTANCE), ignoring the rest.
-    Several starts: all are ranked by their energy, the best INIT_STARTS_KEPT are solved.
+    Several starts: all are ranked by their energy, the best INIT_STARTS_KEPT are solved,
+    and ``keep`` too where given (so a second pass never ends worse than it began).
     The energy adds, for arm segments, their samples' depth inside the trunk beyond
-    ``rest_depth`` (16, SEGMENT_SAMPLES): an arm hidden in the trunk's voxels costs nothing
-    in D or the hull term, but an arm does not pass through the chest.
+    ``rest_depth`` (16, SEGMENT_SAMPLES), GUARD_WEIGHT times the hull term's rate: an arm
+    hidden in the trunk's voxels costs nothing in D or the hull term, but an arm does not
+    pass through the chest.
     """
     idx, seg = np.array(idx), np.array(segments)
     points = target.points

@@ -8,9 +8,9 @@ from scipy.spatial.transform import Rotation
 
 from common.body import JOINT_NAMES, P, forward_kinematics, load_body_model, rest_params
 from common.camera import circle_studio
-from common.ellipsoid_fit import (SHELL_NAMES, EllipsoidFit, VolumeTarget, activate, fit_ellipsoids,
-                                  hull_energy, initial_pose, moments, segment_ellipsoids, shell_distances,
-                                  volume_energy)
+from common.ellipsoid_fit import (LIMB_GROUPS, SHELL_NAMES, EllipsoidFit, VolumeTarget, _limb_starts, activate,
+                                  fit_ellipsoids, hull_energy, initial_pose, moments, segment_ellipsoids,
+                                  shell_distances, volume_energy)
 from common.voxels import SpotGrid, person_ellipsoids, render_ellipsoids
 
 
@@ -153,3 +153,43 @@ def test_initial_pose_recovers_a_standing_actor():
     start = rest_params(init.model, init.params[:3], init.params[3])
     assert (volume_energy(init.model, init.params, target.points) + hull_energy(init.model, init.params, target)
             < volume_energy(init.model, start, target.points) + hull_energy(init.model, start, target))
+
+
+def test_initial_pose_finds_arms_against_the_body():
+    """The actor's own body (size kept), arms hanging against the trunk: the case that the
+    limbs' shells and a one-pass limb search got wrong (an arm across the chest)."""
+    model = load_body_model()
+    p = rest_params(model, position=(-0.1, 0.15, model.joint_rest[0, 2]), heading=2.0)
+    p[P["l_shoulder_y"]], p[P["r_shoulder_y"]] = 0.6, -0.6  # upper arms ~9 degrees from vertical
+    p[P["l_hip_y"]], p[P["r_hip_y"]] = 0.1, -0.1
+    studio = circle_studio(8, 320, 240)
+    voxels = SpotGrid.build(studio, grid=64).reconstruct(render_ellipsoids(studio, *segment_ellipsoids(model, p)))
+    init = initial_pose(voxels, model)
+    assert init.scale == 1.0 and init.model is model
+    truth = forward_kinematics(model, p).joints[0]
+    error = np.linalg.norm(forward_kinematics(model, init.params).joints[0] - truth, axis=1)
+    named = dict(zip(JOINT_NAMES, error.round(3)))
+    assert error.mean() < 0.05, named
+    for joint in ("l_elbow", "l_wrist", "r_elbow", "r_wrist"):
+        assert named[joint] < 0.1, named
+    # both front/back candidates come back, the chosen one first
+    assert init.candidates.shape == (2, 35)
+    np.testing.assert_array_equal(init.candidates[0], init.params)
+    assert np.cos(init.candidates[1][3] - init.candidates[0][3]) < 0.0
+
+
+def test_limb_starts_take_the_nearest_shell_whatever_its_label(person_voxels):
+    """Left and right come from the feet, which can be wrong; a start aimed at the other
+    side's arm shell would put the arm through the chest."""
+    fit = activate(person_voxels.surface_points())
+    order = [0, 1, 3, 2, 4, 5]  # the arms' labels swapped
+    swapped = EllipsoidFit(fit.centres[order], fit.axes[order], fit.radii[order], fit.active[order],
+                           fit.assignment, fit.error, True)
+    model = load_body_model()
+    p = rest_params(model)  # faces -y like the synthetic person: left is +x
+    for limb, side in (("left_arm", 1.0), ("right_arm", -1.0)):
+        for start in _limb_starts(model, p, limb, swapped):
+            q = p.copy()
+            q[list(LIMB_GROUPS[limb][0])] = start
+            elbow = forward_kinematics(model, q).joints[0][JOINT_NAMES.index(limb[0] + "_elbow")]
+            assert side * elbow[0] > 0.1, (limb, start)

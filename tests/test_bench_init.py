@@ -1,0 +1,72 @@
+"""`mocap bench init` (issue 7): which clips it runs on and how it reports them (server/benchmarks.py)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from server import benchmarks
+from server.cli import main
+
+BUNDLED = sorted((Path(__file__).resolve().parents[1] / "common" / "data" / "clips").glob("*.bvh"))
+
+
+def _row(clip: str, start: str, frame: int, first: float) -> dict:
+    return {"clip": clip, "start": start, "start_frame": frame, "frames": 3, "first_frame_error_mm": first,
+            "first_frame_ok": first <= benchmarks.INIT_TARGET_MM, "first_frame_seconds": 7.5,
+            "auto_mean_joint_error_mm": first - 2.0, "truth_start_mean_joint_error_mm": 20.0,
+            "auto_minus_truth_start_mm": first - 22.0}
+
+
+def test_shared_clips_lists_the_bvh_files_one_folder_down(tmp_path):
+    assert benchmarks.shared_clips(tmp_path / "missing") == []
+    for name in ("b/02_01.bvh", "a/01_01.bvh", "a/notes.txt", "top.bvh"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text("")
+    assert benchmarks.shared_clips(tmp_path) == [tmp_path / "a/01_01.bvh", tmp_path / "b/02_01.bvh"]
+
+
+@pytest.fixture
+def captured(monkeypatch):
+    """Replaces init_rows; records the clips and options it was called with."""
+    calls = []
+
+    def fake(clips, frames, workdir, seed=0, tpose=False):
+        calls.append({"clips": list(clips), "frames": frames, "tpose": tpose})
+        return [_row(c.name, "start", 1, 30.0) for c in clips]
+
+    monkeypatch.setattr(benchmarks, "init_rows", fake)
+    return calls
+
+
+def test_bench_init_defaults_to_the_shared_clips(tmp_path, monkeypatch, captured, capsys):
+    shared = tmp_path / "mocap"
+    (shared / "cmu").mkdir(parents=True)
+    (shared / "cmu" / "05_02.bvh").write_text("")
+    monkeypatch.setattr(benchmarks, "SHARED_CLIPS", shared)
+    assert main(["bench", "init", "--frames", "2", "--tpose", "--json", str(tmp_path / "rows.json")]) == 0
+    assert captured[-1] == {"clips": [shared / "cmu" / "05_02.bvh"], "frames": 2, "tpose": True}
+    assert (tmp_path / "rows.json").exists()
+    assert "05_02.bvh" in capsys.readouterr().out
+    assert main(["bench", "init", "--bundled"]) == 0
+    assert captured[-1]["clips"] == BUNDLED and not captured[-1]["tpose"]
+
+
+def test_bench_init_falls_back_to_the_bundled_clips(tmp_path, monkeypatch, captured):
+    monkeypatch.setattr(benchmarks, "SHARED_CLIPS", tmp_path / "no-shared-data")
+    assert main(["bench", "init", "--frames", "1"]) == 0
+    assert captured[-1]["clips"] == BUNDLED and len(BUNDLED) >= 3
+
+
+def test_bench_init_rejects_a_missing_clip(tmp_path, captured, capsys):
+    assert main(["bench", "init", str(tmp_path / "nope.bvh")]) == 2
+    assert "nope.bvh" in capsys.readouterr().err and not captured
+
+
+def test_init_table_counts_first_frames_on_target(capsys):
+    rows = [_row("05_02.bvh", "start", 1, 31.0), _row("05_02.bvh", "random", 300, 80.0),
+            _row("05_02.bvh", "tpose", 0, 12.0)]
+    benchmarks.print_init_table(rows)
+    out = capsys.readouterr().out.splitlines()
+    assert len(out) == 5 and "random" in out[2] and "80.0" in out[2]
+    assert out[-1] == "first frame <= 50 mm: 2 of 3"
