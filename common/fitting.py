@@ -370,6 +370,7 @@ REDETECT_STEPS = 5        # grid points per shoulder/hip parameter (the hinge ge
 REDETECT_MARGIN = 0.15    # the grid keeps this fraction of each joint range away from its limits
 REDETECT_STARTS = 2       # best grid points refined by Powell
 REDETECT_STEP_RAD = 0.3   # Powell's first step from a grid point, rad
+REDETECT_GAIN = 0.01      # the alternative must lower the whole-image energy by this fraction
 
 
 def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions, make):
@@ -387,7 +388,8 @@ def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray,
     cand = np.repeat(x[None], np.prod([len(a) for a in axes]), axis=0)
     cand[:, list(proximal)] = np.array(list(product(*axes)))
     energies = energy(cand)
-    best_x, best_e = x, float(energy(x)[0])
+    # a clear gain only: an alternative a few pixels better is as often a mirror pose of the limb
+    best_x, best_e = x, float(energy(x)[0]) * (1.0 - REDETECT_GAIN)
     n = len(cand) + 1
     for k in np.argsort(energies, kind="stable")[:REDETECT_STARTS]:
         y, _, n2, _ = powell(energy, cand[k], proximal, np.full(len(proximal), REDETECT_STEP_RAD), options,
