@@ -479,9 +479,7 @@ class InitialPose:
     by ``scale``);
     heading radians; energy: volume_energy + hull_energy at params; shells: the ellipsoid
     fit it started from; evaluations: energy evaluations spent; candidates (C, 35): every
-    solved front/back candidate, best (lowest energy, ``params``) first: the volume energy
-    tells front from back poorly when limbs are bent or hidden, so a caller with silhouettes
-    can weigh the other one too.
+    solved front/back candidate, the chosen one (``params``) first.
     """
 
     params: np.ndarray
@@ -494,7 +492,7 @@ class InitialPose:
     candidates: np.ndarray
 
 
-def initial_pose(voxels, model: BodyModel | None = None, seed: int = 0) -> InitialPose:
+def initial_pose(voxels, model: BodyModel | None = None, seed: int = 0, score=None) -> InitialPose:
     """Position, heading, scale and a starting pose of a standing actor from one frame's voxels.
 
     voxels: a ``common.voxels.VoxelResult`` with surface voxels; model: the actor's body,
@@ -510,6 +508,11 @@ def initial_pose(voxels, model: BodyModel | None = None, seed: int = 0) -> Initi
     and from where it is (a limb solved beside limbs still at rest may have taken their
     voxels); the neck. Starts from shells use the shell of that kind nearest the limb's joint,
     not its label (left and right come from the feet, which can mislead).
+
+    score: optional function from candidates (C, 35) for the returned ``model`` to (C,)
+    energies, such as the XOR energy against the frame's silhouettes; given one, it and not
+    the volume energy picks between front and back (the volume energy confuses them when
+    limbs are bent or hidden, the silhouettes less so).
     """
     base = load_body_model() if model is None else model
     points = voxels.surface_points()
@@ -534,7 +537,11 @@ def initial_pose(voxels, model: BodyModel | None = None, seed: int = 0) -> Initi
         p, energy, n = _fit_body(body, rest_params(body, position, heading), target, weights, shells)
         evaluations += n
         solved.append((energy, p))
-    solved.sort(key=lambda t: t[0])
+    if score is not None:
+        rank = np.asarray(score(np.array([p for _, p in solved])), dtype=np.float64)
+        solved = [solved[i] for i in np.argsort(rank, kind="stable")]
+    else:
+        solved.sort(key=lambda t: t[0])
     energy, params = solved[0]
     return InitialPose(params, body, scale, float(params[3]), energy, shells, evaluations,
                        np.array([p for _, p in solved]))

@@ -176,6 +176,17 @@ def test_initial_pose_finds_arms_against_the_body():
     assert init.candidates.shape == (2, 35)
     np.testing.assert_array_equal(init.candidates[0], init.params)
     assert np.cos(init.candidates[1][3] - init.candidates[0][3]) < 0.0
+    # a score (the silhouettes' XOR energy in a session) overrides the volume energy's choice
+    seen = []
+
+    def prefer_the_other(candidates):
+        seen.append(candidates.shape)
+        return [float(np.allclose(c, init.params)) for c in candidates]
+
+    other = initial_pose(voxels, model, score=prefer_the_other)
+    assert seen == [(2, 35)]
+    np.testing.assert_allclose(other.params, init.candidates[1])
+    np.testing.assert_allclose(other.candidates[1], init.params)
 
 
 def test_limb_starts_take_the_nearest_shell_whatever_its_label(person_voxels):
