@@ -25,6 +25,7 @@ import numpy as np
 
 from common import voxels
 from common.body import JOINT_NAMES, BodyModel, forward_kinematics, joints_dict, rest_params
+from common.energy import make_energy
 from common.errors import InputFileError, UserError
 from common.fitting import ChainResult, FitOptions, FrameData, fit_frame, solve_chain, spot_grid
 from common.sequence import Sequence
@@ -161,14 +162,13 @@ def voxel_initial_pose(model: BodyModel, data: FrameData) -> np.ndarray:
     from common.ellipsoid_fit import initial_pose as fit_to_voxels
 
     grid = spot_grid(data.studio, data.masks, VOXEL_INIT_GRID).reconstruct(data.masks)
+    # front or back: the silhouettes tell them apart better than the voxels' volume energy
+    silhouette_energy = make_energy("cpu", model, data.full_setup(rest_params(model)))
     try:
-        init = fit_to_voxels(grid, model)
+        init = fit_to_voxels(grid, model, score=silhouette_energy)
     except ValueError as exc:
         raise UserError(f"automatic initialisation failed on the first frame: {exc}") from None
-    # the fit keeps our actor's size: move the start pose's pelvis to the same height ratio
-    params = init.params.copy()
-    params[2] = params[2] / init.scale
-    return params
+    return init.params.copy()
 
 
 LOSS_ENERGY_RATIO = 1.25  # a frame's energy this far above the recent median: tracking is lost
