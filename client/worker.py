@@ -347,6 +347,9 @@ class Worker:
                                    frame=solve.frame, iteration=solve.iteration, request=solve.request))
 
     def _frame_data(self, frame: Frame) -> FrameData:
+        if frame.body_fingerprint != self.model.fingerprint:
+            raise ValueError(f"the server fits body {frame.body_fingerprint}, this client has body "
+                             f"{self.model.fingerprint} (different body data or actor scale)")
         studio = Studio(tuple(c.to_camera() for c in frame.cameras), "<wire>")
         return FrameData(self.model, studio, frame.masks(), index=frame.frame)
 

@@ -23,6 +23,7 @@ spot (pirouettes) never wraps.
 from __future__ import annotations
 
 from dataclasses import dataclass
+import hashlib
 from functools import cached_property, lru_cache
 from importlib import resources
 
@@ -141,6 +142,16 @@ class BodyModel:
                 off[s] = self.joint_rest[s] - self.joint_rest[p]
         off.setflags(write=False)
         return off
+
+    @cached_property
+    def fingerprint(self) -> str:
+        """16 hex digits identifying the geometry (scale included): a cluster's server and
+        clients must fit the same body, or their limbs would not fit together."""
+        digest = hashlib.sha256()
+        for a in (self.joint_rest, self.vertices, self.triangles, self.skin_weights, self.ellipsoid_centres,
+                  self.ellipsoid_axes, self.ellipsoid_radii):
+            digest.update(np.ascontiguousarray(a).tobytes())
+        return digest.hexdigest()[:16]
 
     @property
     def head_top_offset(self) -> np.ndarray:

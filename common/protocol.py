@@ -255,10 +255,13 @@ class Frame:
     cameras: tuple[CameraSpec, ...]
     silhouettes: bytes
     previous_params: tuple[float, ...]  # (PARAM_COUNT,) the previous frame's pose
+    body_fingerprint: str               # BodyModel.fingerprint of the body the server fits
 
     def __post_init__(self):
         _session(self, required=True)
         _indices(self, "frame")
+        _set(self, "body_fingerprint", _str(self.body_fingerprint, "frame.body_fingerprint", MAX_NAME_CHARS,
+                                            allow_empty=False))
         cams = _sequence(self.cameras, "frame.cameras")
         if not cams:
             raise ProtocolError("bad_field", "frame.cameras: no cameras")

@@ -24,6 +24,8 @@ Reliability (zguide's Paranoid Pirate, adapted):
  - every message goes through ``common.protocol.decode``; bad ones are logged once per reason,
    counted in ``stats()["dropped"]`` and dropped; ``MAXMSGSIZE`` bounds every frame (zmq
    closes a connection that exceeds it: counted as ``disconnects``, zmq gives no reason);
+ - FRAME carries the body's fingerprint: a client with other body data or another actor scale
+   fails the SOLVEs of that frame and gets no more work, rather than fit limbs of another body;
  - optional CURVE: ``curve_keys`` names a folder with ``server.key_secret`` and ``clients/``,
    the public keys allowed to connect; other peers fail the handshake and get nothing.
 
@@ -303,7 +305,8 @@ class ClusterSolver:
         self._data, self._current_frame = data, int(frame)
         self._frame_options, self._wire_options = options, options.to_wire()
         msg = Frame(session=self.session, frame=int(frame), cameras=camera_specs(data.studio),
-                    silhouettes=packbits_masks(data.masks), previous_params=np.asarray(start).tolist())
+                    silhouettes=packbits_masks(data.masks), previous_params=np.asarray(start).tolist(),
+                    body_fingerprint=self.model.fingerprint)
         parts = encode(msg)
         with self._lock:
             self._server["encode_seconds"] += time.perf_counter() - t0

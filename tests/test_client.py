@@ -5,6 +5,8 @@ import subprocess
 import threading
 import time
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import zmq
@@ -81,7 +83,7 @@ def frame_and_data(model, frame=0):
     start = np.zeros(35)
     start[2] = 0.9
     msg = Frame(session="s1", frame=frame, cameras=camera_specs(studio), silhouettes=packbits_masks(masks),
-                previous_params=start.tolist())
+                previous_params=start.tolist(), body_fingerprint=model.fingerprint)
     return msg, FrameData(model, studio, masks, index=frame), start
 
 
@@ -153,6 +155,19 @@ def test_refuses_unknown_options(model, router, worker):
                               chains=("head",), options={"warp_speed": 9}))
     _, err = receive(router, Error)
     assert err.code == "solve_failed" and "warp_speed" in err.text and err.request == 9
+
+
+@pytest.mark.timeout(30)
+def test_refuses_a_frame_of_another_body(model, router, worker):
+    """A client with other body data (or another actor scale) must not fit limbs for the server."""
+    ident = register(router)
+    frame, _, start = frame_and_data(model)
+    send(router, ident, replace(frame, body_fingerprint=model.scaled(1.1).fingerprint))
+    send(router, ident, Solve(session="s1", frame=0, iteration=0, request=4, params=start.tolist(),
+                              chains=("head",)))
+    _, err = receive(router, Error)
+    assert err.code == "solve_failed" and err.request == 4
+    assert model.scaled(1.1).fingerprint in err.text and model.fingerprint in err.text
 
 
 @pytest.mark.timeout(30)

@@ -24,7 +24,7 @@ PARAMS = tuple(0.01 * i - 0.1 for i in range(PARAM_COUNT))
 def make_frame(K=5, H=17, W=33, seed=0, **overrides) -> Frame:
     masks = np.random.default_rng(seed).random((K, H, W)) < 0.3
     fields = dict(session="s1", frame=7, cameras=camera_specs(circle_studio(K, W, H)),
-                  silhouettes=packbits_masks(masks), previous_params=PARAMS)
+                  silhouettes=packbits_masks(masks), previous_params=PARAMS, body_fingerprint="0123456789abcdef")
     fields.update(overrides)
     return Frame(**fields)
 
@@ -207,13 +207,16 @@ def test_no_frames():
     (EXAMPLES[9], [], {"text": 5}),
     (FRAME, ["cameras"], {}),
     (FRAME, ["previous_params"], {}),
+    (FRAME, ["body_fingerprint"], {}),
+    (FRAME, [], {"body_fingerprint": ""}),
+    (FRAME, [], {"body_fingerprint": 7}),
     (FRAME, [], {"previous_params": [0.0] * 3}),
     (FRAME, [], {"K": 4}),  # with a payload sized for K = 4: K must match the 5 cameras
     (FRAME, [], {"K": 0}),
     (FRAME, [], {"K": "5"}),
     (FRAME, [], {"cameras": "cams"}),
     (FRAME, [], {"cameras": [1, 2, 3, 4, 5]}),
-], ids=range(55))
+], ids=range(58))
 def test_bad_field(msg, drop, changes):
     frames = tampered(msg, drop, **changes)
     if msg is FRAME and changes.get("K") == 4:
@@ -381,7 +384,8 @@ if given is not None:
     def test_frame_property(session, frame, K, H, W, seed, previous):
         masks = np.random.default_rng(seed).random((K, H, W)) < 0.5
         msg = Frame(session=session, frame=frame, cameras=camera_specs(circle_studio(K, W, H)),
-                    silhouettes=packbits_masks(masks), previous_params=previous)
+                    silhouettes=packbits_masks(masks), previous_params=previous,
+                    body_fingerprint="0123456789abcdef")
         out = decode(encode(msg))
         assert out == msg
         np.testing.assert_array_equal(out.masks(), masks)
