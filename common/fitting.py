@@ -64,6 +64,7 @@ class FitOptions:
     torso_grid_steps: int = 1           # >1: grid over pelvis heading x spine twist before Powell (off: measured worse on the walk)
     torso_grid_range_rad: float = 0.2
     redetect_limbs: bool = True         # search one limb per frame over its whole range (lost limbs)
+    redetect_all_limbs: bool = False    # ... every limb, in the first round (a first frame, a recovery)
     hypotheses: int = 1                 # 2: fit each frame with both first-round torso schedules, keep the better
 
     def __post_init__(self):
@@ -354,7 +355,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             energy_value = float(energy(x)[0])
             n += 1
             if (options.redetect_limbs and iteration == 0 and backend == _stage_backends(options)[0]
-                    and frame.index % len(LIMB_CHAINS) == LIMB_CHAINS.index(chain)):
+                    and (options.redetect_all_limbs or frame.index % len(LIMB_CHAINS) == LIMB_CHAINS.index(chain))):
                 x, n4 = redetect_limb(model, frame, chain, x, options, make)
                 n += n4
                 energy_value = float(energy(x)[0])

@@ -24,10 +24,10 @@ from typing import Callable, Protocol
 import numpy as np
 
 from common import voxels
-from common.body import JOINT_NAMES, BodyModel, forward_kinematics, joints_dict, rest_params
+from common.body import JOINT_NAMES, P, BodyModel, forward_kinematics, joints_dict, rest_params
 from common.energy import make_energy
 from common.errors import InputFileError, UserError
-from common.fitting import ChainResult, FitOptions, FrameData, fit_frame, solve_chain, spot_grid
+from common.fitting import ChainResult, FitOptions, FrameData, FrameResult, fit_frame, solve_chain, spot_grid
 from common.sequence import Sequence
 
 POSES_FILE = "poses.jsonl"
@@ -43,7 +43,8 @@ def first_frame_options(options: FitOptions) -> FitOptions:
     and iterate the first frame to convergence."""
     return replace(options, max_iterations=max(options.max_iterations, FIRST_FRAME_ITERATIONS),
                    grid_steps=FIRST_FRAME_GRID_STEPS, grid_range_rad=FIRST_FRAME_GRID_RANGE,
-                   limb_window_px=FIRST_FRAME_LIMB_WINDOW, hinge_grid_full_range=True)
+                   limb_window_px=FIRST_FRAME_LIMB_WINDOW, hinge_grid_full_range=True,
+                   redetect_all_limbs=options.redetect_limbs)
 
 
 class Solver(Protocol):
@@ -137,28 +138,34 @@ def silhouette_centre(data: FrameData) -> np.ndarray:
     return centre
 
 
-def initial_pose(model: BodyModel, seq: Sequence, data: FrameData, init: str) -> np.ndarray:
-    """The first frame's start pose: 'truth' (the sequence's truth), 'auto' (automatic
-    initialisation from the frame's voxels), or 'standing' at the silhouettes."""
+def initial_starts(model: BodyModel, seq: Sequence, data: FrameData, init: str) -> list[np.ndarray]:
+    """The first frame's start poses: 'truth' (the sequence's truth), 'auto' (automatic
+    initialisation from the frame's voxels, several starts) or 'standing' at the silhouettes."""
     if init == "truth":
         truth = seq.truth()
         if truth is None or seq.frames[0] not in truth:
             raise UserError(f"{seq.path}: --init truth needs truth.jsonl with frame {seq.frames[0]}")
-        return truth[seq.frames[0]].params.copy()
+        return [truth[seq.frames[0]].params.copy()]
     if init == "standing":
         centre = silhouette_centre(data)
-        return rest_params(model, position=(centre[0], centre[1], model.joint_rest[0, 2]))
+        return [rest_params(model, position=(centre[0], centre[1], model.joint_rest[0, 2]))]
     if init == "auto":
-        return voxel_initial_pose(model, data)
+        return voxel_starts(model, data)
     raise UserError(f"unknown --init {init!r}")
 
 
 VOXEL_INIT_GRID = 64  # voxels per side for the first-frame initialisation
+# Standing starts beside the voxel fit's poses, per heading: upright, and bent forward at the
+# hips (a player dribbling): a crouch or a bent trunk misleads the voxel fit's pelvis (it
+# settles 0.3 m low, legs folded), and the silhouette fit cannot climb out of that.
+STANDING_START_TILTS_RAD = (0.0, 0.8)
 
 
-def voxel_initial_pose(model: BodyModel, data: FrameData) -> np.ndarray:
-    """Position, heading and a starting pose from the first frame's SPOT voxels and ellipsoids
-    (Cheung et al.; Bottino's volume fitting), for a sequence without truth or T-pose."""
+def voxel_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:
+    """Start poses from the frame's SPOT voxels and ellipsoids (Cheung et al.; Bottino's volume
+    fitting), for a sequence without truth or T-pose: the voxel fit's front and back
+    candidates, then a standing pose at each one's position and heading per
+    STANDING_START_TILTS_RAD. ``fit_from_starts`` lets the silhouettes choose."""
     from common.ellipsoid_fit import initial_pose as fit_to_voxels
 
     grid = spot_grid(data.studio, data.masks, VOXEL_INIT_GRID).reconstruct(data.masks)
@@ -168,7 +175,38 @@ def voxel_initial_pose(model: BodyModel, data: FrameData) -> np.ndarray:
         init = fit_to_voxels(grid, model, score=silhouette_energy)
     except ValueError as exc:
         raise UserError(f"automatic initialisation failed on the first frame: {exc}") from None
-    return init.params.copy()
+    starts = [c.copy() for c in init.candidates]
+    for c in init.candidates:
+        for tilt in STANDING_START_TILTS_RAD:
+            standing = rest_params(model, position=(c[0], c[1], model.joint_rest[0, 2]), heading=c[3])
+            standing[P["root_tilt_x"]] = tilt
+            starts.append(standing)
+    return starts
+
+
+REFIT_GAIN = 0.005   # a first frame is fitted again from its result while the energy falls this much
+MAX_REFITS = 3
+
+
+def fit_from_starts(model: BodyModel, data: FrameData, starts: list, options: FitOptions, dispatch) -> FrameResult:
+    """Fit one frame from every start and keep the lowest energy; with more than one start (a
+    first frame without truth, a recovery), fit again from the result while that still lowers
+    the energy by REFIT_GAIN: each fit re-detects the limbs from a better torso."""
+    results = [fit_frame(model, data, s, options, dispatch) for s in starts]
+    best = min(results, key=lambda r: r.energy)
+    chains = [c for r in results for c in r.chains]
+    evaluations = sum(r.evaluations for r in results)
+    for _ in range(MAX_REFITS if len(starts) > 1 else 0):
+        again = fit_frame(model, data, best.params, options, dispatch)
+        chains += again.chains
+        evaluations += again.evaluations
+        if again.energy > best.energy * (1.0 - REFIT_GAIN):
+            if again.energy < best.energy:
+                best = again
+            break
+        best = again
+    best.chains, best.evaluations = chains, evaluations
+    return best
 
 
 LOSS_ENERGY_RATIO = 1.25  # a frame's energy this far above the recent median: tracking is lost
@@ -183,12 +221,12 @@ def tracking_lost(energies: list, energy: float) -> bool:
     return len(recent) >= LOSS_MIN_HISTORY and energy > LOSS_ENERGY_RATIO * float(np.median(recent))
 
 
-def recovery_start(model: BodyModel, data: FrameData) -> np.ndarray | None:
-    """A start pose from the frame's voxels, or None where they give none (no actor in view)."""
+def recovery_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:
+    """Start poses from the frame's voxels, or none where they give none (no actor in view)."""
     try:
-        return voxel_initial_pose(model, data)
+        return voxel_starts(model, data)
     except UserError:
-        return None
+        return []
 
 
 def read_done_frames(path: Path) -> list[dict]:
@@ -264,19 +302,21 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         for n, frame in enumerate(frames[len(done):], start=len(done)):
             t0 = time.perf_counter()
             data = FrameData(model, seq.studio, seq.silhouettes(frame), index=frame)
-            frame_options = options
             if x is None:
-                x = initial_pose(model, seq, data, init)
-                if init != "truth":
-                    frame_options = first_frame_options(options)
-            solver.begin_frame(frame, data, x, frame_options)
-            result = fit_frame(model, data, x, frame_options, solver.solve)
+                starts = initial_starts(model, seq, data, init)
+                # a start not from the truth can have a limb far off: search widely
+                frame_options = first_frame_options(options) if init != "truth" else options
+                solver.begin_frame(frame, data, starts[0], frame_options)
+                result = fit_from_starts(model, data, starts, frame_options, solver.solve)
+            else:
+                solver.begin_frame(frame, data, x, options)
+                result = fit_frame(model, data, x, options, solver.solve)
             recovered = False
-            start = recovery_start(model, data) if tracking_lost(energies, result.energy) else None
-            if start is not None:
+            starts = recovery_starts(model, data) if tracking_lost(energies, result.energy) else []
+            if starts:
                 # the whole body lost: start again from the voxels, as on a first frame
-                solver.begin_frame(frame, data, start, first_frame_options(options))
-                again = fit_frame(model, data, start, first_frame_options(options), solver.solve)
+                solver.begin_frame(frame, data, starts[0], first_frame_options(options))
+                again = fit_from_starts(model, data, starts, first_frame_options(options), solver.solve)
                 again.chains = result.chains + again.chains
                 again.evaluations += result.evaluations
                 if again.energy < result.energy:

@@ -324,3 +324,46 @@ def test_init_auto_ignores_the_truth_and_is_scored_by_it(five_frames, tmp_path):
     assert auto["per_frame_error_mm"][0] < 50.0, auto["per_frame_error_mm"]
     assert fit(five_frames, tmp_path / "given", "--frames", "1") == 0
     assert json.loads((tmp_path / "given" / "summary.json").read_text())["init"] == "truth"
+
+
+@pytest.mark.timeout(300)
+def test_voxel_starts_cover_both_headings_upright_and_bent(model, five_frames):
+    from common.body import P
+    from common.sequence import load_sequence
+    from server.session import STANDING_START_TILTS_RAD, voxel_starts
+
+    seq = load_sequence(five_frames)
+    frame = seq.frames[0]
+    starts = voxel_starts(model, FrameData(model, seq.studio, seq.silhouettes(frame), index=frame))
+    assert len(starts) == 2 + 2 * len(STANDING_START_TILTS_RAD)
+    front, back = starts[0], starts[1]
+    assert np.isclose(abs(np.angle(np.exp(1j * (front[P["root_heading"]] - back[P["root_heading"]])))), np.pi,
+                      atol=0.5)
+    standing = np.array(starts[2:])
+    assert sorted(set(np.round(standing[:, P["root_tilt_x"]], 6))) == sorted(STANDING_START_TILTS_RAD)
+    truth = seq.truth()[frame].params
+    # the actor is where one of the starts is, within a body width
+    assert min(np.linalg.norm(s[:2] - truth[:2]) for s in starts) < 0.2
+
+
+@pytest.mark.timeout(300)
+def test_fit_from_starts_keeps_the_start_that_explains_the_images(model, five_frames):
+    """One start 0.6 m beside the actor, one near the truth: the near one wins, and both
+    starts' solves are counted."""
+    from common.sequence import load_sequence
+    from server.session import fit_from_starts
+
+    seq = load_sequence(five_frames)
+    frame = seq.frames[0]
+    data = FrameData(model, seq.studio, seq.silhouettes(frame), index=frame)
+    truth = seq.truth()[frame]
+    aside = truth.params.copy()
+    aside[0] += 0.6
+    near = truth.params.copy()
+    near[0] += 0.03
+    options = FitOptions()
+    alone = fit_frame(model, data, near, options)
+    both = fit_from_starts(model, data, [aside, near], options, None)
+    assert both.energy <= alone.energy
+    assert joint_errors_mm(model, both.params, truth).mean() < 20.0
+    assert len(both.chains) > len(alone.chains)
