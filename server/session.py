@@ -209,6 +209,21 @@ def fit_from_starts(model: BodyModel, data: FrameData, starts: list, options: Fi
     return best
 
 
+def search_frame(model: BodyModel, data: FrameData, frame: int, starts: list, options: FitOptions,
+                 solver: "Solver") -> FrameResult:
+    """A frame without a trusted start (a first frame, a recovery): the wide search of
+    ``first_frame_options`` from every start, then one fit with the tracking ``options``, whose
+    local grids and small windows refine what the wide search found."""
+    wide = first_frame_options(options)
+    solver.begin_frame(frame, data, starts[0], wide)
+    found = fit_from_starts(model, data, starts, wide, solver.solve)
+    solver.begin_frame(frame, data, found.params, options)
+    refined = fit_frame(model, data, found.params, options, solver.solve)
+    best = refined if refined.energy < found.energy else found
+    best.chains, best.evaluations = found.chains + refined.chains, found.evaluations + refined.evaluations
+    return best
+
+
 LOSS_ENERGY_RATIO = 1.25  # a frame's energy this far above the recent median: tracking is lost
 LOSS_HISTORY = 10         # frames in that median
 LOSS_MIN_HISTORY = 3
@@ -302,27 +317,21 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         for n, frame in enumerate(frames[len(done):], start=len(done)):
             t0 = time.perf_counter()
             data = FrameData(model, seq.studio, seq.silhouettes(frame), index=frame)
+            if x is None and init == "truth":
+                x = initial_starts(model, seq, data, init)[0]
             if x is None:
-                starts = initial_starts(model, seq, data, init)
-                # a start not from the truth can have a limb far off: search widely
-                frame_options = first_frame_options(options) if init != "truth" else options
-                solver.begin_frame(frame, data, starts[0], frame_options)
-                result = fit_from_starts(model, data, starts, frame_options, solver.solve)
+                result = search_frame(model, data, frame, initial_starts(model, seq, data, init), options, solver)
             else:
                 solver.begin_frame(frame, data, x, options)
                 result = fit_frame(model, data, x, options, solver.solve)
             recovered = False
             starts = recovery_starts(model, data) if tracking_lost(energies, result.energy) else []
-            if starts:
-                # the whole body lost: start again from the voxels, as on a first frame
-                solver.begin_frame(frame, data, starts[0], first_frame_options(options))
-                again = fit_from_starts(model, data, starts, first_frame_options(options), solver.solve)
-                again.chains = result.chains + again.chains
-                again.evaluations += result.evaluations
+            if starts:  # the whole body lost: start again from the voxels, as on a first frame
+                again = search_frame(model, data, frame, starts, options, solver)
+                chains, evaluations = result.chains + again.chains, result.evaluations + again.evaluations
                 if again.energy < result.energy:
                     result, recovered = again, True
-                else:
-                    result.chains, result.evaluations = again.chains, again.evaluations
+                result.chains, result.evaluations = chains, evaluations
             energies.append(result.energy)
             x = result.params
             seconds = time.perf_counter() - t0

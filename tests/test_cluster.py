@@ -77,6 +77,25 @@ def test_two_hypotheses_same_poses_as_single_process(model, seq_path, tmp_path):
     np.testing.assert_array_equal(poses(tmp_path / "cluster"), poses(tmp_path / "single"))
 
 
+@pytest.mark.timeout(240)
+def test_automatic_start_same_poses_as_single_process(model, seq_path, tmp_path):
+    """The first frame's search fits several starts with wide options, then refines with the
+    tracking options: clients must be told each switch (a FRAME per switch)."""
+    from server.session import LocalSolver
+
+    options = FitOptions()
+    seq = load_sequence(seq_path)
+    run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options), init="auto", max_frames=1)
+    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    try:
+        with thread_workers(model, solver.endpoint, 2):
+            solver.wait_for_clients(2, timeout=10)
+            run_fit(model, seq, tmp_path / "cluster", options, solver, init="auto", max_frames=1)
+    finally:
+        solver.close(shutdown="done")
+    np.testing.assert_array_equal(poses(tmp_path / "cluster"), poses(tmp_path / "single"))
+
+
 @pytest.mark.timeout(60)
 def test_with_no_clients_the_server_solves_everything(model, seq_path, reference, tmp_path):
     options = FitOptions()
