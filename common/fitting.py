@@ -390,7 +390,9 @@ def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray,
     cand[:, list(proximal)] = np.array(list(product(*axes)))
     energies = energy(cand)
     # a clear gain only: an alternative a few pixels better is as often a mirror pose of the limb
-    best_x, best_e = x, float(energy(x)[0]) * (1.0 - REDETECT_GAIN)
+    # (on a first frame the tracked limb is no better than any other: no threshold)
+    gain = 0.0 if options.redetect_all_limbs else REDETECT_GAIN
+    best_x, best_e = x, float(energy(x)[0]) * (1.0 - gain)
     n = len(cand) + 1
     for k in np.argsort(energies, kind="stable")[:REDETECT_STARTS]:
         y, _, n2, _ = powell(energy, cand[k], proximal, np.full(len(proximal), REDETECT_STEP_RAD), options,
