@@ -179,9 +179,11 @@ def union_span_sums(batch, row_id, start, end, prefix: np.ndarray, batch_size: i
 
 def render_row_spans(row_id, start, end, cameras: int, rows: int, width: int) -> np.ndarray:
     """Flat spans of one pose -> (K, rows, width) bool coverage (pre-rendered static parts)."""
-    diff = np.zeros((cameras * rows, width + 1), dtype=np.int32)
-    np.add.at(diff, (row_id, start), 1)
-    np.add.at(diff, (row_id, end), -1)
+    # +1 where a span starts, -1 where it ends; bincount is many times faster than np.add.at
+    size = cameras * rows * (width + 1)
+    base = row_id * (width + 1)
+    diff = (np.bincount(base + start, minlength=size) - np.bincount(base + end, minlength=size))
+    diff = diff.reshape(cameras * rows, width + 1)
     return (np.cumsum(diff, axis=1)[:, :width] > 0).reshape(cameras, rows, width)
 
 

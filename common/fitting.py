@@ -24,7 +24,7 @@ import numpy as np
 
 from common.body import (
     CHAINS, LIMB_CHAINS, LIMB_PARTS, P, PARAM_LIMITS, BodyModel, clip_to_limits, forward_kinematics,
-    hold_limbs_in_world,
+    hold_limbs_in_world, rest_params,
 )
 from common import optimize
 from common.camera import Camera, Studio, distort_normalized
@@ -181,6 +181,7 @@ class FrameData:
         studio, masks = undistort_masks(studio, masks)
         self.studio = studio
         self.masks = masks
+        self._whole_image_energies: dict = {}  # half -> energy (see whole_image_energy)
 
     @cached_property
     def half_studio(self) -> Studio:
@@ -201,6 +202,15 @@ class FrameData:
         masks = self.half_masks if half else self.masks
         windows = tuple(Window(0, 0, c.width, c.height) for c in studio)
         return EnergySetup(studio, windows, masks, tuple(range(16)), np.asarray(params), prerender=False)
+
+    def whole_image_energy(self, half: bool = False):
+        """The ``cpu`` energy of the whole images with every segment moving. Nothing is
+        pre-rendered, so it does not depend on a pose: built once per frame and resolution
+        (its prefix sums over 8 full images cost more than a few evaluations)."""
+        if half not in self._whole_image_energies:
+            setup = self.full_setup(rest_params(self.model), half=half)
+            self._whole_image_energies[half] = make_energy("cpu", self.model, setup)
+        return self._whole_image_energies[half]
 
     def window_setup(self, params: np.ndarray, segments, size: int, prerender: bool) -> EnergySetup:
         """Windows of ``size`` centred on the projected centre of ``segments`` at ``params``."""
@@ -305,8 +315,9 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
 
     for backend in _stage_backends(options):
         if chain == "torso":
-            setup = frame.full_setup(x, half=options.torso_half_resolution)
-            energy = with_spine_prior(make(backend, model, setup), options.spine_twist_prior if backend != "volume" else 0.0)
+            whole = (frame.whole_image_energy(options.torso_half_resolution) if backend == "cpu"
+                     else make(backend, model, frame.full_setup(x, half=options.torso_half_resolution)))
+            energy = with_spine_prior(whole, options.spine_twist_prior if backend != "volume" else 0.0)
             before = before if before is not None else int(energy(x)[0])
             idx = CHAINS["torso"].params
             steps = np.array([options.torso_step_m] * 3 + [options.torso_step_rad] * 6)
@@ -407,7 +418,7 @@ def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray,
 
 def full_energy(model: BodyModel, frame: FrameData, params: np.ndarray) -> int:
     """Whole-body XOR energy at full resolution (the convergence test and the reported energy)."""
-    return int(make_energy("cpu", model, frame.full_setup(params))(params)[0])
+    return int(frame.whole_image_energy()(params)[0])
 
 
 # dispatch(chains, params, iteration) starts the limb solves and returns a function that

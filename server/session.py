@@ -25,7 +25,6 @@ import numpy as np
 
 from common import voxels
 from common.body import JOINT_NAMES, P, BodyModel, forward_kinematics, joints_dict, rest_params
-from common.energy import make_energy
 from common.errors import InputFileError, UserError
 from common.fitting import ChainResult, FitOptions, FrameData, FrameResult, fit_frame, solve_chain, spot_grid
 from common.sequence import Sequence
@@ -170,7 +169,7 @@ def voxel_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:
 
     grid = spot_grid(data.studio, data.masks, VOXEL_INIT_GRID).reconstruct(data.masks)
     # front or back: the silhouettes tell them apart better than the voxels' volume energy
-    silhouette_energy = make_energy("cpu", model, data.full_setup(rest_params(model)))
+    silhouette_energy = data.whole_image_energy()
     try:
         init = fit_to_voxels(grid, model, score=silhouette_energy)
     except ValueError as exc:

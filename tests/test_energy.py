@@ -242,3 +242,15 @@ def test_volume_energy_prefers_the_truth_and_measures_static_parts_once(model, f
                                        prerender=True))
     moved = perturbed(truth, rng, 8, spread=0.5, indices=arm.params)
     np.testing.assert_allclose(limb(moved), full(moved), rtol=1e-12)
+
+
+def test_whole_image_energy_is_built_once_per_frame_and_resolution(model, frame, rng):
+    """It pre-renders nothing, so one energy serves every pose of the frame."""
+    data, truth = frame
+    poses = perturbed(truth, rng, 5)
+    for half in (False, True):
+        whole = data.whole_image_energy(half)
+        assert data.whole_image_energy(half) is whole
+        fresh = CpuEnergy(model, data.full_setup(poses[0], half=half))
+        np.testing.assert_array_equal(whole(poses), fresh(poses))
+    assert data.whole_image_energy(True) is not data.whole_image_energy(False)
