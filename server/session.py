@@ -319,6 +319,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
             if x is None and init == "truth":
                 x = initial_starts(model, seq, data, init)[0]
             if x is None:
+                if progress:
+                    progress(n, len(frames), f"frame {frame}: first-frame search ({init} start)")
                 result = search_frame(model, data, frame, initial_starts(model, seq, data, init), options, solver)
             else:
                 solver.begin_frame(frame, data, x, options)
@@ -326,6 +328,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
             recovered = False
             starts = recovery_starts(model, data) if tracking_lost(energies, result.energy) else []
             if starts:  # the whole body lost: start again from the voxels, as on a first frame
+                if progress:
+                    progress(n, len(frames), f"frame {frame}: tracking lost, searching from voxels")
                 again = search_frame(model, data, frame, starts, options, solver)
                 chains, evaluations = result.chains + again.chains, result.evaluations + again.evaluations
                 if again.energy < result.energy:
