@@ -64,7 +64,7 @@ class FitOptions:
     torso_grid_steps: int = 1           # >1: grid over pelvis heading x spine twist before Powell (off: measured worse on the walk)
     torso_grid_range_rad: float = 0.2
     redetect_limbs: bool = True         # search one limb per frame over its whole range (lost limbs)
-    redetect_all_limbs: bool = False    # ... every limb, in the first round (a first frame, a recovery)
+    redetect_turn: str = "frame"        # which limbs: see REDETECT_TURNS
     hypotheses: int = 1                 # 2: fit each frame with both first-round torso schedules, keep the better
 
     def __post_init__(self):
@@ -72,6 +72,8 @@ class FitOptions:
             raise ValueError(f"energy must be one of {ENERGY_BACKENDS}, got {self.energy!r}")
         if self.grid_steps < 1 or self.grid_steps % 2 == 0:
             raise ValueError("grid_steps must be odd and >= 1")
+        if self.redetect_turn not in REDETECT_TURNS:
+            raise ValueError(f"redetect_turn must be one of {REDETECT_TURNS}, got {self.redetect_turn!r}")
         if not 1 <= self.hypotheses <= len(SCHEDULES):
             raise ValueError(f"hypotheses must be 1..{len(SCHEDULES)}, got {self.hypotheses}")
 
@@ -365,8 +367,8 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             it += it3
             energy_value = float(energy(x)[0])
             n += 1
-            if (options.redetect_limbs and iteration == 0 and backend == _stage_backends(options)[0]
-                    and (options.redetect_all_limbs or frame.index % len(LIMB_CHAINS) == LIMB_CHAINS.index(chain))):
+            if (options.redetect_limbs and backend == _stage_backends(options)[0]
+                    and redetects(options.redetect_turn, chain, frame.index, iteration)):
                 x, n4 = redetect_limb(model, frame, chain, x, options, make)
                 n += n4
                 energy_value = float(energy(x)[0])
@@ -378,9 +380,30 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
     return ChainResult(chain, x, int(before), int(round(energy_value)), evals, iters, wall1 - wall0, cpu1 - cpu0)
 
 
+# Which limbs are re-detected (FitOptions.redetect_turn):
+#  "frame": one per frame (frame number mod 4) in the first round: tracking, at a fixed cost;
+#  "round": one per round (round mod 4), at least 4 rounds: a first frame, one limb at a time;
+#  "all":   every limb in the first round: a first frame, each limb against the others' start.
+# Limbs solved side by side (Jacobi) against each other's old pose can all be re-detected into
+# the same unexplained pixels ("all" loses both arms that way now and then); one at a time
+# ("round") cannot, but finds less; a first frame tries both and keeps the lower energy.
+REDETECT_TURNS = ("frame", "round", "all")
+
+
+def redetects(turn: str, chain: str, frame_index: int, iteration: int) -> bool:
+    """Whether ``chain`` is re-detected in round ``iteration`` of frame ``frame_index``."""
+    limb = LIMB_CHAINS.index(chain)
+    if turn == "frame":
+        return iteration == 0 and frame_index % len(LIMB_CHAINS) == limb
+    if turn == "round":
+        return iteration % len(LIMB_CHAINS) == limb
+    return iteration == 0
+
+
 REDETECT_STEPS = 5        # grid points per shoulder/hip parameter (the hinge gets 3)
 REDETECT_MARGIN = 0.15    # the grid keeps this fraction of each joint range away from its limits
 REDETECT_STARTS = 2       # best grid points refined by Powell
+REDETECT_STARTS_FIRST_FRAME = 8  # ... on a first frame, where no limb is tracked yet
 REDETECT_STEP_RAD = 0.3   # Powell's first step from a grid point, rad
 REDETECT_GAIN = 0.01      # the alternative must lower the whole-image energy by this fraction
 
@@ -402,10 +425,11 @@ def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray,
     energies = energy(cand)
     # a clear gain only: an alternative a few pixels better is as often a mirror pose of the limb
     # (on a first frame the tracked limb is no better than any other: no threshold)
-    gain = 0.0 if options.redetect_all_limbs else REDETECT_GAIN
+    gain = REDETECT_GAIN if options.redetect_turn == "frame" else 0.0
     best_x, best_e = x, float(energy(x)[0]) * (1.0 - gain)
     n = len(cand) + 1
-    for k in np.argsort(energies, kind="stable")[:REDETECT_STARTS]:
+    starts = REDETECT_STARTS if options.redetect_turn == "frame" else REDETECT_STARTS_FIRST_FRAME
+    for k in np.argsort(energies, kind="stable")[:starts]:
         y, _, n2, _ = powell(energy, cand[k], proximal, np.full(len(proximal), REDETECT_STEP_RAD), options,
                              options.max_evals_limb)
         y, e, n3, _ = powell(energy, y, distal, np.full(len(distal), options.extremity_step_rad), options,
@@ -488,7 +512,9 @@ def _fit_schedule(model: BodyModel, frame: FrameData, start: np.ndarray, options
         improved = best - e_new
         if e_new <= best:
             x, best = x_new, e_new
-        if improved < options.min_improvement * max(best, 1) and not (position_first and it == 0):
+        every_limb_redetected = not (options.redetect_turn == "round" and options.redetect_limbs) or it >= len(LIMB_CHAINS) - 1
+        if (improved < options.min_improvement * max(best, 1) and not (position_first and it == 0)
+                and every_limb_redetected):
             break
     result.params, result.energy = x, best
     return result

@@ -367,3 +367,19 @@ def test_fit_from_starts_keeps_the_start_that_explains_the_images(model, five_fr
     assert both.energy <= alone.energy
     assert joint_errors_mm(model, both.params, truth).mean() < 20.0
     assert len(both.chains) > len(alone.chains)
+
+
+def test_which_limbs_are_redetected_when():
+    from common.fitting import redetects
+
+    def limbs(turn, frame, iteration):
+        return [c for c in LIMB_CHAINS if redetects(turn, c, frame, iteration)]
+
+    # tracking: one limb per frame, in the first round only
+    assert [limbs("frame", f, 0) for f in range(5)] == [[c] for c in LIMB_CHAINS] + [[LIMB_CHAINS[0]]]
+    assert limbs("frame", 2, 1) == []
+    # first frames: one limb per round, or all of them in the first round
+    assert [limbs("round", 7, it) for it in range(5)] == [[c] for c in LIMB_CHAINS] + [[LIMB_CHAINS[0]]]
+    assert limbs("all", 7, 0) == list(LIMB_CHAINS) and limbs("all", 7, 1) == []
+    with pytest.raises(ValueError, match="redetect_turn"):
+        FitOptions(redetect_turn="sometimes")
