@@ -22,8 +22,8 @@ spot (pirouettes) never wraps.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import hashlib
+from dataclasses import dataclass
 from functools import cached_property, lru_cache
 from importlib import resources
 

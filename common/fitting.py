@@ -485,10 +485,18 @@ def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: Fi
     dispatch = dispatch or solve_locally(model, frame, options)
     results = [_fit_schedule(model, frame, start, options, dispatch, schedule == "position-first")
                for schedule in SCHEDULES[:options.hypotheses]]
-    best = min(results, key=lambda r: r.energy)
-    best.chains = [c for r in results for c in r.chains]
-    best.evaluations = sum(r.evaluations for r in results)
+    best = lowest_energy(results)
     best.wall_seconds = time.perf_counter() - wall0
+    return best
+
+
+def lowest_energy(results: list) -> FrameResult:
+    """The FrameResult of lowest energy (the first on a tie), now carrying the chain solves and
+    evaluations of every one of ``results``, in order: what was spent to choose it."""
+    chains = [c for r in results for c in r.chains]
+    evaluations = sum(r.evaluations for r in results)
+    best = min(results, key=lambda r: r.energy)
+    best.chains, best.evaluations = chains, evaluations
     return best
 
 
@@ -512,9 +520,10 @@ def _fit_schedule(model: BodyModel, frame: FrameData, start: np.ndarray, options
         improved = best - e_new
         if e_new <= best:
             x, best = x_new, e_new
-        every_limb_redetected = not (options.redetect_turn == "round" and options.redetect_limbs) or it >= len(LIMB_CHAINS) - 1
+        # re-detecting one limb per round: every limb gets its round before the fit may stop
+        rounds_needed = len(LIMB_CHAINS) if options.redetect_limbs and options.redetect_turn == "round" else 1
         if (improved < options.min_improvement * max(best, 1) and not (position_first and it == 0)
-                and every_limb_redetected):
+                and it + 1 >= rounds_needed):
             break
     result.params, result.energy = x, best
     return result

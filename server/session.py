@@ -26,7 +26,8 @@ import numpy as np
 from common import voxels
 from common.body import JOINT_NAMES, P, BodyModel, forward_kinematics, joints_dict, rest_params
 from common.errors import InputFileError, UserError
-from common.fitting import ChainResult, FitOptions, FrameData, FrameResult, fit_frame, solve_chain, spot_grid
+from common.fitting import (ChainResult, FitOptions, FrameData, FrameResult, fit_frame, lowest_energy, solve_chain,
+                            spot_grid)
 from common.sequence import Sequence
 
 POSES_FILE = "poses.jsonl"
@@ -40,13 +41,14 @@ FIRST_FRAME_LIMB_WINDOW = 400   # pixels: the limb may be far from where the sta
 FIRST_FRAME_REDETECT_TURNS = ("round", "all")
 
 
-def first_frame_options(options: FitOptions) -> FitOptions:
+def first_frame_options(options: FitOptions, redetect_turn: str) -> FitOptions:
     """A start pose from voxels can have a limb far off: search limbs widely, in big windows,
-    and iterate the first frame to convergence."""
+    re-detect them ``redetect_turn`` (one of FIRST_FRAME_REDETECT_TURNS) and iterate the
+    first frame to convergence."""
     return replace(options, max_iterations=max(options.max_iterations, FIRST_FRAME_ITERATIONS),
                    grid_steps=FIRST_FRAME_GRID_STEPS, grid_range_rad=FIRST_FRAME_GRID_RANGE,
                    limb_window_px=FIRST_FRAME_LIMB_WINDOW, hinge_grid_full_range=True,
-                   redetect_turn="round")
+                   redetect_turn=redetect_turn)
 
 
 class Solver(Protocol):
@@ -194,20 +196,13 @@ def fit_from_starts(model: BodyModel, data: FrameData, starts: list, options: Fi
     """Fit one frame from every start and keep the lowest energy; with more than one start (a
     first frame without truth, a recovery), fit again from the result while that still lowers
     the energy by REFIT_GAIN: each fit re-detects the limbs from a better torso."""
-    results = [fit_frame(model, data, s, options, dispatch) for s in starts]
-    best = min(results, key=lambda r: r.energy)
-    chains = [c for r in results for c in r.chains]
-    evaluations = sum(r.evaluations for r in results)
+    best = lowest_energy([fit_frame(model, data, s, options, dispatch) for s in starts])
     for _ in range(MAX_REFITS if len(starts) > 1 else 0):
         again = fit_frame(model, data, best.params, options, dispatch)
-        chains += again.chains
-        evaluations += again.evaluations
-        if again.energy > best.energy * (1.0 - REFIT_GAIN):
-            if again.energy < best.energy:
-                best = again
+        gained = again.energy <= best.energy * (1.0 - REFIT_GAIN)
+        best = lowest_energy([best, again])
+        if not gained:
             break
-        best = again
-    best.chains, best.evaluations = chains, evaluations
     return best
 
 
@@ -219,17 +214,12 @@ def search_frame(model: BodyModel, data: FrameData, frame: int, starts: list, op
     ``options``, whose local grids and small windows refine what the wide search found."""
     searches = []
     for turn in FIRST_FRAME_REDETECT_TURNS:
-        wide = replace(first_frame_options(options), redetect_turn=turn)
+        wide = first_frame_options(options, turn)
         solver.begin_frame(frame, data, starts[0], wide)
         searches.append(fit_from_starts(model, data, starts, wide, solver.solve))
-    found = min(searches, key=lambda r: r.energy)
-    found.chains = [c for r in searches for c in r.chains]
-    found.evaluations = sum(r.evaluations for r in searches)
+    found = lowest_energy(searches)
     solver.begin_frame(frame, data, found.params, options)
-    refined = fit_frame(model, data, found.params, options, solver.solve)
-    best = refined if refined.energy < found.energy else found
-    best.chains, best.evaluations = found.chains + refined.chains, found.evaluations + refined.evaluations
-    return best
+    return lowest_energy([found, fit_frame(model, data, found.params, options, solver.solve)])
 
 
 LOSS_ENERGY_RATIO = 1.25  # a frame's energy this far above the recent median: tracking is lost
@@ -340,10 +330,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                 if progress:
                     progress(n, len(frames), f"frame {frame}: tracking lost, searching from voxels")
                 again = search_frame(model, data, frame, starts, options, solver)
-                chains, evaluations = result.chains + again.chains, result.evaluations + again.evaluations
-                if again.energy < result.energy:
-                    result, recovered = again, True
-                result.chains, result.evaluations = chains, evaluations
+                result = lowest_energy([result, again])
+                recovered = result is again
             energies.append(result.energy)
             x = result.params
             seconds = time.perf_counter() - t0
