@@ -41,6 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     name = f"client {args.client_id}" if args.client_id else "client"
     logging.basicConfig(level=level, format=f"{name}: %(message)s")
     from common.body import load_body_model
+    from common.energy import compile_kernels
     from client.worker import CurveKeys, Worker
 
     try:
@@ -48,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f"mocap client: error: --curve-keys {args.curve_keys}: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    compile_kernels()
     worker = Worker(load_body_model(), args.connect, args.client_id, curve=curve,
                     reconnect_min=args.reconnect_min, reconnect_max=args.reconnect_max,
                     exit_with_parent=args.exit_with_parent, stall_seconds=args.test_stall,

@@ -28,6 +28,7 @@ from functools import cached_property, lru_cache
 from importlib import resources
 
 import numpy as np
+from numba import njit
 
 SEGMENT_NAMES = (
     "pelvis", "abdomen", "chest", "head",
@@ -342,20 +343,8 @@ def _rest_offsets_vector(model: BodyModel) -> np.ndarray:
 
 def local_rotations(model: BodyModel, params: np.ndarray) -> np.ndarray:
     """(B, 35) parameters -> (B, 16, 3, 3) rotation of each segment relative to its parent."""
-    p = np.asarray(params, dtype=np.float64)
-    key = np.ascontiguousarray(model.joint_rest, dtype=np.float64).tobytes()
-    rv = np.einsum("bp,pkc->bkc", p - _rest_offsets_vector(model), _axis_table(key))
-    M = rotvec_to_matrix(rv)  # (B, 19, 3, 3)
-    R = np.empty((p.shape[0], 16, 3, 3))
-    R[:, 0] = rot_z(p[:, 3]) @ M[:, 0]
-    R[:, 1] = M[:, 1]
-    R[:, 2] = M[:, 1]
-    R[:, 3] = M[:, 2] @ rot_z(p[:, 10])
-    R[:, 4], R[:, 5], R[:, 6] = M[:, 3], M[:, 4], M[:, 5] @ M[:, 6]
-    R[:, 7], R[:, 8], R[:, 9] = M[:, 7], M[:, 8], M[:, 9] @ M[:, 10]
-    R[:, 10], R[:, 11], R[:, 12] = M[:, 11], M[:, 12], M[:, 13] @ M[:, 14]
-    R[:, 13], R[:, 14], R[:, 15] = M[:, 15], M[:, 16], M[:, 17] @ M[:, 18]
-    return R
+    p = np.atleast_2d(np.asarray(params, dtype=np.float64))
+    return _local_rotations(p, *_kinematic_tables(model))
 
 
 @lru_cache(maxsize=64)
@@ -369,6 +358,22 @@ def _with_ancestors(segments: tuple) -> tuple:
     return tuple(sorted(need))  # a parent's index is below its children's
 
 
+@lru_cache(maxsize=256)
+def _segment_mask(segments: tuple | None) -> np.ndarray:
+    order = range(16) if segments is None else _with_ancestors(segments)
+    mask = np.zeros(16, dtype=np.bool_)
+    mask[list(order)] = True
+    return mask
+
+
+def _kinematic_tables(model: BodyModel) -> tuple:
+    key = np.ascontiguousarray(model.joint_rest, dtype=np.float64).tobytes()
+    return _rest_offsets_vector(model), _axis_table(key)
+
+
+_SEGMENT_PARENTS = np.array(SEGMENT_PARENTS, dtype=np.int64)
+
+
 def forward_kinematics(model: BodyModel, params: np.ndarray, segments: tuple | None = None) -> Pose:
     """(B, 35) or (35,) parameters -> Pose with a leading batch axis of B (1 for a single vector).
 
@@ -378,25 +383,107 @@ def forward_kinematics(model: BodyModel, params: np.ndarray, segments: tuple | N
     p = np.atleast_2d(np.asarray(params, dtype=np.float64))
     if p.shape[1] != PARAM_COUNT:
         raise ValueError(f"expected {PARAM_COUNT} parameters, got {p.shape[1]}")
-    local = local_rotations(model, p)
-    offsets = model.offsets
-    B = p.shape[0]
-    order = range(16) if segments is None else _with_ancestors(tuple(segments))
-    if segments is None:
-        rot, org = np.empty_like(local), np.empty((B, 16, 3))
-    else:
-        rot, org = np.full_like(local, np.nan), np.full((B, 16, 3), np.nan)
-    for s in order:
-        parent = SEGMENT_PARENTS[s]
-        if parent < 0:
-            rot[:, s] = local[:, s]
-            org[:, s] = p[:, 0:3]
-        else:
-            rot[:, s] = rot[:, parent] @ local[:, s]
-            org[:, s] = org[:, parent] + rot[:, parent] @ offsets[s]
-    head_top = org[:, HEAD_TOP_SEGMENT] + rot[:, HEAD_TOP_SEGMENT] @ model.head_top_offset
-    joints = np.concatenate([org, head_top[:, None]], axis=1)
+    needed = _segment_mask(None if segments is None else tuple(segments))
+    rot, org, joints = _forward_kinematics(p, *_kinematic_tables(model), _SEGMENT_PARENTS, model.offsets,
+                                           model.head_top_offset, needed)
     return Pose(rot, org, joints)
+
+
+# ------------------------------------------- compiled kernels (numba): the energies' hot path
+# Each evaluation runs forward kinematics on a handful of candidates; numpy's per-call
+# overhead on (B, 16, 3, 3) stacks cost more than the arithmetic.
+
+@njit(cache=True, nogil=True, inline="always")
+def _rodrigues(x: float, y: float, z: float, out: np.ndarray) -> None:
+    """Rotation vector -> out (3, 3), the same formula as ``rotvec_to_matrix``."""
+    theta2 = x * x + y * y + z * z
+    if theta2 < 1e-12:
+        a, b = 1.0 - theta2 / 6.0, 0.5 - theta2 / 24.0
+    else:
+        theta = np.sqrt(theta2)
+        a, b = np.sin(theta) / theta, (1.0 - np.cos(theta)) / (theta * theta)
+    out[0, 0] = 1.0 - b * (y * y + z * z)
+    out[1, 1] = 1.0 - b * (x * x + z * z)
+    out[2, 2] = 1.0 - b * (x * x + y * y)
+    bxy, bxz, byz = b * x * y, b * x * z, b * y * z
+    out[0, 1], out[1, 0] = bxy - a * z, bxy + a * z
+    out[0, 2], out[2, 0] = bxz + a * y, bxz - a * y
+    out[1, 2], out[2, 1] = byz - a * x, byz + a * x
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _matmul3(A: np.ndarray, B: np.ndarray, out: np.ndarray) -> None:
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rot_z(angle: float, out: np.ndarray) -> None:
+    c, s = np.cos(angle), np.sin(angle)
+    out[:] = 0.0
+    out[0, 0], out[0, 1], out[1, 0], out[1, 1], out[2, 2] = c, -s, s, c, 1.0
+
+
+@njit(cache=True, nogil=True)
+def _local_rotations(p: np.ndarray, rest_offsets: np.ndarray, axis_table: np.ndarray) -> np.ndarray:
+    """(B, 35) -> (B, 16, 3, 3): the 19 joint rotations (``_axis_table``) composed per segment."""
+    B = p.shape[0]
+    R = np.empty((B, 16, 3, 3))
+    M = np.empty((19, 3, 3))
+    Z = np.empty((3, 3))
+    rv = np.zeros((19, 3))
+    for b in range(B):
+        rv[:] = 0.0
+        for i in range(35):
+            v = p[b, i] - rest_offsets[i]
+            if v != 0.0:
+                for k in range(19):
+                    for c in range(3):
+                        rv[k, c] += v * axis_table[i, k, c]
+        for k in range(19):
+            _rodrigues(rv[k, 0], rv[k, 1], rv[k, 2], M[k])
+        _rot_z(p[b, 3], Z)
+        _matmul3(Z, M[0], R[b, 0])
+        R[b, 1] = M[1]
+        R[b, 2] = M[1]
+        _rot_z(p[b, 10], Z)
+        _matmul3(M[2], Z, R[b, 3])
+        for seg, first in ((4, 3), (7, 7), (10, 11), (13, 15)):  # a limb: root, middle, end (two joints)
+            R[b, seg] = M[first]
+            R[b, seg + 1] = M[first + 1]
+            _matmul3(M[first + 2], M[first + 3], R[b, seg + 2])
+    return R
+
+
+@njit(cache=True, nogil=True)
+def _forward_kinematics(p, rest_offsets, axis_table, parents, offsets, head_top_offset, needed):
+    """(B, 35) -> rotations (B, 16, 3, 3), origins (B, 16, 3), joints (B, 17, 3); segments not
+    ``needed`` (16,) are NaN."""
+    B = p.shape[0]
+    local = _local_rotations(p, rest_offsets, axis_table)
+    rot = np.full((B, 16, 3, 3), np.nan)
+    org = np.full((B, 16, 3), np.nan)
+    joints = np.full((B, 17, 3), np.nan)
+    for b in range(B):
+        for s in range(16):  # a parent's index is below its children's
+            if not needed[s]:
+                continue
+            parent = parents[s]
+            if parent < 0:
+                rot[b, s] = local[b, s]
+                org[b, s] = p[b, 0:3]
+            else:
+                _matmul3(rot[b, parent], local[b, s], rot[b, s])
+                for i in range(3):
+                    org[b, s, i] = org[b, parent, i] + (rot[b, parent, i, 0] * offsets[s, 0] + rot[b, parent, i, 1]
+                                                        * offsets[s, 1] + rot[b, parent, i, 2] * offsets[s, 2])
+            joints[b, s] = org[b, s]
+        if needed[HEAD_TOP_SEGMENT]:
+            for i in range(3):
+                joints[b, 16, i] = org[b, 3, i] + (rot[b, 3, i, 0] * head_top_offset[0] + rot[b, 3, i, 1]
+                                                   * head_top_offset[1] + rot[b, 3, i, 2] * head_top_offset[2])
+    return rot, org, joints
 
 
 # The limbs' roots: (segment, its parent, first of its 3 rotation-vector parameters)

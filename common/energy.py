@@ -12,12 +12,15 @@ One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``)
 - The cpu backend renders each segment's ellipsoid exactly as an image conic
   C = (P Q* P^T)^-1, takes one covered span per (camera, segment, row), merges spans per row
   and sums v over the merged spans with the prefix sums: no per-pixel work per evaluation.
+  The conics and the spans' sums of an evaluation are compiled loops (numba): numpy's
+  per-call overhead, not arithmetic, was most of an evaluation's time.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from common.body import BodyModel, forward_kinematics
 from common.camera import Studio
@@ -70,38 +73,58 @@ def ellipsoid_world(model: BodyModel, rotations: np.ndarray, origins: np.ndarray
     return centres, A
 
 
+@njit(cache=True, nogil=True)
 def image_conics(P: np.ndarray, centres: np.ndarray, A: np.ndarray) -> tuple:
-    """Project ellipsoids to image conics.
+    """Project ellipsoids to image conics (compiled: called once per evaluation).
 
     P (K, 3, 4) camera matrices, centres (B, S, 3), A (B, S, 3, 3) ->
     conic matrices C (B, K, S, 3, 3) scaled so that x^T C x < 0 inside, and a (B, K, S) bool
     of conics that are drawable (ellipsoid in front of the camera).
     """
-    B, S = centres.shape[:2]
-    # dual quadric Q* = T diag(1,1,1,-1) T^T with T = [[A, c], [0, 1]]
-    Qs = np.empty((B, S, 4, 4))
-    Qs[..., :3, :3] = A @ np.swapaxes(A, -1, -2) - centres[..., :, None] * centres[..., None, :]
-    Qs[..., :3, 3] = -centres
-    Qs[..., 3, :3] = -centres
-    Qs[..., 3, 3] = -1.0
-    # two matrix products: numpy's three-operand einsum is several times slower here
-    PQ = P[None, :, None] @ Qs[:, None]                               # (B, K, S, 3, 4)
-    Cs = PQ @ np.swapaxes(P, -1, -2)[None, :, None]                   # dual conics (B, K, S, 3, 3)
-    # adjugate of the (symmetric) dual conic = conic up to a scale whose sign we fix below
-    d00, d01, d02 = Cs[..., 0, 0], Cs[..., 0, 1], Cs[..., 0, 2]
-    d11, d12, d22 = Cs[..., 1, 1], Cs[..., 1, 2], Cs[..., 2, 2]
-    adj = np.empty_like(Cs)
-    adj[..., 0, 0] = d11 * d22 - d12 * d12
-    adj[..., 1, 1] = d00 * d22 - d02 * d02
-    adj[..., 2, 2] = d00 * d11 - d01 * d01
-    adj[..., 0, 1] = adj[..., 1, 0] = d02 * d12 - d01 * d22
-    adj[..., 0, 2] = adj[..., 2, 0] = d01 * d12 - d02 * d11
-    adj[..., 1, 2] = adj[..., 2, 1] = d01 * d02 - d00 * d12
-    x = np.einsum("kij,bsj->bksi", P[:, :, :3], centres) + P[None, :, None, :, 3]  # projected centres
-    depth = x[..., 2]
-    inside_val = np.einsum("bksi,bksij,bksj->bks", x, adj, x)
-    sign = np.where(inside_val > 0, -1.0, 1.0)
-    return adj * sign[..., None, None], depth > MIN_DEPTH_M
+    B, S, K = centres.shape[0], centres.shape[1], P.shape[0]
+    C = np.empty((B, K, S, 3, 3))
+    drawable = np.empty((B, K, S), np.bool_)
+    Q = np.empty((4, 4))
+    PQ = np.empty((3, 4))
+    D = np.empty((3, 3))
+    x = np.empty(3)
+    for b in range(B):
+        for s in range(S):
+            # dual quadric Q* = T diag(1,1,1,-1) T^T with T = [[A, c], [0, 1]]
+            c = centres[b, s]
+            for i in range(3):
+                for j in range(3):
+                    AAt = A[b, s, i, 0] * A[b, s, j, 0] + A[b, s, i, 1] * A[b, s, j, 1] + A[b, s, i, 2] * A[b, s, j, 2]
+                    Q[i, j] = AAt - c[i] * c[j]
+                Q[i, 3] = Q[3, i] = -c[i]
+            Q[3, 3] = -1.0
+            for k in range(K):
+                # dual conic D = P Q* P^T
+                for i in range(3):
+                    for j in range(4):
+                        PQ[i, j] = P[k, i, 0] * Q[0, j] + P[k, i, 1] * Q[1, j] + P[k, i, 2] * Q[2, j] + P[k, i, 3] * Q[3, j]
+                for i in range(3):
+                    for j in range(3):
+                        D[i, j] = PQ[i, 0] * P[k, j, 0] + PQ[i, 1] * P[k, j, 1] + PQ[i, 2] * P[k, j, 2] + PQ[i, 3] * P[k, j, 3]
+                # adjugate of the (symmetric) dual conic = conic up to a scale whose sign is fixed
+                # by the projected centre, which is inside
+                a00 = D[1, 1] * D[2, 2] - D[1, 2] * D[1, 2]
+                a11 = D[0, 0] * D[2, 2] - D[0, 2] * D[0, 2]
+                a22 = D[0, 0] * D[1, 1] - D[0, 1] * D[0, 1]
+                a01 = D[0, 2] * D[1, 2] - D[0, 1] * D[2, 2]
+                a02 = D[0, 1] * D[1, 2] - D[0, 2] * D[1, 1]
+                a12 = D[0, 1] * D[0, 2] - D[0, 0] * D[1, 2]
+                for i in range(3):
+                    x[i] = P[k, i, 0] * c[0] + P[k, i, 1] * c[1] + P[k, i, 2] * c[2] + P[k, i, 3]
+                inside = (x[0] * (a00 * x[0] + a01 * x[1] + a02 * x[2]) + x[1] * (a01 * x[0] + a11 * x[1] + a12 * x[2])
+                          + x[2] * (a02 * x[0] + a12 * x[1] + a22 * x[2]))
+                sign = -1.0 if inside > 0 else 1.0
+                C[b, k, s, 0, 0], C[b, k, s, 1, 1], C[b, k, s, 2, 2] = a00 * sign, a11 * sign, a22 * sign
+                C[b, k, s, 0, 1] = C[b, k, s, 1, 0] = a01 * sign
+                C[b, k, s, 0, 2] = C[b, k, s, 2, 0] = a02 * sign
+                C[b, k, s, 1, 2] = C[b, k, s, 2, 1] = a12 * sign
+                drawable[b, k, s] = x[2] > MIN_DEPTH_M
+    return C, drawable
 
 
 def conic_row_spans(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.ndarray,
@@ -152,29 +175,72 @@ def conic_row_spans(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.
     return (conic // (K * S))[keep], (cam * rows + row)[keep], start[keep], end[keep]
 
 
-def union_span_sums(batch, row_id, start, end, prefix: np.ndarray, batch_size: int) -> np.ndarray:
-    """Sum of per-pixel values over the union of the spans of each row, per batch entry.
+@njit(cache=True, nogil=True)
+def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.ndarray, rows: int, width: int,
+                  prefix: np.ndarray) -> np.ndarray:
+    """Sum of per-pixel values over the union of the conics' covered spans, per batch entry:
+    the evaluation's inner loop, compiled (numba), with ``conic_row_spans``' arithmetic.
 
-    prefix (K, rows, width + 1) per-row prefix sums; returns (batch_size,) totals.
+    C (B, K, S, 3, 3) conics (negative inside); drawable (B, K, S); y0, x0 (K,) window corners;
+    prefix (K, rows, width + 1) per-row prefix sums of the values -> (B,) int64 sums.
+    Spans are the same pixels as ``conic_row_spans`` gives, bit for bit.
     """
-    if batch.size == 0:
-        return np.zeros(batch_size, dtype=np.int64)
-    K, R, Wp = prefix.shape
-    group = batch * (K * R) + row_id
-    order = np.argsort(group * Wp + start, kind="stable")
-    group, start, end, batch, row_id = group[order], start[order], end[order], batch[order], row_id[order]
-    # offset each row group past the previous one so one running maximum sweeps all groups
-    offset = group * Wp
-    reach = np.maximum.accumulate(end + offset)
-    covered_from = np.empty_like(reach)
-    covered_from[0] = -1
-    covered_from[1:] = reach[:-1]
-    s = np.maximum(start + offset, covered_from) - offset
-    e = np.maximum(end, s)
-    flat = prefix.reshape(-1)
-    base = row_id * Wp
-    vals = flat[base + e] - flat[base + s]
-    return np.bincount(batch, weights=vals, minlength=batch_size).astype(np.int64)
+    B, K, S = C.shape[0], C.shape[1], C.shape[2]
+    out = np.zeros(B, np.int64)
+    first = np.empty(S, np.int64)
+    last = np.empty(S, np.int64)
+    starts = np.empty(S, np.int64)
+    ends = np.empty(S, np.int64)
+    for b in range(B):
+        total = 0
+        for k in range(K):
+            top, bottom = rows, 0
+            for s in range(S):
+                first[s] = last[s] = 0
+                c00, c01, c02 = C[b, k, s, 0, 0], C[b, k, s, 0, 1], C[b, k, s, 0, 2]
+                c11, c12, c22 = C[b, k, s, 1, 1], C[b, k, s, 1, 2], C[b, k, s, 2, 2]
+                qa = c01 * c01 - c00 * c11
+                qb = 2.0 * (c01 * c02 - c00 * c12)
+                qc = c02 * c02 - c00 * c22
+                disc_y = qb * qb - 4.0 * qa * qc
+                if not (drawable[b, k, s] and qa < 0 and c00 > 0 and disc_y > 0):
+                    continue
+                sq = np.sqrt(disc_y)
+                y_lo = (-qb + sq) / (2.0 * qa)
+                y_hi = (-qb - sq) / (2.0 * qa)
+                first[s] = int(min(max(np.ceil(y_lo - y0[k]), 0.0), float(rows)))
+                last[s] = int(min(max(np.floor(y_hi - y0[k]) + 1.0, 0.0), float(rows)))
+                if last[s] > first[s]:
+                    top, bottom = min(top, first[s]), max(bottom, last[s])
+            for row in range(top, bottom):
+                y = float(row) + y0[k]
+                n = 0  # this row's spans, kept sorted by start (S is at most 16)
+                for s in range(S):
+                    if not first[s] <= row < last[s]:
+                        continue
+                    a = C[b, k, s, 0, 0]
+                    bx = 2.0 * (C[b, k, s, 0, 1] * y + C[b, k, s, 0, 2])
+                    c = (C[b, k, s, 1, 1] * y + 2.0 * C[b, k, s, 1, 2]) * y + C[b, k, s, 2, 2]
+                    root = np.sqrt(max(bx * bx - 4.0 * a * c, 0.0))
+                    inv2a = 0.5 / a
+                    start = int(min(max(np.ceil((-bx - root) * inv2a - x0[k]), 0.0), float(width)))
+                    end = int(min(max(np.floor((-bx + root) * inv2a - x0[k]) + 1.0, 0.0), float(width)))
+                    if end <= start:
+                        continue
+                    j = n
+                    while j > 0 and starts[j - 1] > start:
+                        starts[j], ends[j] = starts[j - 1], ends[j - 1]
+                        j -= 1
+                    starts[j], ends[j] = start, end
+                    n += 1
+                reach = 0  # merged spans: each pixel counted once
+                for j in range(n):
+                    s0 = max(starts[j], reach)
+                    if ends[j] > s0:
+                        total += prefix[k, row, ends[j]] - prefix[k, row, s0]
+                        reach = ends[j]
+        out[b] = total
+    return out
 
 
 def render_row_spans(row_id, start, end, cameras: int, rows: int, width: int) -> np.ndarray:
@@ -301,22 +367,22 @@ class CpuEnergy:
         self.prefix = np.concatenate([np.zeros((K, h, 1), np.int32), np.cumsum(v, axis=2, dtype=np.int32)], axis=2)
         self.base = int(np.count_nonzero(M ^ setup.inputs))
 
-    def _spans(self, params: np.ndarray, segments) -> tuple:
+    def _conics(self, params: np.ndarray, segments) -> tuple:
         pose = forward_kinematics(self.model, params, tuple(segments))
         centres, A = ellipsoid_world(self.model, pose.rotations, pose.origins, segments)
-        C, drawable = image_conics(self.P, centres, A)
-        return conic_row_spans(C, drawable, self.y0, self.x0, self.rows, self.width)
+        return image_conics(self.P, centres, A)
 
     def _render(self, params: np.ndarray, segments) -> np.ndarray:
-        _, row_id, start, end = self._spans(np.atleast_2d(params)[:1], segments)
+        C, drawable = self._conics(np.atleast_2d(params)[:1], segments)
+        _, row_id, start, end = conic_row_spans(C, drawable, self.y0, self.x0, self.rows, self.width)
         return render_row_spans(row_id, start, end, len(self.setup.studio), self.rows, self.width)
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
         """(B, 35) or (35,) -> (B,) int64 energies (pixels)."""
         p = np.atleast_2d(params)
-        batch, row_id, start, end = self._spans(p, self.moving)
+        C, drawable = self._conics(p, self.moving)
         self.evaluations += len(p)
-        return self.base + union_span_sums(batch, row_id, start, end, self.prefix, len(p))
+        return self.base + xor_span_sums(C, drawable, self.y0, self.x0, self.rows, self.width, self.prefix)
 
     def render(self, params: np.ndarray) -> np.ndarray:
         """(35,) -> (K, h, w) bool: the model's silhouette windows (moving and static parts)."""
@@ -335,3 +401,17 @@ def make_energy(backend: str, model: BodyModel, setup: EnergySetup):
         return ENERGY_BACKENDS[backend](model, setup)
     except KeyError:
         raise ValueError(f"unknown energy backend {backend!r}; expected cpu, gl or volume") from None
+
+
+def compile_kernels() -> None:
+    """Compile (or load from numba's cache) the energies' compiled kernels now, on a tiny
+    problem: a client does this before it takes work, so that its first solve is not several
+    seconds late (the server would hand that limb to another client)."""
+    from common.body import load_body_model
+
+    model = load_body_model()
+    pose = forward_kinematics(model, np.zeros((1, 35)), (4,))
+    centres, A = ellipsoid_world(model, pose.rotations, pose.origins, (4,))
+    P = np.eye(3, 4)[None]
+    C, drawable = image_conics(P, centres + np.array([0.0, 0.0, 3.0]), A)
+    xor_span_sums(C, drawable, np.zeros(1), np.zeros(1), 2, 2, np.zeros((1, 2, 3), np.int32))

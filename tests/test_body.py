@@ -172,6 +172,32 @@ def test_batch_fk_equals_per_row_fk(model, rng):
         np.testing.assert_allclose(batch.origins[i], single.origins[0], atol=1e-12)
 
 
+def test_compiled_fk_equals_the_kinematic_chain_written_with_scipy(model, rng):
+    """The compiled forward kinematics against an independent composition: every segment's
+    world rotation is its parent's times its local rotation, and its origin is the parent's
+    origin plus the parent's rotation of the rest offset; a subset leaves the others NaN."""
+    from common.body import local_rotations
+
+    p = random_params(model, rng, 5, spread=1.0)
+    pose = forward_kinematics(model, p)
+    local = local_rotations(model, p)
+    for b in range(len(p)):
+        R = {0: Rotation.from_euler("z", p[b, 3]) * Rotation.from_rotvec([p[b, 4], p[b, 5], 0.0])}
+        np.testing.assert_allclose(local[b, 0], R[0].as_matrix(), atol=1e-12)
+        origin = {0: p[b, 0:3]}
+        for s in range(1, 16):
+            parent = SEGMENT_PARENTS[s]
+            origin[s] = origin[parent] + R[parent].apply(np.array(model.offsets[s]))
+            R[s] = R[parent] * Rotation.from_matrix(local[b, s])
+            np.testing.assert_allclose(pose.rotations[b, s], R[s].as_matrix(), atol=1e-10)
+            np.testing.assert_allclose(pose.origins[b, s], origin[s], atol=1e-10)
+    left_arm = forward_kinematics(model, p, (S["l_forearm"],))
+    computed = [S["pelvis"], S["abdomen"], S["chest"], S["l_upperarm"], S["l_forearm"]]
+    np.testing.assert_allclose(left_arm.origins[:, computed], pose.origins[:, computed], atol=1e-12)
+    others = [s for s in range(16) if s not in computed]
+    assert np.isnan(left_arm.origins[:, others]).all() and np.isnan(left_arm.rotations[:, others]).all()
+
+
 def test_fk_rejects_wrong_parameter_count(model):
     with pytest.raises(ValueError, match="35"):
         forward_kinematics(model, np.zeros(34))

@@ -61,6 +61,29 @@ def test_energy_is_the_popcount_of_render_xor_input(model, frame, rng):
             assert int(energy(p)[0]) == expected, name
 
 
+def test_compiled_span_sums_equal_per_pixel_sums_of_the_rendered_union(model, frame, rng):
+    """xor_span_sums (compiled) against drawing every conic's spans into pixels: overlapping
+    segments counted once, spans clipped at window edges, several poses in one batch."""
+    from common.energy import conic_row_spans, image_conics, render_row_spans, xor_span_sums
+
+    data, x = frame
+    setup = data.full_setup(x)
+    energy = CpuEnergy(model, setup)
+    poses = perturbed(x, rng, 4, spread=0.3)
+    poses[:, 0] += 0.8  # half the body past the image edge in some cameras
+    pose = forward_kinematics(model, poses)
+    centres, A = ellipsoid_world(model, pose.rotations, pose.origins, range(16))
+    C, drawable = image_conics(energy.P, centres, A)
+    K, rows, width = energy.prefix.shape[0], energy.rows, energy.width
+    values = np.diff(energy.prefix, axis=2)  # the per-pixel values the prefix sums add up
+    got = xor_span_sums(C, drawable, energy.y0, energy.x0, rows, width, energy.prefix)
+    for b in range(len(poses)):
+        _, row_id, start, end = conic_row_spans(C[b:b + 1], drawable[b:b + 1], energy.y0, energy.x0, rows, width)
+        covered = render_row_spans(row_id, start, end, K, rows, width)
+        assert covered.any()
+        assert got[b] == values[covered].sum()
+
+
 def test_energy_is_not_trivially_zero(model, frame):
     """At the truth the model covers most of the input; far off it does not."""
     data, truth = frame

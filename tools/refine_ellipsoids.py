@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 from common import optimize  # noqa: E402
 from common.body import forward_kinematics, load_body_model, rotvec_to_matrix, skinned_vertices  # noqa: E402
 from common.camera import circle_studio  # noqa: E402
-from common.energy import conic_row_spans, image_conics, render_row_spans, union_span_sums  # noqa: E402
+from common.energy import conic_row_spans, image_conics, render_row_spans, xor_span_sums  # noqa: E402
 from common.motion_import import import_bvh  # noqa: E402
 from common.render_gl import MeshRenderer  # noqa: E402
 
@@ -101,8 +101,7 @@ def main() -> None:
                     cw = (c_loc @ R.T + o)[:, None]
                     Aw = (R @ A_loc)[:, None]
                     C, ok = image_conics(P, cw, Aw)
-                    b, row, s, e = conic_row_spans(C, ok, y0, x0, H, W)
-                    out += bases[i] + union_span_sums(b, row, s, e, prefixes[i], len(Z))
+                    out += bases[i] + xor_span_sums(C, ok, y0, x0, H, W, prefixes[i])
                 return out
 
             res = optimize.powell(f, np.zeros(9), SHAPE_LIMITS[:, 0], SHAPE_LIMITS[:, 1], SHAPE_STEPS,
