@@ -495,7 +495,7 @@ def hold_limbs_in_world(model: BodyModel, params: np.ndarray, reference: np.ndar
     """(B, 35) torso candidates -> the same with shoulder and hip rotations changed so that the
     upper arms and thighs keep the world orientation they have at ``reference`` (35,).
     reference_rotations: (16, 3, 3) the reference's segment rotations, when the caller has them
-    (the torso's line searches call this for every batch of candidates).
+    (the torso's line searches call this for every batch of candidates, hence compiled).
 
     Moving the torso then carries the limbs along by their attachment points only, instead of
     swinging them with it: the torso and limb sub-problems decouple (no drift of the pelvis
@@ -504,17 +504,62 @@ def hold_limbs_in_world(model: BodyModel, params: np.ndarray, reference: np.ndar
     p = np.array(np.atleast_2d(params), dtype=np.float64)
     if reference_rotations is None:
         reference_rotations = forward_kinematics(model, reference).rotations[0]
-    B = len(p)
-    tilt = np.concatenate([p[:, 4:6], np.zeros((B, 1))], axis=1)
-    R_pelvis = rot_z(p[:, 3]) @ rotvec_to_matrix(tilt)
-    R_chest = R_pelvis @ rotvec_to_matrix(p[:, 6:9])
-    parents = {0: R_pelvis, 2: R_chest}
-    local = np.stack([np.swapaxes(parents[parent], -1, -2) @ reference_rotations[seg]
-                      for seg, parent, _ in LIMB_ROOTS], axis=1)  # (B, 4, 3, 3)
-    rotvecs = matrix_to_rotvec(local)  # one call for the four limbs
-    for i, (_, _, first) in enumerate(LIMB_ROOTS):
-        p[:, first:first + 3] = rotvecs[:, i]
+    _hold_limbs(p, np.ascontiguousarray(reference_rotations, dtype=np.float64))
     return p
+
+
+@njit(cache=True, nogil=True)
+def _hold_limbs(p: np.ndarray, reference_rotations: np.ndarray) -> None:
+    """In place on (B, 35): each limb root's rotation vector = parent^T @ its reference rotation,
+    the parent (pelvis or chest) posed by the candidate's own root and spine parameters."""
+    tilt, spine, pelvis, chest = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    Z, local = np.empty((3, 3)), np.empty((3, 3))
+    for b in range(p.shape[0]):
+        _rot_z(p[b, 3], Z)
+        _rodrigues(p[b, 4], p[b, 5], 0.0, tilt)
+        _matmul3(Z, tilt, pelvis)
+        _rodrigues(p[b, 6], p[b, 7], p[b, 8], spine)
+        _matmul3(pelvis, spine, chest)
+        for seg, first in ((4, 11), (7, 17), (10, 23), (13, 29)):  # LIMB_ROOTS
+            parent = pelvis if seg >= 10 else chest
+            for i in range(3):
+                for j in range(3):
+                    local[i, j] = (parent[0, i] * reference_rotations[seg, 0, j] + parent[1, i]
+                                   * reference_rotations[seg, 1, j] + parent[2, i] * reference_rotations[seg, 2, j])
+            _rotvec(local, p[b, first:first + 3])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rotvec(R: np.ndarray, out: np.ndarray) -> None:
+    """(3, 3) rotation -> out (3,), the formula of ``matrix_to_rotvec`` (Shepperd's quaternion)."""
+    trace = R[0, 0] + R[1, 1] + R[2, 2]
+    q = np.empty(4)
+    choice, largest = 3, trace
+    for i in range(3):
+        if R[i, i] > largest:
+            choice, largest = i, R[i, i]
+    if choice == 0:
+        q[0], q[1], q[2], q[3] = 1.0 - trace + 2.0 * R[0, 0], R[1, 0] + R[0, 1], R[2, 0] + R[0, 2], R[2, 1] - R[1, 2]
+    elif choice == 1:
+        q[0], q[1], q[2], q[3] = R[0, 1] + R[1, 0], 1.0 - trace + 2.0 * R[1, 1], R[2, 1] + R[1, 2], R[0, 2] - R[2, 0]
+    elif choice == 2:
+        q[0], q[1], q[2], q[3] = R[0, 2] + R[2, 0], R[1, 2] + R[2, 1], 1.0 - trace + 2.0 * R[2, 2], R[1, 0] - R[0, 1]
+    else:
+        q[0], q[1], q[2], q[3] = R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], 1.0 + trace
+    norm = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if q[3] < 0:
+        norm = -norm
+    for i in range(4):
+        q[i] /= norm
+    sin_half = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2])
+    angle = 2.0 * np.arctan2(sin_half, q[3])
+    if angle <= 1e-3:
+        a2 = angle * angle
+        scale = 2.0 + a2 / 12.0 + 7.0 * a2 * a2 / 2880.0
+    else:
+        scale = angle / np.sin(angle / 2.0)
+    for i in range(3):
+        out[i] = scale * q[i]
 
 
 def rest_params(model: BodyModel, position=None, heading: float = 0.0) -> np.ndarray:

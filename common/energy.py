@@ -65,11 +65,24 @@ def ellipsoid_world(model: BodyModel, rotations: np.ndarray, origins: np.ndarray
     rotations (B, 16, 3, 3), origins (B, 16, 3) -> centres (B, S, 3), shape matrices A (B, S, 3, 3)
     with the ellipsoid = {c + A u : |u| <= 1}.
     """
-    seg = np.asarray(segments)
-    R = rotations[:, seg]
-    centres = np.einsum("bsij,sj->bsi", R, model.ellipsoid_centres[seg]) + origins[:, seg]
+    seg = np.asarray(segments, dtype=np.int64)
     local_A = model.ellipsoid_axes[seg] * model.ellipsoid_radii[seg][:, None, :]  # (S, 3, 3)
-    A = R @ local_A
+    return _pose_ellipsoids(rotations, origins, seg, np.ascontiguousarray(model.ellipsoid_centres[seg]), local_A)
+
+
+@njit(cache=True, nogil=True)
+def _pose_ellipsoids(rotations, origins, seg, local_centres, local_A):
+    B, S = rotations.shape[0], len(seg)
+    centres = np.empty((B, S, 3))
+    A = np.empty((B, S, 3, 3))
+    for b in range(B):
+        for n in range(S):
+            R = rotations[b, seg[n]]
+            for i in range(3):
+                centres[b, n, i] = (R[i, 0] * local_centres[n, 0] + R[i, 1] * local_centres[n, 1]
+                                    + R[i, 2] * local_centres[n, 2] + origins[b, seg[n], i])
+                for j in range(3):
+                    A[b, n, i, j] = R[i, 0] * local_A[n, 0, j] + R[i, 1] * local_A[n, 1, j] + R[i, 2] * local_A[n, 2, j]
     return centres, A
 
 

@@ -66,6 +66,7 @@ class FitOptions:
     redetect_limbs: bool = True         # search one limb per frame over its whole range (lost limbs)
     redetect_turn: str = "frame"        # which limbs: see REDETECT_TURNS
     hypotheses: int = 1                 # 2: fit each frame with both first-round torso schedules, keep the better
+    turn_hypotheses_rad: float = 0.15   # >0: also fit from the start turned by -+ this about the vertical
 
     def __post_init__(self):
         if self.energy not in ENERGY_BACKENDS:
@@ -76,6 +77,8 @@ class FitOptions:
             raise ValueError(f"redetect_turn must be one of {REDETECT_TURNS}, got {self.redetect_turn!r}")
         if not 1 <= self.hypotheses <= len(SCHEDULES):
             raise ValueError(f"hypotheses must be 1..{len(SCHEDULES)}, got {self.hypotheses}")
+        if not 0.0 <= self.turn_hypotheses_rad < np.pi:
+            raise ValueError(f"turn_hypotheses_rad must be in [0, pi), got {self.turn_hypotheses_rad}")
 
     def to_wire(self) -> dict:
         return dict(self.__dict__)
@@ -382,12 +385,17 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
 
 # Which limbs are re-detected (FitOptions.redetect_turn):
 #  "frame": one per frame (frame number mod 4) in the first round: tracking, at a fixed cost;
+#  "every": every limb in the first round, against a tracked pose: a frame whose energy jumped
+#           (a limb lost in a fast move), searched again;
 #  "round": one per round (round mod 4), at least 4 rounds: a first frame, one limb at a time;
 #  "all":   every limb in the first round: a first frame, each limb against the others' start.
 # Limbs solved side by side (Jacobi) against each other's old pose can all be re-detected into
 # the same unexplained pixels ("all" loses both arms that way now and then); one at a time
 # ("round") cannot, but finds less; a first frame tries both and keeps the lower energy.
-REDETECT_TURNS = ("frame", "round", "all")
+# Against a tracked pose ("frame", "every") a re-detected limb must clearly lower the energy and
+# is refined from fewer grid points; a first frame has no tracked limb to protect.
+REDETECT_TURNS = ("frame", "every", "round", "all")
+TRACKING_TURNS = ("frame", "every")
 
 
 def redetects(turn: str, chain: str, frame_index: int, iteration: int) -> bool:
@@ -425,10 +433,11 @@ def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray,
     energies = energy(cand)
     # a clear gain only: an alternative a few pixels better is as often a mirror pose of the limb
     # (on a first frame the tracked limb is no better than any other: no threshold)
-    gain = REDETECT_GAIN if options.redetect_turn == "frame" else 0.0
+    tracking = options.redetect_turn in TRACKING_TURNS
+    gain = REDETECT_GAIN if tracking else 0.0
     best_x, best_e = x, float(energy(x)[0]) * (1.0 - gain)
     n = len(cand) + 1
-    starts = REDETECT_STARTS if options.redetect_turn == "frame" else REDETECT_STARTS_FIRST_FRAME
+    starts = REDETECT_STARTS if tracking else REDETECT_STARTS_FIRST_FRAME
     for k in np.argsort(energies, kind="stable")[:starts]:
         y, _, n2, _ = powell(energy, cand[k], proximal, np.full(len(proximal), REDETECT_STEP_RAD), options,
                              options.max_evals_limb)
@@ -474,20 +483,37 @@ def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: Fi
               dispatch: Dispatch | None = None) -> FrameResult:
     """Fit one frame from ``start`` (the previous frame's pose). ``dispatch`` solves limb chains.
 
-    With ``options.hypotheses`` = 2 the frame is fitted twice, with either schedule of the first
-    round's torso, and the result with the lower full energy is kept (the first on a tie).
-    The limbs start where they were in the previous frame, so in the first round they pull the
-    torso towards last frame's pose: turning the pelvis to meet a swinging thigh is the walk's
-    typical error; moving only the root first avoids it, but lags behind a turning dancer.
-    Neither wins everywhere; the energy picks per frame.
+    The frame is fitted from several hypotheses and the one of lowest full energy is kept (the
+    first on a tie):
+    - the start, with the first round's torso fitted in all 9 parameters;
+    - with ``options.hypotheses`` = 2, the start again, with only the root position fitted in
+      the first round. The limbs start where they were in the previous frame, so in the first
+      round they pull the torso towards last frame's pose: turning the pelvis to meet a swinging
+      thigh is the walk's typical error; moving only the root first avoids it, but lags behind
+      a turning dancer;
+    - with ``options.turn_hypotheses_rad`` = d > 0, the start turned by -d and +d about the
+      vertical, the whole body with it. The pelvis heading is the torso's flattest valley: a
+      tracked pose can sit turned from the truth with the hips twisted back to keep the legs in
+      place, a coordinated minimum that the torso-then-limbs hierarchy cannot leave, since
+      neither the torso nor a limb alone can undo it. Refitting from turned starts can.
     """
     wall0 = time.perf_counter()
     dispatch = dispatch or solve_locally(model, frame, options)
-    results = [_fit_schedule(model, frame, start, options, dispatch, schedule == "position-first")
-               for schedule in SCHEDULES[:options.hypotheses]]
+    hypotheses = [(start, schedule == "position-first") for schedule in SCHEDULES[:options.hypotheses]]
+    if options.turn_hypotheses_rad > 0:
+        hypotheses += [(turned(start, angle), False)
+                       for angle in (-options.turn_hypotheses_rad, options.turn_hypotheses_rad)]
+    results = [_fit_schedule(model, frame, x, options, dispatch, position_first) for x, position_first in hypotheses]
     best = lowest_energy(results)
     best.wall_seconds = time.perf_counter() - wall0
     return best
+
+
+def turned(params: np.ndarray, angle: float) -> np.ndarray:
+    """(35,) the same pose turned by ``angle`` (rad) about the vertical through the pelvis."""
+    out = np.array(params, dtype=np.float64)
+    out[P["root_heading"]] += angle
+    return out
 
 
 def lowest_energy(results: list) -> FrameResult:

@@ -111,7 +111,8 @@ def energy_rows(backends=("cpu", "gl"), cases=tuple(PAPER_TABLE1), seconds: floa
 
 
 def fit_rows(sequence: Path, frames: int) -> list[dict]:
-    """Seconds per frame fitting a sequence, single process, with and without pre-rendering."""
+    """Seconds per frame fitting a sequence, single process: the default (three turn hypotheses
+    per frame), without pre-rendering, with one hypothesis, and with the two torso schedules."""
     from common.sequence import load_sequence
     from server.session import LocalSolver, run_fit
 
@@ -120,6 +121,7 @@ def fit_rows(sequence: Path, frames: int) -> list[dict]:
     rows = []
     for label, options, paper in (("single_xorpr", FitOptions(), PAPER_TABLE2["single_xorpr"]),
                                   ("single_xor", FitOptions(prerender=False), PAPER_TABLE2["single_xor"]),
+                                  ("single_xorpr_no_turn_hypotheses", FitOptions(turn_hypotheses_rad=0.0), None),
                                   ("single_xorpr_2_hypotheses", FitOptions(hypotheses=2), None)):
         out = Path(os.environ.get("TMPDIR", "/tmp")) / f"mocap-bench-{label}-{os.getpid()}"
         summary = run_fit(model, seq, out, options, LocalSolver(model, options), max_frames=frames)

@@ -44,11 +44,13 @@ FIRST_FRAME_REDETECT_TURNS = ("round", "all")
 def first_frame_options(options: FitOptions, redetect_turn: str) -> FitOptions:
     """A start pose from voxels can have a limb far off: search limbs widely, in big windows,
     re-detect them ``redetect_turn`` (one of FIRST_FRAME_REDETECT_TURNS) and iterate the
-    first frame to convergence."""
+    first frame to convergence. No turn hypotheses: the starts come at the headings the voxels
+    give, and each is fitted again from its result; the tracking fit that ends the search
+    (``search_frame``) has them."""
     return replace(options, max_iterations=max(options.max_iterations, FIRST_FRAME_ITERATIONS),
                    grid_steps=FIRST_FRAME_GRID_STEPS, grid_range_rad=FIRST_FRAME_GRID_RANGE,
                    limb_window_px=FIRST_FRAME_LIMB_WINDOW, hinge_grid_full_range=True,
-                   redetect_turn=redetect_turn)
+                   redetect_turn=redetect_turn, turn_hypotheses_rad=0.0)
 
 
 class Solver(Protocol):
@@ -223,15 +225,17 @@ def search_frame(model: BodyModel, data: FrameData, frame: int, starts: list, op
 
 
 LOSS_ENERGY_RATIO = 1.25  # a frame's energy this far above the recent median: tracking is lost
+LIMB_LOSS_ENERGY_RATIO = 1.06  # ... this far: a limb may be lost, every limb is re-detected
 LOSS_HISTORY = 10         # frames in that median
 LOSS_MIN_HISTORY = 3
 
 
-def tracking_lost(energies: list, energy: float) -> bool:
-    """Whether ``energy`` jumps above the median of the last frames' energies (silhouette
-    noise moves it by a few per cent; a body fitted beside the actor adds its whole area)."""
+def tracking_lost(energies: list, energy: float, ratio: float = LOSS_ENERGY_RATIO) -> bool:
+    """Whether ``energy`` jumps ``ratio`` times above the median of the last frames' energies
+    (silhouette noise moves it by a few per cent; a limb lost in a fast move adds 5-15%, a body
+    fitted beside the actor its whole area)."""
     recent = energies[-LOSS_HISTORY:]
-    return len(recent) >= LOSS_MIN_HISTORY and energy > LOSS_ENERGY_RATIO * float(np.median(recent))
+    return len(recent) >= LOSS_MIN_HISTORY and energy > ratio * float(np.median(recent))
 
 
 def recovery_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:
@@ -324,7 +328,14 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
             else:
                 solver.begin_frame(frame, data, x, options)
                 result = fit_frame(model, data, x, options, solver.solve)
-            recovered = False
+            recovered = limbs_redetected = False
+            if tracking_lost(energies, result.energy, LIMB_LOSS_ENERGY_RATIO):
+                # every limb searched over its whole range, from the fitted torso
+                every = replace(options, redetect_turn="every")
+                solver.begin_frame(frame, data, result.params, every)
+                again = fit_frame(model, data, result.params, every, solver.solve)
+                result = lowest_energy([result, again])
+                limbs_redetected = result is again
             starts = recovery_starts(model, data) if tracking_lost(energies, result.energy) else []
             if starts:  # the whole body lost: start again from the voxels, as on a first frame
                 if progress:
@@ -340,6 +351,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                 "frame": int(frame), "params": [float(v) for v in x], "joints": joints_dict(joints),
                 "energy": int(result.energy), "seconds": seconds, "iterations": result.iterations,
                 "evaluations": result.evaluations, "recovered": recovered,
+                "limbs_redetected": limbs_redetected,
                 "chains": chain_totals(result.chains),
                 "solves": [{"chain": c.chain, "iteration": i // len(SOLVES_PER_ITERATION), "evaluations": c.evaluations,
                             "energy_before": c.energy_before, "energy": c.energy, "cpu_seconds": c.cpu_seconds,
@@ -367,6 +379,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "wall_seconds": time.perf_counter() - wall0,
         "evaluations_per_frame": float(np.mean(stats.evaluations)) if stats.evaluations else None,
         "frames_recovered": sum(1 for r in records if r.get("recovered")),
+        "frames_limbs_redetected": sum(1 for r in records if r.get("limbs_redetected")),
         "chain_cpu_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_cpu.items()},
         "chain_wall_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_wall.items()},
         "chain_evaluations_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_evaluations.items()},

@@ -46,8 +46,8 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     assert summary["mode"] == "cluster" and summary["clients"] == n
     clients = [p for p in timing["processes"] if p["role"] == "client"]
     assert len(clients) == n
-    iterations = sum(r["iterations"] for r in records(tmp_path))
-    limb_solves = iterations * len(LIMB_CHAINS)
+    limb_solves = sum(s["chain"] in LIMB_CHAINS for r in records(tmp_path) for s in r["solves"])
+    assert limb_solves >= sum(r["iterations"] for r in records(tmp_path)) * len(LIMB_CHAINS)
     # every limb solve was done by a client or by the server; with 4+ clients all by clients
     assert sum(p["chains"] for p in clients) + timing["local_chains"] == limb_solves
     if n >= len(LIMB_CHAINS):
@@ -105,7 +105,8 @@ def test_with_no_clients_the_server_solves_everything(model, seq_path, reference
     finally:
         solver.close()
     assert np.abs(poses(tmp_path) - reference[:1]).max() <= TOLERANCE
-    assert summary["timing"]["local_chains"] == records(tmp_path)[0]["iterations"] * len(LIMB_CHAINS)
+    limb_solves = sum(s["chain"] in LIMB_CHAINS for s in records(tmp_path)[0]["solves"])
+    assert limb_solves > 0 and summary["timing"]["local_chains"] == limb_solves
 
 
 @pytest.mark.timeout(60)

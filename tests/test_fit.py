@@ -93,6 +93,25 @@ def test_two_hypotheses_keep_the_lower_energy(model, frames):
     assert len(two.chains) > len(one.chains) and two.evaluations > one.evaluations
 
 
+def test_turn_hypotheses_undo_a_start_turned_from_the_truth(model, frames):
+    """A start turned 0.15 rad about the vertical from frame 2's true pose: the hierarchy alone
+    stays turned (torso and limbs each fit well where they are); fitted again from the start
+    turned back, the whole body lands on the truth, whose energy is lower."""
+    from common.fitting import turned
+
+    data, truth = frames
+    start = turned(truth[2].params, 0.15)
+    plain = fit_frame(model, data[2], start, FitOptions(turn_hypotheses_rad=0.0))
+    turns = fit_frame(model, data[2], start, FitOptions(turn_hypotheses_rad=0.15))
+    heading = P["root_heading"]
+    assert abs(plain.params[heading] - truth[2].params[heading]) > 0.1
+    assert abs(turns.params[heading] - truth[2].params[heading]) < 0.02
+    assert turns.energy < plain.energy
+    assert joint_errors_mm(model, turns.params, truth[2]).mean() < joint_errors_mm(model, plain.params, truth[2]).mean()
+    assert turns.evaluations > 2 * plain.evaluations  # three fits, all counted
+    np.testing.assert_allclose(turned(start, -0.15), truth[2].params, atol=1e-12)
+
+
 def test_redetection_finds_a_lost_arm(model, small_loaded):
     """An arm swung 1.5 rad away is beyond the local grid and Powell; the whole-range search of
     the limb whose turn it is this frame brings it back, and the others are left alone."""
@@ -134,6 +153,8 @@ def test_fit_options_validate_and_travel():
         FitOptions(grid_steps=4)
     with pytest.raises(ValueError, match="hypotheses"):
         FitOptions(hypotheses=3)
+    with pytest.raises(ValueError, match="turn_hypotheses_rad"):
+        FitOptions(turn_hypotheses_rad=-0.1)
     with pytest.raises(ValueError, match="bogus"):
         FitOptions.from_wire({"bogus": 1})
     opts = FitOptions(max_iterations=3, prerender=False)
@@ -315,6 +336,33 @@ def test_a_lost_body_is_found_again_from_the_voxels(model, five_frames, tmp_path
 
 
 @pytest.mark.timeout(300)
+def test_a_limb_lost_between_frames_is_found_again(model, five_frames, tmp_path):
+    """Three frames fitted, then the last pose's left arm swung 1.6 rad away (a fast move the
+    local search cannot follow, in a frame whose one re-detected limb is another): the next
+    frame's energy jumps by less than a lost body's, every limb is re-detected, the arm found."""
+    from common.fitting import redetects
+    from common.sequence import load_sequence
+    from server.session import LocalSolver, run_fit
+
+    seq = load_sequence(five_frames)
+    options = FitOptions()
+    run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=3)
+    lines = read_lines(tmp_path / "poses.jsonl")
+    assert not any(r["limbs_redetected"] for r in lines)
+    assert not redetects(options.redetect_turn, "left_arm", seq.frames[3], 0)
+    first = P["l_shoulder_x"]
+    lines[-1]["params"][first] += 1.6
+    (tmp_path / "poses.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
+    summary = run_fit(model, seq, tmp_path, options, LocalSolver(model, options), resume=True, max_frames=4)
+    last = read_lines(tmp_path / "poses.jsonl")[-1]
+    assert last["limbs_redetected"] and not last["recovered"]
+    assert summary["frames_limbs_redetected"] == 1 and summary["frames_recovered"] == 0
+    arm = [JOINT_NAMES.index("l_elbow"), JOINT_NAMES.index("l_wrist")]
+    errors = joint_errors_mm(model, np.array(last["params"]), seq.truth()[last["frame"]])
+    assert errors[arm].max() < 50.0, errors[arm]
+
+
+@pytest.mark.timeout(300)
 def test_init_auto_ignores_the_truth_and_is_scored_by_it(five_frames, tmp_path):
     """--init auto starts from the voxels even though the sequence has truth, which then only
     scores; without --init the truth's first pose is the start."""
@@ -381,5 +429,7 @@ def test_which_limbs_are_redetected_when():
     # first frames: one limb per round, or all of them in the first round
     assert [limbs("round", 7, it) for it in range(5)] == [[c] for c in LIMB_CHAINS] + [[LIMB_CHAINS[0]]]
     assert limbs("all", 7, 0) == list(LIMB_CHAINS) and limbs("all", 7, 1) == []
+    # a frame whose energy jumped while tracking: every limb, in the first round
+    assert limbs("every", 7, 0) == list(LIMB_CHAINS) and limbs("every", 7, 1) == []
     with pytest.raises(ValueError, match="redetect_turn"):
         FitOptions(redetect_turn="sometimes")

@@ -29,6 +29,9 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--hypotheses", type=int, choices=(1, 2), default=FitOptions.hypotheses,
                    help="2: fit each frame with both first-round torso schedules and keep the better "
                         "(more accurate, twice the time)")
+    p.add_argument("--turn-hypotheses", type=float, default=FitOptions.turn_hypotheses_rad, metavar="RAD",
+                   help="also fit each frame from the start turned by -RAD and +RAD and keep the lowest "
+                        f"energy (default {FitOptions.turn_hypotheses_rad}; 0: off, a third of the time)")
     p.add_argument("--no-redetect", action="store_true",
                    help="do not search one limb per frame over its whole range (lost-limb recovery)")
     p.add_argument("--init", choices=INIT_CHOICES, default=None,
@@ -41,9 +44,17 @@ def add_fit_arguments(p) -> None:
 
 
 def options_from_args(args) -> FitOptions:
+    try:
+        return _options_from_args(args)
+    except ValueError as exc:  # a value out of range: say which option
+        raise UserError(f"bad fit option: {exc}") from None
+
+
+def _options_from_args(args) -> FitOptions:
     return FitOptions(energy=args.energy, max_iterations=args.iterations, grid_steps=args.grid_steps,
                       grid_range_rad=args.grid_range, prerender=not args.no_prerender,
-                      hypotheses=args.hypotheses, redetect_limbs=not args.no_redetect)
+                      hypotheses=args.hypotheses, turn_hypotheses_rad=args.turn_hypotheses,
+                      redetect_limbs=not args.no_redetect)
 
 
 def finish(model, seq, args, summary: dict) -> None:
