@@ -140,63 +140,86 @@ def image_conics(P: np.ndarray, centres: np.ndarray, A: np.ndarray) -> tuple:
     return C, drawable
 
 
-def conic_row_spans(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.ndarray,
-                    rows: int, width: int) -> tuple:
-    """Covered pixel spans of image conics, only on the rows each conic covers.
-
-    C (B, K, S, 3, 3) conics (negative inside); drawable (B, K, S); y0, x0 (K,) window corners;
-    rows, width: window size. Pixel centres at integer coordinates are inside when the conic
-    is negative there. Returns flat arrays over the non-empty spans:
-    batch (N,), row_id (N,) = camera * rows + window row, start (N,), end (N,) (exclusive).
-    """
-    B, K, S = C.shape[:3]
-    c00, c01, c02 = C[..., 0, 0], C[..., 0, 1], C[..., 0, 2]
-    c11, c12, c22 = C[..., 1, 1], C[..., 1, 2], C[..., 2, 2]
+@njit(cache=True, nogil=True, inline="always")
+def _conic_rows(C: np.ndarray, drawable: bool, y0: float, rows: int) -> tuple:
+    """Window rows [first, last) a conic C (3, 3) covers (pixel centres at integer coordinates
+    are inside where the conic is negative); (0, 0) when it covers none."""
+    c00, c01, c02 = C[0, 0], C[0, 1], C[0, 2]
+    c11, c12, c22 = C[1, 1], C[1, 2], C[2, 2]
     # y-extent: where the quadratic in x has a double root
     qa = c01 * c01 - c00 * c11
     qb = 2.0 * (c01 * c02 - c00 * c12)
     qc = c02 * c02 - c00 * c22
     disc_y = qb * qb - 4.0 * qa * qc
-    ellipse = drawable & (qa < 0) & (c00 > 0) & (disc_y > 0)
-    sq = np.sqrt(np.where(ellipse, disc_y, 0.0))
-    qa_safe = np.where(ellipse, qa, -1.0)
-    y_lo = (-qb + sq) / (2.0 * qa_safe)  # qa < 0: this is the smaller root
-    y_hi = (-qb - sq) / (2.0 * qa_safe)
-    wy0 = y0[None, :, None]
-    first = np.clip(np.ceil(y_lo - wy0), 0, rows).astype(np.int64)
-    last = np.clip(np.floor(y_hi - wy0) + 1, 0, rows).astype(np.int64)
-    # one entry per covered row of each conic (no padding to the tallest conic)
-    count = np.where(ellipse, last - first, 0).reshape(-1)
-    total = int(count.sum())
-    if total <= 0:
-        empty = np.zeros(0, dtype=np.int64)
-        return empty, empty, empty, empty
-    conic = np.repeat(np.arange(count.size), count)  # (T,) flat (b, k, s) index of each row
-    ends = np.cumsum(count)
-    row = first.reshape(-1)[conic] + (np.arange(total) - (ends - count)[conic])  # window rows
-    cam = (conic // S) % K
-    y = (row + y0[cam]).astype(np.float64)           # image rows
-    a = c00.reshape(-1)[conic]
-    b = 2.0 * (c01.reshape(-1)[conic] * y + c02.reshape(-1)[conic])
-    c = (c11.reshape(-1)[conic] * y + 2.0 * c12.reshape(-1)[conic]) * y + c22.reshape(-1)[conic]
-    root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
+    if not (drawable and qa < 0 and c00 > 0 and disc_y > 0):
+        return 0, 0
+    sq = np.sqrt(disc_y)
+    y_lo = (-qb + sq) / (2.0 * qa)  # qa < 0: this is the smaller root
+    y_hi = (-qb - sq) / (2.0 * qa)
+    first = int(min(max(np.ceil(y_lo - y0), 0.0), float(rows)))
+    last = int(min(max(np.floor(y_hi - y0) + 1.0, 0.0), float(rows)))
+    return first, max(first, last)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _conic_span(C: np.ndarray, y: float, x0: float, width: int) -> tuple:
+    """Window columns [start, end) a conic covers on image row y (end <= start: none)."""
+    a = C[0, 0]
+    b = 2.0 * (C[0, 1] * y + C[0, 2])
+    c = (C[1, 1] * y + 2.0 * C[1, 2]) * y + C[2, 2]
+    root = np.sqrt(max(b * b - 4.0 * a * c, 0.0))
     inv2a = 0.5 / a
-    wx0 = x0[cam]
-    start = np.clip(np.ceil((-b - root) * inv2a - wx0), 0, width).astype(np.int64)
-    end = np.clip(np.floor((-b + root) * inv2a - wx0) + 1, 0, width).astype(np.int64)
-    keep = end > start
-    return (conic // (K * S))[keep], (cam * rows + row)[keep], start[keep], end[keep]
+    start = int(min(max(np.ceil((-b - root) * inv2a - x0), 0.0), float(width)))
+    end = int(min(max(np.floor((-b + root) * inv2a - x0) + 1.0, 0.0), float(width)))
+    return start, end
+
+
+@njit(cache=True, nogil=True)
+def conic_coverage(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.ndarray, rows: int,
+                   width: int) -> np.ndarray:
+    """Pixels covered by any of the conics: C (B, K, S, 3, 3) (negative inside), drawable
+    (B, K, S), y0, x0 (K,) window corners -> (B, K, rows, width) bool."""
+    B, K, S = C.shape[0], C.shape[1], C.shape[2]
+    out = np.zeros((B, K, rows, width), np.bool_)
+    for b in range(B):
+        for k in range(K):
+            for s in range(S):
+                first, last = _conic_rows(C[b, k, s], drawable[b, k, s], y0[k], rows)
+                for row in range(first, last):
+                    start, end = _conic_span(C[b, k, s], float(row) + y0[k], x0[k], width)
+                    out[b, k, row, start:end] = True
+    return out
+
+
+@njit(cache=True, nogil=True)
+def xor_prefix(static: np.ndarray, inputs: np.ndarray) -> tuple:
+    """static, inputs (K, h, w) bool -> per-row prefix sums (K, h, w + 1) int32 of the value a
+    moving part adds by covering a pixel (0 where static covers it, else 1 - 2 * input), and
+    the static parts' own XOR count |static xor inputs|."""
+    K, h, w = inputs.shape
+    prefix = np.zeros((K, h, w + 1), np.int32)
+    base = 0
+    for k in range(K):
+        for r in range(h):
+            acc = 0
+            for c in range(w):
+                if static[k, r, c]:
+                    base += not inputs[k, r, c]
+                else:
+                    acc += 1 - 2 * inputs[k, r, c]
+                    base += inputs[k, r, c]
+                prefix[k, r, c + 1] = acc
+    return prefix, base
 
 
 @njit(cache=True, nogil=True)
 def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.ndarray, rows: int, width: int,
                   prefix: np.ndarray) -> np.ndarray:
     """Sum of per-pixel values over the union of the conics' covered spans, per batch entry:
-    the evaluation's inner loop, compiled (numba), with ``conic_row_spans``' arithmetic.
+    the evaluation's inner loop. Covers the pixels ``conic_coverage`` covers.
 
     C (B, K, S, 3, 3) conics (negative inside); drawable (B, K, S); y0, x0 (K,) window corners;
     prefix (K, rows, width + 1) per-row prefix sums of the values -> (B,) int64 sums.
-    Spans are the same pixels as ``conic_row_spans`` gives, bit for bit.
     """
     B, K, S = C.shape[0], C.shape[1], C.shape[2]
     out = np.zeros(B, np.int64)
@@ -209,20 +232,7 @@ def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.nd
         for k in range(K):
             top, bottom = rows, 0
             for s in range(S):
-                first[s] = last[s] = 0
-                c00, c01, c02 = C[b, k, s, 0, 0], C[b, k, s, 0, 1], C[b, k, s, 0, 2]
-                c11, c12, c22 = C[b, k, s, 1, 1], C[b, k, s, 1, 2], C[b, k, s, 2, 2]
-                qa = c01 * c01 - c00 * c11
-                qb = 2.0 * (c01 * c02 - c00 * c12)
-                qc = c02 * c02 - c00 * c22
-                disc_y = qb * qb - 4.0 * qa * qc
-                if not (drawable[b, k, s] and qa < 0 and c00 > 0 and disc_y > 0):
-                    continue
-                sq = np.sqrt(disc_y)
-                y_lo = (-qb + sq) / (2.0 * qa)
-                y_hi = (-qb - sq) / (2.0 * qa)
-                first[s] = int(min(max(np.ceil(y_lo - y0[k]), 0.0), float(rows)))
-                last[s] = int(min(max(np.floor(y_hi - y0[k]) + 1.0, 0.0), float(rows)))
+                first[s], last[s] = _conic_rows(C[b, k, s], drawable[b, k, s], y0[k], rows)
                 if last[s] > first[s]:
                     top, bottom = min(top, first[s]), max(bottom, last[s])
             for row in range(top, bottom):
@@ -231,13 +241,7 @@ def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.nd
                 for s in range(S):
                     if not first[s] <= row < last[s]:
                         continue
-                    a = C[b, k, s, 0, 0]
-                    bx = 2.0 * (C[b, k, s, 0, 1] * y + C[b, k, s, 0, 2])
-                    c = (C[b, k, s, 1, 1] * y + 2.0 * C[b, k, s, 1, 2]) * y + C[b, k, s, 2, 2]
-                    root = np.sqrt(max(bx * bx - 4.0 * a * c, 0.0))
-                    inv2a = 0.5 / a
-                    start = int(min(max(np.ceil((-bx - root) * inv2a - x0[k]), 0.0), float(width)))
-                    end = int(min(max(np.floor((-bx + root) * inv2a - x0[k]) + 1.0, 0.0), float(width)))
+                    start, end = _conic_span(C[b, k, s], y, x0[k], width)
                     if end <= start:
                         continue
                     j = n
@@ -254,16 +258,6 @@ def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.nd
                         reach = ends[j]
         out[b] = total
     return out
-
-
-def render_row_spans(row_id, start, end, cameras: int, rows: int, width: int) -> np.ndarray:
-    """Flat spans of one pose -> (K, rows, width) bool coverage (pre-rendered static parts)."""
-    # +1 where a span starts, -1 where it ends; bincount is many times faster than np.add.at
-    size = cameras * rows * (width + 1)
-    base = row_id * (width + 1)
-    diff = (np.bincount(base + start, minlength=size) - np.bincount(base + end, minlength=size))
-    diff = diff.reshape(cameras * rows, width + 1)
-    return (np.cumsum(diff, axis=1)[:, :width] > 0).reshape(cameras, rows, width)
 
 
 # ------------------------------------------------------------------------ the energy
@@ -370,15 +364,13 @@ class CpuEnergy:
         self.x0 = np.array([win.x0 for win in windows], dtype=np.float64)
         self.moving = tuple(setup.moving) if setup.prerender else tuple(range(16))
         static = tuple(s for s in range(16) if s not in self.moving)
-        I = setup.inputs.astype(np.int32)
         if static:
             M = self._render(setup.static_params, static)
         else:
             M = np.zeros((K, h, w), dtype=bool)
         self.static_mask = M
-        v = np.where(M, 0, 1 - 2 * I)
-        self.prefix = np.concatenate([np.zeros((K, h, 1), np.int32), np.cumsum(v, axis=2, dtype=np.int32)], axis=2)
-        self.base = int(np.count_nonzero(M ^ setup.inputs))
+        self.prefix, base = xor_prefix(M, np.ascontiguousarray(setup.inputs, dtype=np.bool_))
+        self.base = int(base)
 
     def _conics(self, params: np.ndarray, segments) -> tuple:
         pose = forward_kinematics(self.model, params, tuple(segments))
@@ -387,8 +379,7 @@ class CpuEnergy:
 
     def _render(self, params: np.ndarray, segments) -> np.ndarray:
         C, drawable = self._conics(np.atleast_2d(params)[:1], segments)
-        _, row_id, start, end = conic_row_spans(C, drawable, self.y0, self.x0, self.rows, self.width)
-        return render_row_spans(row_id, start, end, len(self.setup.studio), self.rows, self.width)
+        return conic_coverage(C, drawable, self.y0, self.x0, self.rows, self.width)[0]
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
         """(B, 35) or (35,) -> (B,) int64 energies (pixels)."""

@@ -56,33 +56,34 @@ class _Counter:
 def line_search(f: _Counter, x: np.ndarray, fx: float, d: np.ndarray, lo, hi, tol: float):
     """Minimise f(x + t d) over t; returns (t, f) with f <= fx (t = 0 if nothing better)."""
     tmin, tmax = _line_range(x, d, lo, hi)
-    ts = np.array([0.0])
-    fs = np.array([fx])
+    ts, fs = [0.0], [fx]  # a handful of probes: plain lists cost less than numpy's set operations
 
     def probe(cands):
-        nonlocal ts, fs
-        cands = np.unique(np.clip(cands, tmin, tmax))
-        cands = cands[~np.isin(cands, ts)]
-        if cands.size == 0 or f.spent:
+        cands = sorted({min(max(float(t), tmin), tmax) for t in cands}.difference(ts))
+        if not cands or f.spent:
             return
+        t = np.array(cands)
         # clip the points too: x + t d can land one rounding step outside the box
-        vals = f(np.clip(x[None] + cands[:, None] * d[None], lo, hi))
-        ts, fs = np.concatenate([ts, cands]), np.concatenate([fs, vals])
+        vals = f(np.clip(x[None] + t[:, None] * d[None], lo, hi))
+        ts.extend(cands)
+        fs.extend(vals.tolist())
+
+    def best_t() -> float:
+        return ts[fs.index(min(fs))]  # the first of equals: t = 0 wins ties, no drift
 
     probe(BRACKET)
     span = 1.0
     for _ in range(MAX_EXPANSIONS):  # the minimum may lie beyond the first bracket
-        best = ts[np.argmin(fs)]
+        best = best_t()
         if abs(best) < span * 0.99 or f.spent:
             break
         probe(best * np.array([1.5, EXPAND]))
         span *= EXPAND
     spacing = 0.25 * span  # distance from the best probe to its neighbours
     while spacing > tol and not f.spent:
-        best = ts[np.argmin(fs)]
-        probe(best + spacing * REFINE)
+        probe(best_t() + spacing * REFINE)
         spacing *= 0.25
-    i = int(np.argmin(fs))  # argmin takes the first of equals: t = 0 wins ties, no drift
+    i = fs.index(min(fs))
     return float(ts[i]), float(fs[i])
 
 

@@ -237,7 +237,7 @@ class ModelPainter:
 
     def _ellipsoid_labels(self, params: np.ndarray, cam: Camera) -> np.ndarray:
         """(H, W) int16 segment label image of the ellipsoids, far segments painted first."""
-        from common.energy import conic_row_spans, ellipsoid_world, image_conics, render_row_spans
+        from common.energy import conic_coverage, ellipsoid_world, image_conics
 
         pose = forward_kinematics(self.model, params)
         centres, A = ellipsoid_world(self.model, pose.rotations, pose.origins, range(16))
@@ -245,9 +245,8 @@ class ModelPainter:
         labels = np.full((cam.height, cam.width), -1, dtype=np.int16)
         zero = np.zeros(1)
         for s in np.argsort(-cam.depth(centres[0])):
-            _, row_id, start, end = conic_row_spans(C[:, :, s:s + 1], drawable[:, :, s:s + 1], zero, zero,
-                                                    cam.height, cam.width)
-            labels[render_row_spans(row_id, start, end, 1, cam.height, cam.width)[0]] = s
+            one = np.ascontiguousarray(C[:, :, s:s + 1]), np.ascontiguousarray(drawable[:, :, s:s + 1])
+            labels[conic_coverage(*one, zero, zero, cam.height, cam.width)[0, 0]] = s
         return labels
 
     def view(self, params: np.ndarray, cam: Camera, skeleton: np.ndarray | None = None,

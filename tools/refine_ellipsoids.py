@@ -23,7 +23,7 @@ sys.path.insert(0, str(ROOT))
 from common import optimize  # noqa: E402
 from common.body import forward_kinematics, load_body_model, rotvec_to_matrix, skinned_vertices  # noqa: E402
 from common.camera import circle_studio  # noqa: E402
-from common.energy import conic_row_spans, image_conics, render_row_spans, xor_span_sums  # noqa: E402
+from common.energy import conic_coverage, image_conics, xor_prefix, xor_span_sums  # noqa: E402
 from common.motion_import import import_bvh  # noqa: E402
 from common.render_gl import MeshRenderer  # noqa: E402
 
@@ -72,8 +72,7 @@ def main() -> None:
         for i in range(len(params)):
             c, A = world(centres, shape_A(axes, radii), i, np.arange(16))
             C, ok = image_conics(P, c[None], A[None])
-            _, row, s, e = conic_row_spans(C, ok, y0, x0, H, W)
-            tot += int((render_row_spans(row, s, e, K, H, W) ^ targets[i]).sum())
+            tot += int((conic_coverage(C, ok, y0, x0, H, W)[0] ^ targets[i]).sum())
         return tot
 
     print("XOR before:", total_xor())
@@ -84,11 +83,9 @@ def main() -> None:
             for i in range(len(params)):
                 c, A = world(centres[others], shape_A(axes[others], radii[others]), i, others)
                 C, ok = image_conics(P, c[None], A[None])
-                _, row, s, e = conic_row_spans(C, ok, y0, x0, H, W)
-                M = render_row_spans(row, s, e, K, H, W)
-                v = np.where(M, 0, 1 - 2 * targets[i].astype(np.int32))
-                prefixes.append(np.concatenate([np.zeros((K, H, 1), np.int32), np.cumsum(v, axis=2, dtype=np.int32)], 2))
-                bases.append(int((M ^ targets[i]).sum()))
+                prefix, base = xor_prefix(conic_coverage(C, ok, y0, x0, H, W)[0], np.ascontiguousarray(targets[i], bool))
+                prefixes.append(prefix)
+                bases.append(int(base))
 
             def f(Z):
                 c_loc = centres[seg] + Z[:, 0:3]
