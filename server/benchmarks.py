@@ -111,8 +111,9 @@ def energy_rows(backends=("cpu", "gl"), cases=tuple(PAPER_TABLE1), seconds: floa
 
 
 def fit_rows(sequence: Path, frames: int) -> list[dict]:
-    """Seconds per frame fitting a sequence, single process: the default (three turn hypotheses
-    per frame), without pre-rendering, with one hypothesis, and with the two torso schedules."""
+    """Seconds per frame fitting a sequence, single process: the default (five hypotheses per
+    frame: the start and four turns), without pre-rendering, without the turns, and with the
+    second torso schedule as well."""
     from common.sequence import load_sequence
     from server.session import LocalSolver, run_fit
 
@@ -121,7 +122,7 @@ def fit_rows(sequence: Path, frames: int) -> list[dict]:
     rows = []
     for label, options, paper in (("single_xorpr", FitOptions(), PAPER_TABLE2["single_xorpr"]),
                                   ("single_xor", FitOptions(prerender=False), PAPER_TABLE2["single_xor"]),
-                                  ("single_xorpr_no_turn_hypotheses", FitOptions(turn_hypotheses_rad=0.0), None),
+                                  ("single_xorpr_no_turn_hypotheses", FitOptions(turn_hypotheses=0), None),
                                   ("single_xorpr_2_hypotheses", FitOptions(hypotheses=2), None)):
         out = Path(os.environ.get("TMPDIR", "/tmp")) / f"mocap-bench-{label}-{os.getpid()}"
         summary = run_fit(model, seq, out, options, LocalSolver(model, options), max_frames=frames)
@@ -200,7 +201,8 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
 
     One row per clip and start: first_frame_error_mm (the voxel-started run's first frame)
     and whether it meets INIT_TARGET_MM, first_frame_seconds (initialisation and first fit),
-    the two runs' mean joint errors and their difference (auto minus truth start), mm.
+    the two runs' mean joint errors and their difference (auto minus truth start), and the two
+    runs' errors on their last frame, mm.
     """
     from common.bvh import read_bvh
     from common.camera import circle_studio
@@ -232,16 +234,21 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
                          "first_frame_seconds": load_records(auto_dir)[0]["seconds"],
                          "auto_mean_joint_error_mm": auto["mean_joint_error_mm"],
                          "truth_start_mean_joint_error_mm": given["mean_joint_error_mm"],
-                         "auto_minus_truth_start_mm": auto["mean_joint_error_mm"] - given["mean_joint_error_mm"]})
+                         "auto_minus_truth_start_mm": auto["mean_joint_error_mm"] - given["mean_joint_error_mm"],
+                         # whether tracking forgets how it started: the runs' last frames
+                         "auto_last_frame_error_mm": auto["per_frame_error_mm"][-1],
+                         "truth_start_last_frame_error_mm": given["per_frame_error_mm"][-1]})
     return rows
 
 
 def print_init_table(rows: list[dict]) -> None:
     """The init rows as a table on stdout, then how many first frames meet the target."""
-    print(f"{'clip':28s} {'start':>6s} {'frame':>6s} {'first mm':>9s} {'auto mm':>8s} {'truth mm':>9s} {'s':>5s}")
+    print(f"{'clip':28s} {'start':>6s} {'frame':>6s} {'first mm':>9s} {'auto mm':>8s} {'truth mm':>9s} "
+          f"{'last auto':>9s} {'last truth':>10s} {'s':>5s}")
     for r in rows:
         print(f"{r['clip']:28s} {r['start']:>6s} {r['start_frame']:6d} {r['first_frame_error_mm']:9.1f} "
               f"{r['auto_mean_joint_error_mm']:8.1f} {r['truth_start_mean_joint_error_mm']:9.1f} "
+              f"{r['auto_last_frame_error_mm']:9.1f} {r['truth_start_last_frame_error_mm']:10.1f} "
               f"{r['first_frame_seconds']:5.1f}")
     ok = sum(r["first_frame_ok"] for r in rows)
     print(f"first frame <= {INIT_TARGET_MM:.0f} mm: {ok} of {len(rows)}")

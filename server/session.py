@@ -50,7 +50,7 @@ def first_frame_options(options: FitOptions, redetect_turn: str) -> FitOptions:
     return replace(options, max_iterations=max(options.max_iterations, FIRST_FRAME_ITERATIONS),
                    grid_steps=FIRST_FRAME_GRID_STEPS, grid_range_rad=FIRST_FRAME_GRID_RANGE,
                    limb_window_px=FIRST_FRAME_LIMB_WINDOW, hinge_grid_full_range=True,
-                   redetect_turn=redetect_turn, turn_hypotheses_rad=0.0)
+                   redetect_turn=redetect_turn, turn_hypotheses=0)
 
 
 class Solver(Protocol):

@@ -15,7 +15,8 @@ def _row(clip: str, start: str, frame: int, first: float) -> dict:
     return {"clip": clip, "start": start, "start_frame": frame, "frames": 3, "first_frame_error_mm": first,
             "first_frame_ok": first <= benchmarks.INIT_TARGET_MM, "first_frame_seconds": 7.5,
             "auto_mean_joint_error_mm": first - 2.0, "truth_start_mean_joint_error_mm": 20.0,
-            "auto_minus_truth_start_mm": first - 22.0}
+            "auto_minus_truth_start_mm": first - 22.0, "auto_last_frame_error_mm": 21.0,
+            "truth_start_last_frame_error_mm": 20.0}
 
 
 def test_shared_clips_lists_the_bvh_files_one_folder_down(tmp_path):

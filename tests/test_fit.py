@@ -101,8 +101,8 @@ def test_turn_hypotheses_undo_a_start_turned_from_the_truth(model, frames):
 
     data, truth = frames
     start = turned(truth[2].params, 0.15)
-    plain = fit_frame(model, data[2], start, FitOptions(turn_hypotheses_rad=0.0))
-    turns = fit_frame(model, data[2], start, FitOptions(turn_hypotheses_rad=0.15))
+    plain = fit_frame(model, data[2], start, FitOptions(turn_hypotheses=0))
+    turns = fit_frame(model, data[2], start, FitOptions(turn_hypotheses=1, turn_step_rad=0.15))
     heading = P["root_heading"]
     assert abs(plain.params[heading] - truth[2].params[heading]) > 0.1
     assert abs(turns.params[heading] - truth[2].params[heading]) < 0.02
@@ -153,8 +153,10 @@ def test_fit_options_validate_and_travel():
         FitOptions(grid_steps=4)
     with pytest.raises(ValueError, match="hypotheses"):
         FitOptions(hypotheses=3)
-    with pytest.raises(ValueError, match="turn_hypotheses_rad"):
-        FitOptions(turn_hypotheses_rad=-0.1)
+    with pytest.raises(ValueError, match="turn_hypotheses"):
+        FitOptions(turn_hypotheses=-1)
+    with pytest.raises(ValueError, match="turn_step_rad"):
+        FitOptions(turn_hypotheses=8, turn_step_rad=0.5)
     with pytest.raises(ValueError, match="bogus"):
         FitOptions.from_wire({"bogus": 1})
     opts = FitOptions(max_iterations=3, prerender=False)

@@ -34,7 +34,7 @@ def register(sub) -> None:
     acc = bsub.add_parser("accuracy", help="joint error on walk, dance and basketball clips (virtual studio)")
     acc.add_argument("--frames", type=int, default=100)
     acc.add_argument("--hypotheses", type=int, choices=(1, 2), default=1, help="as mocap fit --hypotheses")
-    acc.add_argument("--turn-hypotheses", type=float, default=None, metavar="RAD",
+    acc.add_argument("--turn-hypotheses", type=int, default=None, metavar="N",
                      help="as mocap fit --turn-hypotheses (default: its default)")
     acc.add_argument("--no-redetect", action="store_true", help="as mocap fit --no-redetect")
     acc.add_argument("--energy", default="cpu",
@@ -105,7 +105,7 @@ def run(args) -> int:
                 try:
                     options = FitOptions(energy=backend, hypotheses=args.hypotheses,
                                          **({} if args.turn_hypotheses is None
-                                            else {"turn_hypotheses_rad": args.turn_hypotheses}),
+                                            else {"turn_hypotheses": args.turn_hypotheses}),
                                          redetect_limbs=not args.no_redetect)
                 except ValueError as exc:
                     raise UserError(f"--energy: {exc}") from None

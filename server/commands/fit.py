@@ -29,9 +29,11 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--hypotheses", type=int, choices=(1, 2), default=FitOptions.hypotheses,
                    help="2: fit each frame with both first-round torso schedules and keep the better "
                         "(more accurate, twice the time)")
-    p.add_argument("--turn-hypotheses", type=float, default=FitOptions.turn_hypotheses_rad, metavar="RAD",
-                   help="also fit each frame from the start turned by -RAD and +RAD and keep the lowest "
-                        f"energy (default {FitOptions.turn_hypotheses_rad}; 0: off, a third of the time)")
+    p.add_argument("--turn-hypotheses", type=int, default=FitOptions.turn_hypotheses, metavar="N",
+                   help="also fit each frame from the start turned by -+1..N turn steps about the vertical and "
+                        f"keep the lowest energy (default {FitOptions.turn_hypotheses}; 0: off, a fifth of the time)")
+    p.add_argument("--turn-step", type=float, default=FitOptions.turn_step_rad, metavar="RAD",
+                   help=f"the turn step, rad (default {FitOptions.turn_step_rad})")
     p.add_argument("--no-redetect", action="store_true",
                    help="do not search one limb per frame over its whole range (lost-limb recovery)")
     p.add_argument("--init", choices=INIT_CHOICES, default=None,
@@ -53,7 +55,8 @@ def options_from_args(args) -> FitOptions:
 def _options_from_args(args) -> FitOptions:
     return FitOptions(energy=args.energy, max_iterations=args.iterations, grid_steps=args.grid_steps,
                       grid_range_rad=args.grid_range, prerender=not args.no_prerender,
-                      hypotheses=args.hypotheses, turn_hypotheses_rad=args.turn_hypotheses,
+                      hypotheses=args.hypotheses, turn_hypotheses=args.turn_hypotheses,
+                      turn_step_rad=args.turn_step,
                       redetect_limbs=not args.no_redetect)
 
 
