@@ -189,72 +189,20 @@ def load_body_model() -> BodyModel:
 def rotvec_to_matrix(rv: np.ndarray) -> np.ndarray:
     """(..., 3) rotation vectors -> (..., 3, 3) matrices (Rodrigues, stable near zero)."""
     rv = np.asarray(rv, dtype=np.float64)
-    x, y, z = rv[..., 0], rv[..., 1], rv[..., 2]
-    theta2 = x * x + y * y + z * z
-    small = theta2 < 1e-12
-    theta = np.sqrt(np.where(small, 1.0, theta2))
-    a = np.where(small, 1.0 - theta2 / 6.0, np.sin(theta) / theta)
-    b = np.where(small, 0.5 - theta2 / 24.0, (1.0 - np.cos(theta)) / (theta * theta))
-    out = np.empty(rv.shape + (3,))
-    # R = I + a [r]x + b [r]x^2, written out element by element (no temporaries of 3x3 stacks)
-    out[..., 0, 0] = 1.0 - b * (y * y + z * z)
-    out[..., 1, 1] = 1.0 - b * (x * x + z * z)
-    out[..., 2, 2] = 1.0 - b * (x * x + y * y)
-    bxy, bxz, byz = b * x * y, b * x * z, b * y * z
-    out[..., 0, 1] = bxy - a * z
-    out[..., 1, 0] = bxy + a * z
-    out[..., 0, 2] = bxz + a * y
-    out[..., 2, 0] = bxz - a * y
-    out[..., 1, 2] = byz - a * x
-    out[..., 2, 1] = byz + a * x
-    return out
+    return _rotvecs_to_matrices(np.ascontiguousarray(rv.reshape(-1, 3))).reshape(rv.shape + (3,))
 
 
 def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotation matrices -> (..., 3) rotation vectors with angle in [0, pi].
-
-    Through the quaternion by Shepperd's method (as scipy does), in plain numpy: the torso's
-    line searches call this for every batch of candidates, where scipy's per-call overhead
-    costs more than the arithmetic.
-    """
+    """(..., 3, 3) rotation matrices -> (..., 3) rotation vectors with angle in [0, pi]
+    (through the quaternion by Shepperd's method, as scipy does)."""
     R = np.asarray(R, dtype=np.float64)
-    M = R.reshape(-1, 3, 3)
-    m00, m01, m02 = M[:, 0, 0], M[:, 0, 1], M[:, 0, 2]
-    m10, m11, m12 = M[:, 1, 0], M[:, 1, 1], M[:, 1, 2]
-    m20, m21, m22 = M[:, 2, 0], M[:, 2, 1], M[:, 2, 2]
-    trace = m00 + m11 + m22
-    # all four of Shepperd's formulas, then per matrix the one of the largest diagonal element
-    # (numerically safe): cheaper than selecting rows first for the small batches we see
-    cands = np.stack([
-        np.stack([1.0 - trace + 2.0 * m00, m10 + m01, m20 + m02, m21 - m12], axis=1),
-        np.stack([m01 + m10, 1.0 - trace + 2.0 * m11, m21 + m12, m02 - m20], axis=1),
-        np.stack([m02 + m20, m12 + m21, 1.0 - trace + 2.0 * m22, m10 - m01], axis=1),
-        np.stack([m21 - m12, m02 - m20, m10 - m01, 1.0 + trace], axis=1),
-    ], axis=1)                                                      # (n, choice, 4)
-    choice = np.argmax(np.stack([m00, m11, m22, trace], axis=1), axis=1)
-    q = cands[np.arange(len(M)), choice]
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    q[q[:, 3] < 0] *= -1.0
-    sin_half = np.linalg.norm(q[:, :3], axis=1)
-    angle = 2.0 * np.arctan2(sin_half, q[:, 3])
-    small = angle <= 1e-3
-    a2 = angle * angle
-    scale = np.where(small, 2.0 + a2 / 12.0 + 7.0 * a2 * a2 / 2880.0,
-                     angle / np.sin(np.where(small, 1.0, angle) / 2.0))
-    return (scale[:, None] * q[:, :3]).reshape(R.shape[:-2] + (3,))
+    return _matrices_to_rotvecs(np.ascontiguousarray(R.reshape(-1, 3, 3))).reshape(R.shape[:-2] + (3,))
 
 
 def rot_z(angle: np.ndarray) -> np.ndarray:
     """(...,) angles -> (..., 3, 3) rotations about the vertical axis."""
     angle = np.asarray(angle, dtype=np.float64)
-    c, s = np.cos(angle), np.sin(angle)
-    out = np.zeros(angle.shape + (3, 3))
-    out[..., 0, 0] = c
-    out[..., 0, 1] = -s
-    out[..., 1, 0] = s
-    out[..., 1, 1] = c
-    out[..., 2, 2] = 1.0
-    return out
+    return _rotations_z(np.ascontiguousarray(angle.reshape(-1))).reshape(angle.shape + (3, 3))
 
 
 # ------------------------------------------------------------------------ joint axes
@@ -395,7 +343,7 @@ def forward_kinematics(model: BodyModel, params: np.ndarray, segments: tuple | N
 
 @njit(cache=True, nogil=True, inline="always")
 def _rodrigues(x: float, y: float, z: float, out: np.ndarray) -> None:
-    """Rotation vector -> out (3, 3), the same formula as ``rotvec_to_matrix``."""
+    """Rotation vector -> out (3, 3): R = I + a [r]x + b [r]x^2, stable near zero."""
     theta2 = x * x + y * y + z * z
     if theta2 < 1e-12:
         a, b = 1.0 - theta2 / 6.0, 0.5 - theta2 / 24.0
@@ -423,6 +371,30 @@ def _rot_z(angle: float, out: np.ndarray) -> None:
     c, s = np.cos(angle), np.sin(angle)
     out[:] = 0.0
     out[0, 0], out[0, 1], out[1, 0], out[1, 1], out[2, 2] = c, -s, s, c, 1.0
+
+
+@njit(cache=True, nogil=True)
+def _rotvecs_to_matrices(rv: np.ndarray) -> np.ndarray:
+    out = np.empty((rv.shape[0], 3, 3))
+    for i in range(rv.shape[0]):
+        _rodrigues(rv[i, 0], rv[i, 1], rv[i, 2], out[i])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _matrices_to_rotvecs(R: np.ndarray) -> np.ndarray:
+    out = np.empty((R.shape[0], 3))
+    for i in range(R.shape[0]):
+        _rotvec(R[i], out[i])
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _rotations_z(angle: np.ndarray) -> np.ndarray:
+    out = np.empty((angle.shape[0], 3, 3))
+    for i in range(angle.shape[0]):
+        _rot_z(angle[i], out[i])
+    return out
 
 
 @njit(cache=True, nogil=True)
@@ -531,7 +503,8 @@ def _hold_limbs(p: np.ndarray, reference_rotations: np.ndarray) -> None:
 
 @njit(cache=True, nogil=True, inline="always")
 def _rotvec(R: np.ndarray, out: np.ndarray) -> None:
-    """(3, 3) rotation -> out (3,), the formula of ``matrix_to_rotvec`` (Shepperd's quaternion)."""
+    """(3, 3) rotation -> out (3,), angle in [0, pi], through the quaternion by Shepperd's
+    method: of the four formulas, the one of the largest diagonal element (numerically safe)."""
     trace = R[0, 0] + R[1, 1] + R[2, 2]
     q = np.empty(4)
     choice, largest = 3, trace
