@@ -36,6 +36,8 @@ def register(sub) -> None:
     acc.add_argument("--hypotheses", type=int, choices=(1, 2), default=1, help="as mocap fit --hypotheses")
     acc.add_argument("--turn-hypotheses", type=int, default=None, metavar="N",
                      help="as mocap fit --turn-hypotheses (default: its default)")
+    acc.add_argument("--turn-step", type=float, default=None, metavar="RAD",
+                     help="as mocap fit --turn-step (default: its default)")
     acc.add_argument("--no-redetect", action="store_true", help="as mocap fit --no-redetect")
     acc.add_argument("--energy", default="cpu",
                      help="energy backends to compare on the same sequences, comma separated (e.g. cpu,volume)")
@@ -101,14 +103,14 @@ def run(args) -> int:
             from common.fitting import FitOptions
 
             rows = []
+            turns = {name: value for name, value in (("turn_hypotheses", args.turn_hypotheses),
+                                                     ("turn_step_rad", args.turn_step)) if value is not None}
             for backend in [b for b in args.energy.split(",") if b]:
                 try:
                     options = FitOptions(energy=backend, hypotheses=args.hypotheses,
-                                         **({} if args.turn_hypotheses is None
-                                            else {"turn_hypotheses": args.turn_hypotheses}),
-                                         redetect_limbs=not args.no_redetect)
+                                         redetect_limbs=not args.no_redetect, **turns)
                 except ValueError as exc:
-                    raise UserError(f"--energy: {exc}") from None
+                    raise UserError(f"bad option: {exc}") from None
                 rows += benchmarks.accuracy_rows(args.frames, Path(tmp), options=options)
             _emit(rows, args.json)
         return 0
