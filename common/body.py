@@ -56,17 +56,14 @@ PARAM_COUNT = len(PARAM_NAMES)
 P = {name: i for i, name in enumerate(PARAM_NAMES)}
 
 _INF = np.inf
-# Joint limits (radians, metres): anatomical ranges, generous enough for dance. The elbow stops at
-# 2.5 rad (143 deg), about the active flexion of the anatomy books; all 17 CMU clips we have stay
-# below 2.47. At 2.7 the fitter could fold a forearm back along its upper arm, which explains
-# nearly the same silhouette as the true arm: a first frame kept the wrist 0.45 m off that way.
+# Joint limits (radians, metres): anatomical ranges, generous enough for dance.
 _LIMITS = {
     "root_x": (-_INF, _INF), "root_y": (-_INF, _INF), "root_z": (-_INF, _INF),
     "root_heading": (-_INF, _INF), "root_tilt_x": (-2.9, 2.9), "root_tilt_y": (-2.9, 2.9),
     "spine_x": (-0.7, 1.5), "spine_y": (-0.8, 0.8), "spine_z": (-1.0, 1.0),
     "neck_nod": (-0.9, 1.0), "neck_turn": (-1.4, 1.4),
     "shoulder_x": (-3.0, 3.0), "shoulder_y": (-3.0, 3.0), "shoulder_z": (-3.0, 3.0),
-    "elbow": (-0.1, 2.5), "wrist_flex": (-1.3, 1.3), "wrist_dev": (-0.6, 0.7),
+    "elbow": (-0.1, 2.7), "wrist_flex": (-1.3, 1.3), "wrist_dev": (-0.6, 0.7),
     "hip_x": (-2.7, 1.4), "hip_y": (-1.6, 1.6), "hip_z": (-1.3, 1.3),
     "knee": (-0.1, 2.7), "ankle_flex": (-1.0, 1.0), "ankle_inv": (-0.7, 0.7),
 }
