@@ -59,7 +59,6 @@ class FitOptions:
     prerender: bool = True
     torso_half_resolution: bool = True  # the paper's 160x120 torso energy
     spine_twist_prior: float = 1500.0   # energy units (pixels) per rad^2 of spine twist
-    elbow_flexion_prior: float = 5000.0  # pixels per rad^2 of elbow flexion beyond ELBOW_PRIOR_START_RAD
     limb_window_px: int = ARM_WINDOW    # the paper's 128x128 limb windows
     hinge_grid_full_range: bool = False  # grid elbows/knees over their whole range (rough starts)
     torso_grid_steps: int = 1           # >1: grid over pelvis heading x spine twist before Powell (off: measured worse on the walk)
@@ -302,27 +301,6 @@ def with_spine_prior(energy, weight: float):
     return f
 
 
-# Silhouettes hardly tell a forearm folded back along its upper arm from one held in front of
-# the trunk: either adds little outside the body's outline. Beyond this flexion (126 deg; 99% of
-# the frames of our 17 CMU clips bend less, none beyond 2.47 rad) the limb energy pays for
-# bending, so a fold must explain the images clearly better to win. Without it, first frames
-# found from voxels kept a wrist 0.45 m off, folded, for the whole run.
-ELBOW_PRIOR_START_RAD = 2.2
-
-
-def with_flexion_prior(energy, chain: str, weight: float):
-    """An arm's energy plus weight * (elbow flexion - ELBOW_PRIOR_START_RAD)^2 beyond it."""
-    if weight <= 0 or chain not in ("left_arm", "right_arm"):
-        return energy
-    elbow = LIMB_PARTS[chain][0][3]
-
-    def f(params: np.ndarray) -> np.ndarray:
-        p = np.atleast_2d(params)
-        return energy(p) + weight * np.maximum(p[:, elbow] - ELBOW_PRIOR_START_RAD, 0.0) ** 2
-
-    return f
-
-
 def _clock():
     return time.perf_counter(), time.process_time()
 
@@ -379,7 +357,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             proximal, distal, extremity = LIMB_PARTS[chain]
             setup = frame.window_setup(x, _limb_centre_segments(chain), options.limb_window_px, options.prerender)
             setup = replace(setup, moving=CHAINS[chain].segments)
-            energy = with_flexion_prior(make(backend, model, setup), chain, options.elbow_flexion_prior)
+            energy = make(backend, model, setup)
             before = before if before is not None else int(energy(x)[0])
             n = 0
             if backend == _stage_backends(options)[0] and options.grid_steps > 1:
@@ -450,8 +428,7 @@ def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray,
     Returns (params (35,), evaluations)."""
     proximal, distal, _ = LIMB_PARTS[chain]
     setup = replace(frame.full_setup(x), moving=CHAINS[chain].segments, prerender=True)
-    energy = with_flexion_prior(make("cpu" if options.energy == "coarse-to-fine" else options.energy, model, setup),
-                                chain, options.elbow_flexion_prior)
+    energy = make("cpu" if options.energy == "coarse-to-fine" else options.energy, model, setup)
     lo, hi = PARAM_LIMITS[list(proximal)].T
     pad = REDETECT_MARGIN * (hi - lo)
     axes = [np.linspace(lo[i] + pad[i], hi[i] - pad[i], REDETECT_STEPS if i < 3 else 3) for i in range(4)]

@@ -112,20 +112,6 @@ def test_turn_hypotheses_undo_a_start_turned_from_the_truth(model, frames):
     np.testing.assert_allclose(turned(start, -0.15), truth[2].params, atol=1e-12)
 
 
-def test_elbow_flexion_prior_charges_only_arms_bent_past_its_start():
-    from common.fitting import ELBOW_PRIOR_START_RAD, with_flexion_prior
-
-    def flat(params):
-        return np.zeros(len(np.atleast_2d(params)))
-
-    x = np.zeros((3, PARAM_COUNT))
-    x[:, P["l_elbow"]] = (1.0, ELBOW_PRIOR_START_RAD, ELBOW_PRIOR_START_RAD + 0.3)
-    np.testing.assert_allclose(with_flexion_prior(flat, "left_arm", 5000.0)(x), [0.0, 0.0, 5000.0 * 0.09])
-    assert with_flexion_prior(flat, "right_arm", 5000.0)(x).max() == 0.0  # the other elbow
-    assert with_flexion_prior(flat, "left_leg", 5000.0) is flat
-    assert with_flexion_prior(flat, "left_arm", 0.0) is flat
-
-
 def test_redetection_finds_a_lost_arm(model, small_loaded):
     """An arm swung 1.5 rad away is beyond the local grid and Powell; the whole-range search of
     the limb whose turn it is this frame brings it back, and the others are left alone."""
