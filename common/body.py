@@ -158,6 +158,15 @@ class BodyModel:
     def head_top_offset(self) -> np.ndarray:
         return self.joint_rest[16] - self.joint_rest[HEAD_TOP_SEGMENT]
 
+    @cached_property
+    def kinematic_tables(self) -> tuple:
+        """What forward kinematics needs besides the parameters, built once per model (it runs
+        on every evaluation): rest offsets of the hinges (35,), the parameter-to-rotation-vector
+        map (35, 19, 3), segment offsets (16, 3), the head top's offset (3,)."""
+        key = np.ascontiguousarray(self.joint_rest, dtype=np.float64).tobytes()
+        return (_rest_offsets_vector(self), _axis_table(key), self.offsets,
+                np.ascontiguousarray(self.head_top_offset))
+
     def scaled(self, factor: float) -> "BodyModel":
         """The same body uniformly scaled (an actor of another height)."""
         return BodyModel(self.joint_rest * factor, self.vertices * factor, self.triangles,
@@ -291,8 +300,8 @@ def _rest_offsets_vector(model: BodyModel) -> np.ndarray:
 
 def local_rotations(model: BodyModel, params: np.ndarray) -> np.ndarray:
     """(B, 35) parameters -> (B, 16, 3, 3) rotation of each segment relative to its parent."""
-    p = np.atleast_2d(np.asarray(params, dtype=np.float64))
-    return _local_rotations(p, *_kinematic_tables(model))
+    rest_offsets, axis_table = model.kinematic_tables[:2]
+    return _local_rotations(np.atleast_2d(np.asarray(params, dtype=np.float64)), rest_offsets, axis_table)
 
 
 @lru_cache(maxsize=64)
@@ -314,11 +323,6 @@ def _segment_mask(segments: tuple | None) -> np.ndarray:
     return mask
 
 
-def _kinematic_tables(model: BodyModel) -> tuple:
-    key = np.ascontiguousarray(model.joint_rest, dtype=np.float64).tobytes()
-    return _rest_offsets_vector(model), _axis_table(key)
-
-
 _SEGMENT_PARENTS = np.array(SEGMENT_PARENTS, dtype=np.int64)
 
 
@@ -332,8 +336,9 @@ def forward_kinematics(model: BodyModel, params: np.ndarray, segments: tuple | N
     if p.shape[1] != PARAM_COUNT:
         raise ValueError(f"expected {PARAM_COUNT} parameters, got {p.shape[1]}")
     needed = _segment_mask(None if segments is None else tuple(segments))
-    rot, org, joints = _forward_kinematics(p, *_kinematic_tables(model), _SEGMENT_PARENTS, model.offsets,
-                                           model.head_top_offset, needed)
+    rest_offsets, axis_table, offsets, head_top_offset = model.kinematic_tables
+    rot, org, joints = _forward_kinematics(p, rest_offsets, axis_table, _SEGMENT_PARENTS, offsets, head_top_offset,
+                                           needed)
     return Pose(rot, org, joints)
 
 
@@ -476,12 +481,15 @@ def hold_limbs_in_world(model: BodyModel, params: np.ndarray, reference: np.ndar
     p = np.array(np.atleast_2d(params), dtype=np.float64)
     if reference_rotations is None:
         reference_rotations = forward_kinematics(model, reference).rotations[0]
-    _hold_limbs(p, np.ascontiguousarray(reference_rotations, dtype=np.float64))
+    _hold_limbs(p, np.ascontiguousarray(reference_rotations, dtype=np.float64), _LIMB_ROOTS)
     return p
 
 
+_LIMB_ROOTS = np.array(LIMB_ROOTS, dtype=np.int64)
+
+
 @njit(cache=True, nogil=True)
-def _hold_limbs(p: np.ndarray, reference_rotations: np.ndarray) -> None:
+def _hold_limbs(p: np.ndarray, reference_rotations: np.ndarray, limb_roots: np.ndarray) -> None:
     """In place on (B, 35): each limb root's rotation vector = parent^T @ its reference rotation,
     the parent (pelvis or chest) posed by the candidate's own root and spine parameters."""
     tilt, spine, pelvis, chest = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
@@ -492,8 +500,8 @@ def _hold_limbs(p: np.ndarray, reference_rotations: np.ndarray) -> None:
         _matmul3(Z, tilt, pelvis)
         _rodrigues(p[b, 6], p[b, 7], p[b, 8], spine)
         _matmul3(pelvis, spine, chest)
-        for seg, first in ((4, 11), (7, 17), (10, 23), (13, 29)):  # LIMB_ROOTS
-            parent = pelvis if seg >= 10 else chest
+        for seg, parent_seg, first in limb_roots:
+            parent = pelvis if parent_seg == 0 else chest
             for i in range(3):
                 for j in range(3):
                     local[i, j] = (parent[0, i] * reference_rotations[seg, 0, j] + parent[1, i]

@@ -408,14 +408,13 @@ def make_energy(backend: str, model: BodyModel, setup: EnergySetup):
 
 
 def compile_kernels() -> None:
-    """Compile (or load from numba's cache) the energies' compiled kernels now, on a tiny
-    problem: a client does this before it takes work, so that its first solve is not several
-    seconds late (the server would hand that limb to another client)."""
-    from common.body import load_body_model
+    """Compile (or load from numba's cache) the energies' compiled kernels now, by building and
+    evaluating a tiny pre-rendered energy: a client does this before it takes work, so that its
+    first solve is not several seconds late (the server would hand that limb to another client)."""
+    from common.body import load_body_model, rest_params
+    from common.camera import circle_studio
 
     model = load_body_model()
-    pose = forward_kinematics(model, np.zeros((1, 35)), (4,))
-    centres, A = ellipsoid_world(model, pose.rotations, pose.origins, (4,))
-    P = np.eye(3, 4)[None]
-    C, drawable = image_conics(P, centres + np.array([0.0, 0.0, 3.0]), A)
-    xor_span_sums(C, drawable, np.zeros(1), np.zeros(1), 2, 2, np.zeros((1, 2, 3), np.int32))
+    studio = circle_studio(1, 16, 16)
+    setup = EnergySetup(studio, (Window(0, 0, 16, 16),), np.zeros((1, 16, 16), dtype=bool), (4,), rest_params(model))
+    CpuEnergy(model, setup)(rest_params(model))

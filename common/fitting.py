@@ -537,6 +537,8 @@ def _fit_schedule(model: BodyModel, frame: FrameData, start: np.ndarray, options
     x = np.array(start, dtype=np.float64)
     best = full_energy(model, frame, x)
     result = FrameResult(x, best, 0, 0)
+    # re-detecting one limb per round: every limb gets its round before the fit may stop
+    rounds_needed = len(LIMB_CHAINS) if options.redetect_limbs and options.redetect_turn == "round" else 1
     for it in range(options.max_iterations):
         torso = solve_chain(model, frame, "torso", x, options, position_only=position_first and it == 0)
         after_torso = torso.params
@@ -552,8 +554,6 @@ def _fit_schedule(model: BodyModel, frame: FrameData, start: np.ndarray, options
         improved = best - e_new
         if e_new <= best:
             x, best = x_new, e_new
-        # re-detecting one limb per round: every limb gets its round before the fit may stop
-        rounds_needed = len(LIMB_CHAINS) if options.redetect_limbs and options.redetect_turn == "round" else 1
         if (improved < options.min_improvement * max(best, 1) and not (position_first and it == 0)
                 and it + 1 >= rounds_needed):
             break

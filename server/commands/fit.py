@@ -47,17 +47,12 @@ def add_fit_arguments(p) -> None:
 
 def options_from_args(args) -> FitOptions:
     try:
-        return _options_from_args(args)
+        return FitOptions(energy=args.energy, max_iterations=args.iterations, grid_steps=args.grid_steps,
+                          grid_range_rad=args.grid_range, prerender=not args.no_prerender,
+                          hypotheses=args.hypotheses, turn_hypotheses=args.turn_hypotheses,
+                          turn_step_rad=args.turn_step, redetect_limbs=not args.no_redetect)
     except ValueError as exc:  # a value out of range: say which option
         raise UserError(f"bad fit option: {exc}") from None
-
-
-def _options_from_args(args) -> FitOptions:
-    return FitOptions(energy=args.energy, max_iterations=args.iterations, grid_steps=args.grid_steps,
-                      grid_range_rad=args.grid_range, prerender=not args.no_prerender,
-                      hypotheses=args.hypotheses, turn_hypotheses=args.turn_hypotheses,
-                      turn_step_rad=args.turn_step,
-                      redetect_limbs=not args.no_redetect)
 
 
 def finish(model, seq, args, summary: dict) -> None:
