@@ -351,7 +351,7 @@ class Worker:
             raise ValueError(f"the server fits body {frame.body_fingerprint}, this client has body "
                              f"{self.model.fingerprint} (different body data or actor scale)")
         studio = Studio(tuple(c.to_camera() for c in frame.cameras), "<wire>")
-        return FrameData(self.model, studio, frame.masks(), index=frame.frame)
+        return FrameData(self.model, studio, frame.masks())
 
     def _finish(self, msg) -> None:
         self._done.put(msg)

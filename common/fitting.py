@@ -63,8 +63,8 @@ class FitOptions:
     hinge_grid_full_range: bool = False  # grid elbows/knees over their whole range (rough starts)
     torso_grid_steps: int = 1           # >1: grid over pelvis heading x spine twist before Powell (off: measured worse on the walk)
     torso_grid_range_rad: float = 0.2
-    redetect_limbs: bool = True         # search one limb per frame over its whole range (lost limbs)
-    redetect_turn: str = "frame"        # which limbs: see REDETECT_TURNS
+    redetect_limbs: bool = True         # search limbs over their whole range (lost limbs)
+    redetect_turn: str = "final"        # which limbs when: see REDETECT_TURNS
     hypotheses: int = 1                 # 2: fit each frame with both first-round torso schedules, keep the better
     turn_hypotheses: int = 2            # also fit from the start turned by -+1..n turn steps about the vertical
     turn_step_rad: float = 0.15
@@ -78,6 +78,8 @@ class FitOptions:
             raise ValueError(f"redetect_turn must be one of {REDETECT_TURNS}, got {self.redetect_turn!r}")
         if not 1 <= self.hypotheses <= len(SCHEDULES):
             raise ValueError(f"hypotheses must be 1..{len(SCHEDULES)}, got {self.hypotheses}")
+        if not 1 <= self.max_iterations < REDETECT_ROUND:
+            raise ValueError(f"max_iterations must be 1..{REDETECT_ROUND - 1}, got {self.max_iterations}")
         if self.turn_hypotheses < 0:
             raise ValueError(f"turn_hypotheses must be >= 0, got {self.turn_hypotheses}")
         if not 0.0 < self.turn_step_rad * max(self.turn_hypotheses, 1) < np.pi:
@@ -176,9 +178,8 @@ def spot_grid(studio: Studio, masks: np.ndarray, grid: int):
 class FrameData:
     """One frame's input silhouettes (undistorted) at full and half resolution, and its studio."""
 
-    def __init__(self, model: BodyModel, studio: Studio, masks: np.ndarray, index: int = 0):
+    def __init__(self, model: BodyModel, studio: Studio, masks: np.ndarray):
         self.model = model
-        self.index = int(index)  # the frame number: picks the limb re-detected this frame
         masks = np.asarray(masks, dtype=bool)
         if masks.shape[0] != len(studio):
             raise ValueError(f"{masks.shape[0]} silhouettes for {len(studio)} cameras")
@@ -317,11 +318,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
     evals = iters = 0
     before = None
     energy_value = None
-    def make(backend, model, setup):
-        if backend == "volume":  # one energy over the whole body's voxels: no windows
-            setup = replace(setup, volume_points=frame.surface_points)
-        return make_energy(backend, model, setup)
-
+    make = frame_energy(frame)
     for backend in _stage_backends(options):
         if chain == "torso":
             whole = (frame.whole_image_energy(options.torso_half_resolution) if backend == "cpu"
@@ -353,6 +350,9 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             steps = np.full(2, options.extremity_step_rad)
             x, energy_value, n, it = powell(energy, x, CHAINS["head"].params, steps, options,
                                             options.max_evals_extremity)
+        elif chain in LIMB_CHAINS and iteration == REDETECT_ROUND:
+            x, before, energy_value, n = redetect_limb(model, frame, chain, x, options, make)
+            it = 0
         elif chain in LIMB_CHAINS:
             proximal, distal, extremity = LIMB_PARTS[chain]
             setup = frame.window_setup(x, _limb_centre_segments(chain), options.limb_window_px, options.prerender)
@@ -375,8 +375,8 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             energy_value = float(energy(x)[0])
             n += 1
             if (options.redetect_limbs and backend == _stage_backends(options)[0]
-                    and redetects(options.redetect_turn, chain, frame.index, iteration)):
-                x, n4 = redetect_limb(model, frame, chain, x, options, make)
+                    and redetects(options.redetect_turn, chain, iteration)):
+                x, _, _, n4 = redetect_limb(model, frame, chain, x, options, make)
                 n += n4
                 energy_value = float(energy(x)[0])
         else:
@@ -387,8 +387,10 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
     return ChainResult(chain, x, int(before), int(round(energy_value)), evals, iters, wall1 - wall0, cpu1 - cpu0)
 
 
-# Which limbs are re-detected (FitOptions.redetect_turn):
-#  "frame": one per frame (frame number mod 4) in the first round: tracking, at a fixed cost;
+# Which limbs are re-detected when (FitOptions.redetect_turn):
+#  "final": tracking: once the frame's hypotheses are fitted, every limb against the best of
+#           them (round REDETECT_ROUND, on the clients); where one is found that clearly lowers
+#           the energy, the frame is fitted again from there;
 #  "every": every limb in the first round, against a tracked pose: a frame whose energy jumped
 #           (a limb lost in a fast move), searched again;
 #  "round": one per round (round mod 4), at least 4 rounds: a first frame, one limb at a time;
@@ -396,61 +398,130 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
 # Limbs solved side by side (Jacobi) against each other's old pose can all be re-detected into
 # the same unexplained pixels ("all" loses both arms that way now and then); one at a time
 # ("round") cannot, but finds less; a first frame tries both and keeps the lower energy.
-# Against a tracked pose ("frame", "every") a re-detected limb must clearly lower the energy and
-# is refined from fewer grid points; a first frame has no tracked limb to protect.
-REDETECT_TURNS = ("frame", "every", "round", "all")
-TRACKING_TURNS = ("frame", "every")
+# Against a tracked pose ("final", "every") a re-detected limb must clearly lower the energy
+# and is refined from fewer grid points; a first frame has no tracked limb to protect.
+REDETECT_TURNS = ("final", "every", "round", "all")
+TRACKING_TURNS = ("final", "every")
+REDETECT_ROUND = 1000  # the round number of the "final" re-detection: past any fitting round
 
 
-def redetects(turn: str, chain: str, frame_index: int, iteration: int) -> bool:
-    """Whether ``chain`` is re-detected in round ``iteration`` of frame ``frame_index``."""
-    limb = LIMB_CHAINS.index(chain)
-    if turn == "frame":
-        return iteration == 0 and frame_index % len(LIMB_CHAINS) == limb
+def redetects(turn: str, chain: str, iteration: int) -> bool:
+    """Whether ``chain`` is re-detected within fitting round ``iteration`` ("final" re-detects
+    in its own round, after the fit)."""
+    if turn == "final":
+        return False
     if turn == "round":
-        return iteration % len(LIMB_CHAINS) == limb
+        return iteration % len(LIMB_CHAINS) == LIMB_CHAINS.index(chain)
     return iteration == 0
 
 
-REDETECT_STEPS = 5        # grid points per shoulder/hip parameter (the hinge gets 3)
+# The re-detection grid: its points per shoulder/hip parameter and per elbow/knee. An
+# evaluation of one limb over the whole images costs microseconds, so the grid is dense: a
+# 5x5x5x3 grid missed a forearm lying in front of the trunk (its cells are 1.3 rad wide).
+REDETECT_STEPS = 9
+REDETECT_HINGE_STEPS = 4
 REDETECT_MARGIN = 0.15    # the grid keeps this fraction of each joint range away from its limits
-REDETECT_STARTS = 2       # best grid points refined by Powell
-REDETECT_STARTS_FIRST_FRAME = 8  # ... on a first frame, where no limb is tracked yet
+REDETECT_STARTS = 2       # grid points refined by Powell, one per basin (see distinct_rows)
+REDETECT_STARTS_FIRST_FRAME = 8  # ... on a first frame, the best 8, where no limb is tracked yet
 REDETECT_STEP_RAD = 0.3   # Powell's first step from a grid point, rad
 REDETECT_GAIN = 0.01      # the alternative must lower the whole-image energy by this fraction
+BASIN_SEPARATION_M = 0.15  # limb poses whose elbow/knee or wrist/ankle lie this far apart: two basins
 
 
 def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions, make):
     """Search one limb over its whole range on the whole images, and keep what explains the
     images better than the tracked limb. A limb that moved faster than the local search, or
-    flipped into the mirror pose of an elbow or knee, is lost for good otherwise; re-detecting
-    one limb per frame in turn bounds how long it stays lost at a fixed cost per frame.
-    Returns (params (35,), evaluations)."""
+    flipped into the mirror pose of an elbow or knee, is lost for good otherwise.
+    Returns (params (35,), whole-image energy at x, at the result, evaluations)."""
+    tracking = options.redetect_turn in TRACKING_TURNS
+    found, current, n = search_limb(model, frame, chain, x, options, make,
+                                    REDETECT_STARTS if tracking else REDETECT_STARTS_FIRST_FRAME,
+                                    one_per_basin=tracking)
+    # a clear gain only: an alternative a few pixels better is as often a mirror pose of the limb
+    # (on a first frame the tracked limb is no better than any other: no threshold)
+    best_x, best_e = x, current
+    threshold = current * (1.0 - (REDETECT_GAIN if tracking else 0.0))
+    for e, y in found:
+        if e < min(best_e, threshold):
+            best_x, best_e = y, e
+    return best_x, current, best_e, n
+
+
+def search_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions, make,
+                starts: int, one_per_basin: bool):
+    """One limb's whole range on the whole images, the other parts held at x: a grid, then
+    Powell from its ``starts`` best points, or with ``one_per_basin`` from the best point of
+    each of the ``starts`` best basins (a basin's points crowd the top of the grid otherwise).
+    Returns ([(energy, params (35,)) per start, in grid order], the energy at x, evaluations)."""
     proximal, distal, _ = LIMB_PARTS[chain]
     setup = replace(frame.full_setup(x), moving=CHAINS[chain].segments, prerender=True)
     energy = make("cpu" if options.energy == "coarse-to-fine" else options.energy, model, setup)
     lo, hi = PARAM_LIMITS[list(proximal)].T
     pad = REDETECT_MARGIN * (hi - lo)
-    axes = [np.linspace(lo[i] + pad[i], hi[i] - pad[i], REDETECT_STEPS if i < 3 else 3) for i in range(4)]
+    axes = [np.linspace(lo[i] + pad[i], hi[i] - pad[i], REDETECT_STEPS if i < 3 else REDETECT_HINGE_STEPS)
+            for i in range(4)]
     cand = np.repeat(x[None], np.prod([len(a) for a in axes]), axis=0)
     cand[:, list(proximal)] = np.array(list(product(*axes)))
-    energies = energy(cand)
-    # a clear gain only: an alternative a few pixels better is as often a mirror pose of the limb
-    # (on a first frame the tracked limb is no better than any other: no threshold)
-    tracking = options.redetect_turn in TRACKING_TURNS
-    gain = REDETECT_GAIN if tracking else 0.0
-    best_x, best_e = x, float(energy(x)[0]) * (1.0 - gain)
+    order = np.argsort(energy(cand), kind="stable")
+    if one_per_basin:
+        order = order[distinct_rows(limb_joints(model, chain, cand[order]), starts)]
     n = len(cand) + 1
-    starts = REDETECT_STARTS if tracking else REDETECT_STARTS_FIRST_FRAME
-    for k in np.argsort(energies, kind="stable")[:starts]:
+    found = []
+    for k in order[:starts]:
         y, _, n2, _ = powell(energy, cand[k], proximal, np.full(len(proximal), REDETECT_STEP_RAD), options,
                              options.max_evals_limb)
         y, e, n3, _ = powell(energy, y, distal, np.full(len(distal), options.extremity_step_rad), options,
                              options.max_evals_extremity)
         n += n2 + n3
-        if e < best_e:
-            best_x, best_e = y, e
-    return best_x, n
+        found.append((e, y))
+    return found, float(energy(x)[0]), n
+
+
+def limb_joints(model: BodyModel, chain: str, params: np.ndarray) -> np.ndarray:
+    """(B, 2, 3) the limb's middle and end joints (elbow and wrist, knee and ankle) for (B, 35) params."""
+    return forward_kinematics(model, np.atleast_2d(params)).joints[:, list(CHAINS[chain].segments[1:])]
+
+
+def distinct_rows(joints: np.ndarray, count: int, taken: np.ndarray | None = None) -> list[int]:
+    """Indices of up to ``count`` rows of ``joints`` (B, 2, 3), in order, each with a joint
+    BASIN_SEPARATION_M or more from the same joint of every row kept before it and of every
+    row of ``taken`` (T, 2, 3)."""
+    kept = list(taken) if taken is not None else []
+    out = []
+    for i, j in enumerate(joints):
+        if all(np.linalg.norm(j - k, axis=1).max() >= BASIN_SEPARATION_M for k in kept):
+            kept.append(j)
+            out.append(i)
+            if len(out) == count:
+                break
+    return out
+
+
+LIMB_ALTERNATIVES = 2  # per limb: other basins refitted after a first frame's search
+
+
+def limb_alternatives(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions,
+                      count: int = LIMB_ALTERNATIVES) -> list[np.ndarray]:
+    """(35,) poses: x with one limb moved into up to ``count`` of its other basins, the lowest
+    energy first. Given a wrong torso the true limb can explain the images worse than a wrong
+    one (a forearm folded into its upper arm's silhouette, when it lies in front of the
+    trunk); fitted again as a whole, the true limb wins (``server.session.search_frame``)."""
+    found, _, _ = search_limb(model, frame, chain, x, options, frame_energy(frame),
+                              REDETECT_STARTS_FIRST_FRAME, one_per_basin=True)
+    found.sort(key=lambda ey: ey[0])
+    poses = np.array([y for _, y in found]).reshape(-1, len(x))
+    keep = distinct_rows(limb_joints(model, chain, poses), count, taken=limb_joints(model, chain, x))
+    return [poses[k] for k in keep]
+
+
+def frame_energy(frame: FrameData):
+    """make(backend, model, setup) -> energy for ``frame`` (the volume energy is over its voxels)."""
+    def make(backend, model, setup):
+        if backend == "volume":  # one energy over the whole body's voxels: no windows
+            setup = replace(setup, volume_points=frame.surface_points)
+        return make_energy(backend, model, setup)
+
+    return make
 
 
 def full_energy(model: BodyModel, frame: FrameData, params: np.ndarray) -> int:
@@ -502,7 +573,8 @@ def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: Fi
       torso-then-limbs hierarchy cannot leave, since neither the torso nor a limb alone can undo
       it. Refitting from turned starts can.
     Every hypothesis is fitted to the end: choosing after the first round (to save time) lost
-    an arm on the dance clip.
+    an arm on the dance clip. With ``options.redetect_turn`` "final", the limbs are then
+    re-detected against the best (``_redetect_and_refit``).
     """
     wall0 = time.perf_counter()
     dispatch = dispatch or solve_locally(model, frame, options)
@@ -511,7 +583,25 @@ def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: Fi
                    for step in range(1, options.turn_hypotheses + 1) for sign in (-1, 1)]
     results = [_fit_schedule(model, frame, x, options, dispatch, position_first) for x, position_first in hypotheses]
     best = lowest_energy(results)
+    if options.redetect_limbs and options.redetect_turn == "final":
+        best = _redetect_and_refit(model, frame, best, options, dispatch)
     best.wall_seconds = time.perf_counter() - wall0
+    return best
+
+
+def _redetect_and_refit(model: BodyModel, frame: FrameData, best: FrameResult, options: FitOptions,
+                        dispatch: Dispatch) -> FrameResult:
+    """Every limb searched over its whole range against the fitted pose (side by side, on the
+    clients); if any is found elsewhere, the frame fitted again from there, the lower energy
+    kept. A limb that moved faster than the local search (a basketball player's forearm swing)
+    is found in the frame it is lost."""
+    found = dispatch(list(LIMB_CHAINS), best.params, REDETECT_ROUND)()
+    moved = [r for r in found if r.energy < r.energy_before]
+    refits = [_fit_schedule(model, frame, merge_chains(best.params, moved), options, dispatch, False)] if moved else []
+    chains = [*best.chains, *found, *(c for r in refits for c in r.chains)]
+    evaluations = best.evaluations + sum(r.evaluations for r in [*found, *refits])
+    best = min([best, *refits], key=lambda r: r.energy)
+    best.chains, best.evaluations = chains, evaluations
     return best
 
 

@@ -24,10 +24,10 @@ from typing import Callable, Protocol
 import numpy as np
 
 from common import voxels
-from common.body import JOINT_NAMES, P, BodyModel, forward_kinematics, joints_dict, rest_params
+from common.body import JOINT_NAMES, LIMB_CHAINS, P, BodyModel, forward_kinematics, joints_dict, rest_params
 from common.errors import InputFileError, UserError
-from common.fitting import (ChainResult, FitOptions, FrameData, FrameResult, fit_frame, lowest_energy, solve_chain,
-                            spot_grid)
+from common.fitting import (ChainResult, FitOptions, FrameData, FrameResult, fit_frame, limb_alternatives,
+                            lowest_energy, solve_chain, spot_grid)
 from common.sequence import Sequence
 
 POSES_FILE = "poses.jsonl"
@@ -213,7 +213,8 @@ def search_frame(model: BodyModel, data: FrameData, frame: int, starts: list, op
     """A frame without a trusted start (a first frame, a recovery): the wide search of
     ``first_frame_options`` from every start, once per way of re-detecting the limbs
     (FIRST_FRAME_REDETECT_TURNS), the lowest energy kept; then one fit with the tracking
-    ``options``, whose local grids and small windows refine what the wide search found."""
+    ``options``, whose local grids and small windows refine what the wide search found; then
+    a fit from each limb's other basins (``limb_alternatives``), the lowest energy kept."""
     searches = []
     for turn in FIRST_FRAME_REDETECT_TURNS:
         wide = first_frame_options(options, turn)
@@ -221,7 +222,15 @@ def search_frame(model: BodyModel, data: FrameData, frame: int, starts: list, op
         searches.append(fit_from_starts(model, data, starts, wide, solver.solve))
     found = lowest_energy(searches)
     solver.begin_frame(frame, data, found.params, options)
-    return lowest_energy([found, fit_frame(model, data, found.params, options, solver.solve)])
+    found = lowest_energy([found, fit_frame(model, data, found.params, options, solver.solve)])
+    # each limb's other basins, each fitted again as a whole body: a limb found wrong holds the
+    # torso where it explains that limb, and neither can move alone
+    refits = []
+    for chain in LIMB_CHAINS:
+        for alternative in limb_alternatives(model, data, chain, found.params, options):
+            solver.begin_frame(frame, data, alternative, options)
+            refits.append(fit_frame(model, data, alternative, options, solver.solve))
+    return lowest_energy([found, *refits])
 
 
 LOSS_ENERGY_RATIO = 1.25  # a frame's energy this far above the recent median: tracking is lost
@@ -318,7 +327,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     with open(poses_path, "a") as fh:
         for n, frame in enumerate(frames[len(done):], start=len(done)):
             t0 = time.perf_counter()
-            data = FrameData(model, seq.studio, seq.silhouettes(frame), index=frame)
+            data = FrameData(model, seq.studio, seq.silhouettes(frame))
             if x is None and init == "truth":
                 x = initial_starts(model, seq, data, init)[0]
             if x is None:

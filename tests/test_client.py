@@ -84,7 +84,7 @@ def frame_and_data(model, frame=0):
     start[2] = 0.9
     msg = Frame(session="s1", frame=frame, cameras=camera_specs(studio), silhouettes=packbits_masks(masks),
                 previous_params=start.tolist(), body_fingerprint=model.fingerprint)
-    return msg, FrameData(model, studio, masks, index=frame), start
+    return msg, FrameData(model, studio, masks), start
 
 
 OPTIONS = FitOptions(max_evals_limb=30, max_evals_extremity=10, grid_steps=1)
