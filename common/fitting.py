@@ -222,6 +222,12 @@ class FrameData:
             self._whole_image_energies[half] = make_energy("cpu", self.model, setup)
         return self._whole_image_energies[half]
 
+    def energy(self, backend: str, setup: EnergySetup):
+        """The ``backend`` energy of ``setup`` for this frame (the volume energy is over its voxels)."""
+        if backend == "volume":  # one energy over the whole body's voxels: no windows
+            setup = replace(setup, volume_points=self.surface_points)
+        return make_energy(backend, self.model, setup)
+
     def window_setup(self, params: np.ndarray, segments, size: int, prerender: bool) -> EnergySetup:
         """Windows of ``size`` centred on the projected centre of ``segments`` at ``params``."""
         pose = forward_kinematics(self.model, params)
@@ -318,11 +324,10 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
     evals = iters = 0
     before = None
     energy_value = None
-    make = frame_energy(frame)
     for backend in _stage_backends(options):
         if chain == "torso":
             whole = (frame.whole_image_energy(options.torso_half_resolution) if backend == "cpu"
-                     else make(backend, model, frame.full_setup(x, half=options.torso_half_resolution)))
+                     else frame.energy(backend, frame.full_setup(x, half=options.torso_half_resolution)))
             energy = with_spine_prior(whole, options.spine_twist_prior if backend != "volume" else 0.0)
             before = before if before is not None else int(energy(x)[0])
             idx = CHAINS["torso"].params
@@ -345,19 +350,19 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             n += n2
         elif chain == "head":
             setup = frame.window_setup(x, CHAINS["head"].segments, SMALL_WINDOW, options.prerender)
-            energy = make(backend, model, setup)
+            energy = frame.energy(backend, setup)
             before = before if before is not None else int(energy(x)[0])
             steps = np.full(2, options.extremity_step_rad)
             x, energy_value, n, it = powell(energy, x, CHAINS["head"].params, steps, options,
                                             options.max_evals_extremity)
         elif chain in LIMB_CHAINS and iteration == REDETECT_ROUND:
-            x, before, energy_value, n = redetect_limb(model, frame, chain, x, options, make)
+            x, before, energy_value, n = redetect_limb(model, frame, chain, x, options)
             it = 0
         elif chain in LIMB_CHAINS:
             proximal, distal, extremity = LIMB_PARTS[chain]
             setup = frame.window_setup(x, _limb_centre_segments(chain), options.limb_window_px, options.prerender)
             setup = replace(setup, moving=CHAINS[chain].segments)
-            energy = make(backend, model, setup)
+            energy = frame.energy(backend, setup)
             before = before if before is not None else int(energy(x)[0])
             n = 0
             if backend == _stage_backends(options)[0] and options.grid_steps > 1:
@@ -367,7 +372,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             x, _, n2, it = powell(energy, x, proximal, steps, options, options.max_evals_limb)
             n += n2
             ext_setup = frame.window_setup(x, extremity, SMALL_WINDOW, options.prerender)
-            ext_energy = make(backend, model, ext_setup)
+            ext_energy = frame.energy(backend, ext_setup)
             x, _, n3, it3 = powell(ext_energy, x, distal, np.full(len(distal), options.extremity_step_rad),
                                    options, options.max_evals_extremity)
             n += n3
@@ -376,7 +381,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             n += 1
             if (options.redetect_limbs and backend == _stage_backends(options)[0]
                     and redetects(options.redetect_turn, chain, iteration)):
-                x, _, _, n4 = redetect_limb(model, frame, chain, x, options, make)
+                x, _, _, n4 = redetect_limb(model, frame, chain, x, options)
                 n += n4
                 energy_value = float(energy(x)[0])
         else:
@@ -428,13 +433,13 @@ REDETECT_GAIN = 0.01      # the alternative must lower the whole-image energy by
 BASIN_SEPARATION_M = 0.15  # limb poses whose elbow/knee or wrist/ankle lie this far apart: two basins
 
 
-def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions, make):
+def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions):
     """Search one limb over its whole range on the whole images, and keep what explains the
     images better than the tracked limb. A limb that moved faster than the local search, or
     flipped into the mirror pose of an elbow or knee, is lost for good otherwise.
     Returns (params (35,), whole-image energy at x, at the result, evaluations)."""
     tracking = options.redetect_turn in TRACKING_TURNS
-    found, current, n = search_limb(model, frame, chain, x, options, make,
+    found, current, n = search_limb(model, frame, chain, x, options,
                                     REDETECT_STARTS if tracking else REDETECT_STARTS_FIRST_FRAME,
                                     one_per_basin=tracking)
     # a clear gain only: an alternative a few pixels better is as often a mirror pose of the limb
@@ -447,7 +452,7 @@ def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray,
     return best_x, current, best_e, n
 
 
-def search_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions, make,
+def search_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions,
                 starts: int, one_per_basin: bool):
     """One limb's whole range on the whole images, the other parts held at x: a grid, then
     Powell from its ``starts`` best points, or with ``one_per_basin`` from the best point of
@@ -455,7 +460,7 @@ def search_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, o
     Returns ([(energy, params (35,)) per start, in grid order], the energy at x, evaluations)."""
     proximal, distal, _ = LIMB_PARTS[chain]
     setup = replace(frame.full_setup(x), moving=CHAINS[chain].segments, prerender=True)
-    energy = make("cpu" if options.energy == "coarse-to-fine" else options.energy, model, setup)
+    energy = frame.energy("cpu" if options.energy == "coarse-to-fine" else options.energy, setup)
     lo, hi = PARAM_LIMITS[list(proximal)].T
     pad = REDETECT_MARGIN * (hi - lo)
     axes = [np.linspace(lo[i] + pad[i], hi[i] - pad[i], REDETECT_STEPS if i < 3 else REDETECT_HINGE_STEPS)
@@ -506,22 +511,11 @@ def limb_alternatives(model: BodyModel, frame: FrameData, chain: str, x: np.ndar
     energy first. Given a wrong torso the true limb can explain the images worse than a wrong
     one (a forearm folded into its upper arm's silhouette, when it lies in front of the
     trunk); fitted again as a whole, the true limb wins (``server.session.search_frame``)."""
-    found, _, _ = search_limb(model, frame, chain, x, options, frame_energy(frame),
-                              REDETECT_STARTS_FIRST_FRAME, one_per_basin=True)
+    found, _, _ = search_limb(model, frame, chain, x, options, REDETECT_STARTS_FIRST_FRAME, one_per_basin=True)
     found.sort(key=lambda ey: ey[0])
     poses = np.array([y for _, y in found]).reshape(-1, len(x))
     keep = distinct_rows(limb_joints(model, chain, poses), count, taken=limb_joints(model, chain, x))
     return [poses[k] for k in keep]
-
-
-def frame_energy(frame: FrameData):
-    """make(backend, model, setup) -> energy for ``frame`` (the volume energy is over its voxels)."""
-    def make(backend, model, setup):
-        if backend == "volume":  # one energy over the whole body's voxels: no windows
-            setup = replace(setup, volume_points=frame.surface_points)
-        return make_energy(backend, model, setup)
-
-    return make
 
 
 def full_energy(model: BodyModel, frame: FrameData, params: np.ndarray) -> int:
