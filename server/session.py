@@ -303,6 +303,38 @@ def accuracy(records: list[dict], truth: dict | None) -> dict:
     }
 
 
+SETTLE_FRAMES = 10  # frames tracked after a first-frame search before it is refined backwards
+
+
+def refine_backward(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
+                    stats: RunStats) -> list[dict]:
+    """The first frames of a run that started from a search, fitted again backwards.
+
+    A first frame found by search is 10-20 mm off where tracking, a few frames on, is within
+    its usual error; the frames in between carry that transient. Tracking the same frames
+    backwards, each from the fit of the frame after it (the last of ``records`` is the settled
+    one), starts every frame from a tracked pose; each keeps the lower energy of its two fits.
+    A replaced record keeps its forward fit under "first_pass". Returns the records, changed.
+    """
+    out = [dict(r) for r in records]
+    x = np.asarray(out[-1]["params"], dtype=np.float64)
+    for r in reversed(out[:-1]):
+        t0 = time.perf_counter()
+        data = FrameData(model, seq.studio, seq.silhouettes(r["frame"]))
+        solver.begin_frame(r["frame"], data, x, options)
+        again = fit_frame(model, data, x, options, solver.solve)
+        stats.add_chains(again.chains)
+        r["seconds"] += time.perf_counter() - t0
+        r["evaluations"] += again.evaluations
+        if again.energy < r["energy"]:
+            r["first_pass"] = {"params": r["params"], "energy": r["energy"]}
+            r["params"] = [float(v) for v in again.params]
+            r["joints"] = joints_dict(forward_kinematics(model, again.params).joints[0])
+            r["energy"] = int(again.energy)
+        x = np.asarray(r["params"], dtype=np.float64)
+    return out
+
+
 def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions, solver: Solver,
             init: str | None = None, resume: bool = False, max_frames: int | None = None, progress=None) -> dict:
     """Fit the sequence's frames in order; returns the summary (also written to summary.json)."""
@@ -324,56 +356,63 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     wall0 = time.perf_counter()
     x = np.asarray(done[-1]["params"], dtype=np.float64) if done else None
     energies = [int(d["energy"]) for d in done]
-    with open(poses_path, "a") as fh:
-        for n, frame in enumerate(frames[len(done):], start=len(done)):
-            t0 = time.perf_counter()
-            data = FrameData(model, seq.studio, seq.silhouettes(frame))
-            if x is None and init == "truth":
-                x = initial_starts(model, seq, data, init)[0]
-            if x is None:
-                if progress:
-                    progress(n, len(frames), f"frame {frame}: first-frame search ({init} start)")
-                result = search_frame(model, data, frame, initial_starts(model, seq, data, init), options, solver)
-            else:
-                solver.begin_frame(frame, data, x, options)
-                result = fit_frame(model, data, x, options, solver.solve)
-            recovered = limbs_redetected = False
-            if tracking_lost(energies, result.energy, LIMB_LOSS_ENERGY_RATIO):
-                # every limb searched over its whole range, from the fitted torso
-                every = replace(options, redetect_turn="every")
-                solver.begin_frame(frame, data, result.params, every)
-                again = fit_frame(model, data, result.params, every, solver.solve)
-                result = lowest_energy([result, again])
-                limbs_redetected = result is again
-            starts = recovery_starts(model, data) if tracking_lost(energies, result.energy) else []
-            if starts:  # the whole body lost: start again from the voxels, as on a first frame
-                if progress:
-                    progress(n, len(frames), f"frame {frame}: tracking lost, searching from voxels")
-                again = search_frame(model, data, frame, starts, options, solver)
-                result = lowest_energy([result, again])
-                recovered = result is again
-            energies.append(result.energy)
-            x = result.params
-            seconds = time.perf_counter() - t0
-            joints = forward_kinematics(model, x).joints[0]
-            record = {
-                "frame": int(frame), "params": [float(v) for v in x], "joints": joints_dict(joints),
-                "energy": int(result.energy), "seconds": seconds, "iterations": result.iterations,
-                "evaluations": result.evaluations, "recovered": recovered,
-                "limbs_redetected": limbs_redetected,
-                "chains": chain_totals(result.chains),
-                "solves": [{"chain": c.chain, "iteration": i // len(SOLVES_PER_ITERATION), "evaluations": c.evaluations,
-                            "energy_before": c.energy_before, "energy": c.energy, "cpu_seconds": c.cpu_seconds,
-                            "wall_seconds": c.wall_seconds} for i, c in enumerate(result.chains)],
-            }
-            fh.write(json.dumps(record) + "\n")
-            fh.flush()
-            stats.seconds.append(seconds)
-            stats.evaluations.append(result.evaluations)
-            stats.energies.append(result.energy)
-            stats.add_chains(result.chains)
+    # a run that starts from a search goes back over its first frames once tracking has settled
+    settle_index = min(SETTLE_FRAMES, len(frames) - 1) if init != "truth" else -1
+    for n, frame in enumerate(frames[len(done):], start=len(done)):
+        t0 = time.perf_counter()
+        data = FrameData(model, seq.studio, seq.silhouettes(frame))
+        if x is None and init == "truth":
+            x = initial_starts(model, seq, data, init)[0]
+        if x is None:
             if progress:
-                progress(n + 1, len(frames), f"E={result.energy}")
+                progress(n, len(frames), f"frame {frame}: first-frame search ({init} start)")
+            result = search_frame(model, data, frame, initial_starts(model, seq, data, init), options, solver)
+        else:
+            solver.begin_frame(frame, data, x, options)
+            result = fit_frame(model, data, x, options, solver.solve)
+        recovered = limbs_redetected = False
+        if tracking_lost(energies, result.energy, LIMB_LOSS_ENERGY_RATIO):
+            # every limb searched over its whole range, from the fitted torso
+            every = replace(options, redetect_turn="every")
+            solver.begin_frame(frame, data, result.params, every)
+            again = fit_frame(model, data, result.params, every, solver.solve)
+            result = lowest_energy([result, again])
+            limbs_redetected = result is again
+        starts = recovery_starts(model, data) if tracking_lost(energies, result.energy) else []
+        if starts:  # the whole body lost: start again from the voxels, as on a first frame
+            if progress:
+                progress(n, len(frames), f"frame {frame}: tracking lost, searching from voxels")
+            again = search_frame(model, data, frame, starts, options, solver)
+            result = lowest_energy([result, again])
+            recovered = result is again
+        energies.append(result.energy)
+        x = result.params
+        seconds = time.perf_counter() - t0
+        joints = forward_kinematics(model, x).joints[0]
+        record = {
+            "frame": int(frame), "params": [float(v) for v in x], "joints": joints_dict(joints),
+            "energy": int(result.energy), "seconds": seconds, "iterations": result.iterations,
+            "evaluations": result.evaluations, "recovered": recovered,
+            "limbs_redetected": limbs_redetected,
+            "chains": chain_totals(result.chains),
+            "solves": [{"chain": c.chain, "iteration": i // len(SOLVES_PER_ITERATION), "evaluations": c.evaluations,
+                        "energy_before": c.energy_before, "energy": c.energy, "cpu_seconds": c.cpu_seconds,
+                        "wall_seconds": c.wall_seconds} for i, c in enumerate(result.chains)],
+        }
+        with open(poses_path, "a") as fh:  # reopened per frame: refine_backward replaces the file
+            fh.write(json.dumps(record) + "\n")
+        stats.seconds.append(seconds)
+        stats.evaluations.append(result.evaluations)
+        stats.energies.append(result.energy)
+        stats.add_chains(result.chains)
+        if n == settle_index > 0:
+            if progress:
+                progress(n + 1, len(frames), f"refining frames {frames[0]}-{frames[n - 1]} backwards")
+            refined = refine_backward(model, seq, read_done_frames(poses_path), options, solver, stats)
+            _rewrite_complete(poses_path, refined)
+            energies = [int(r["energy"]) for r in refined]
+        if progress:
+            progress(n + 1, len(frames), f"E={result.energy}")
     records = read_done_frames(poses_path)
     summary = {
         "sequence": str(seq.path.resolve()),
@@ -389,6 +428,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "evaluations_per_frame": float(np.mean(stats.evaluations)) if stats.evaluations else None,
         "frames_recovered": sum(1 for r in records if r.get("recovered")),
         "frames_limbs_redetected": sum(1 for r in records if r.get("limbs_redetected")),
+        "frames_refined_backward": sum(1 for r in records if "first_pass" in r),
         "chain_cpu_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_cpu.items()},
         "chain_wall_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_wall.items()},
         "chain_evaluations_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_evaluations.items()},

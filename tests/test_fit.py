@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -91,6 +92,25 @@ def test_two_hypotheses_keep_the_lower_energy(model, frames):
     assert two.energy <= one.energy
     assert two.energy == full_energy(model, data[1], two.params)
     assert len(two.chains) > len(one.chains) and two.evaluations > one.evaluations
+
+
+def test_polishing_takes_the_best_hypothesis_further(model, five_frames):
+    """From three frames back, two rounds per hypothesis stop short; the polishing rounds go on
+    from the best of them and lower the energy and the error."""
+    from common.sequence import load_sequence
+
+    seq = load_sequence(five_frames)
+    truth = seq.truth()
+    start, frame = truth[seq.frames[1]].params, seq.frames[4]
+    data = FrameData(model, seq.studio, seq.silhouettes(frame))
+    options = FitOptions(turn_hypotheses=1, redetect_limbs=False)
+    plain = fit_frame(model, data, start, replace(options, polish_iterations=0))
+    polished = fit_frame(model, data, start, replace(options, polish_iterations=2))
+    assert polished.energy < plain.energy
+    assert polished.energy == full_energy(model, data, polished.params)
+    assert len(polished.chains) > len(plain.chains) and polished.evaluations > plain.evaluations
+    error = [joint_errors_mm(model, r.params, truth[frame]).mean() for r in (plain, polished)]
+    assert error[1] < error[0], error
 
 
 def test_turn_hypotheses_undo_a_start_turned_from_the_truth(model, frames):
@@ -200,6 +220,8 @@ def test_fit_options_validate_and_travel():
         FitOptions(hypotheses=3)
     with pytest.raises(ValueError, match="turn_hypotheses"):
         FitOptions(turn_hypotheses=-1)
+    with pytest.raises(ValueError, match="polish_iterations"):
+        FitOptions(polish_iterations=-1)
     with pytest.raises(ValueError, match="turn_step_rad"):
         FitOptions(turn_hypotheses=8, turn_step_rad=0.5)
     with pytest.raises(ValueError, match="bogus"):
@@ -383,6 +405,35 @@ def test_a_lost_body_is_found_again_from_the_voxels(model, five_frames, tmp_path
 
 
 @pytest.mark.timeout(300)
+def test_a_searched_start_is_refined_backwards_from_the_tracked_frames(model, five_frames, tmp_path):
+    """Three tracked frames, the first then spoilt (its left arm swung 1.6 rad away, as a first
+    frame's search can leave a limb): going back from the last frame refits it from the
+    tracked pose after it, keeps the lower energy and the spoilt fit under "first_pass"."""
+    from common.sequence import load_sequence
+    from server.session import LocalSolver, RunStats, refine_backward, run_fit
+
+    seq = load_sequence(five_frames)
+    options = FitOptions()
+    run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=3)
+    records = read_lines(tmp_path / "poses.jsonl")
+    spoilt = np.array(records[0]["params"])
+    spoilt[P["l_shoulder_x"]] += 1.6
+    data = FrameData(model, seq.studio, seq.silhouettes(records[0]["frame"]))
+    records[0].update(params=spoilt.tolist(), energy=full_energy(model, data, spoilt))
+    refined = refine_backward(model, seq, records, options, LocalSolver(model, options), RunStats())
+    assert [r["frame"] for r in refined] == [r["frame"] for r in records]
+    assert refined[-1] == records[-1]  # the settled frame is where the pass starts from
+    assert refined[0]["first_pass"] == {"params": records[0]["params"], "energy": records[0]["energy"]}
+    assert refined[0]["energy"] < records[0]["energy"]
+    assert all(r["energy"] <= r.get("first_pass", r)["energy"] for r in refined)
+    truth = seq.truth()[refined[0]["frame"]]
+    arm = [JOINT_NAMES.index("l_elbow"), JOINT_NAMES.index("l_wrist")]
+    assert joint_errors_mm(model, np.array(refined[0]["params"]), truth)[arm].max() < 50.0
+    assert np.allclose([refined[0]["joints"][n] for n in JOINT_NAMES],
+                       forward_kinematics(model, np.array(refined[0]["params"])).joints[0])
+
+
+@pytest.mark.timeout(300)
 def test_a_limb_lost_between_frames_is_found_again(model, five_frames, tmp_path):
     """Three frames fitted, then the last pose's left arm swung 1.6 rad away (a fast move the
     local search cannot follow): the next frame's re-detection finds the arm again, without a
@@ -412,6 +463,12 @@ def test_init_auto_ignores_the_truth_and_is_scored_by_it(five_frames, tmp_path):
     auto = json.loads((tmp_path / "auto" / "summary.json").read_text())
     assert auto["init"] == "auto"
     assert auto["per_frame_error_mm"][0] < 50.0, auto["per_frame_error_mm"]
+    # the searched first frame was fitted again backwards from the second: the lower energy kept
+    lines = read_lines(tmp_path / "auto" / "poses.jsonl")
+    from common.sequence import load_sequence
+    assert [r["frame"] for r in lines] == load_sequence(five_frames).frames[:2]
+    assert auto["frames_refined_backward"] == sum("first_pass" in r for r in lines) <= 1
+    assert all(r["energy"] < r["first_pass"]["energy"] for r in lines if "first_pass" in r)
     assert fit(five_frames, tmp_path / "given", "--frames", "1") == 0
     assert json.loads((tmp_path / "given" / "summary.json").read_text())["init"] == "truth"
 

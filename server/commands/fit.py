@@ -32,6 +32,9 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--turn-hypotheses", type=int, default=FitOptions.turn_hypotheses, metavar="N",
                    help="also fit each frame from the start turned by -+1..N turn steps about the vertical and "
                         f"keep the lowest energy (default {FitOptions.turn_hypotheses}; 0: off, a fifth of the time)")
+    p.add_argument("--polish-iterations", type=int, default=FitOptions.polish_iterations, metavar="N",
+                   help="then up to N more rounds for the best of them while the energy still falls "
+                        f"(default {FitOptions.polish_iterations}; 0: off)")
     p.add_argument("--turn-step", type=float, default=FitOptions.turn_step_rad, metavar="RAD",
                    help=f"the turn step, rad (default {FitOptions.turn_step_rad})")
     p.add_argument("--no-redetect", action="store_true",
@@ -50,7 +53,8 @@ def options_from_args(args) -> FitOptions:
         return FitOptions(energy=args.energy, max_iterations=args.iterations, grid_steps=args.grid_steps,
                           grid_range_rad=args.grid_range, prerender=not args.no_prerender,
                           hypotheses=args.hypotheses, turn_hypotheses=args.turn_hypotheses,
-                          turn_step_rad=args.turn_step, redetect_limbs=not args.no_redetect)
+                          turn_step_rad=args.turn_step, polish_iterations=args.polish_iterations,
+                          redetect_limbs=not args.no_redetect)
     except ValueError as exc:  # a value out of range: say which option
         raise UserError(f"bad fit option: {exc}") from None
 
