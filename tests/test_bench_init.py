@@ -13,7 +13,8 @@ BUNDLED = sorted((Path(__file__).resolve().parents[1] / "common" / "data" / "cli
 
 def _row(clip: str, start: str, frame: int, first: float) -> dict:
     return {"clip": clip, "start": start, "start_frame": frame, "frames": 3, "first_frame_error_mm": first,
-            "first_frame_ok": first <= benchmarks.INIT_TARGET_MM, "first_frame_seconds": 7.5,
+            "first_frame_ok": first <= benchmarks.INIT_TARGET_MM, "first_frame_search_error_mm": first + 4.5,
+            "first_frame_seconds": 7.5,
             "auto_mean_joint_error_mm": first - 2.0, "truth_start_mean_joint_error_mm": 20.0,
             "auto_minus_truth_start_mm": first - 22.0, "auto_last_frame_error_mm": 21.0,
             "truth_start_last_frame_error_mm": 20.0}
@@ -70,4 +71,19 @@ def test_init_table_counts_first_frames_on_target(capsys):
     benchmarks.print_init_table(rows)
     out = capsys.readouterr().out.splitlines()
     assert len(out) == 5 and "random" in out[2] and "80.0" in out[2]
+    assert "search mm" in out[0] and "84.5" in out[2]  # the search's first frame, before the backward pass
     assert out[-1] == "first frame <= 50 mm: 2 of 3"
+
+
+def test_search_error_is_the_forward_fit_of_a_refined_first_frame(model, small_loaded):
+    import numpy as np
+
+    seq, truth = small_loaded
+    frame = seq.frames[0]
+    true = truth[frame].params
+    off = true.copy()
+    off[0] += 0.05  # the whole body 50 mm aside
+    refined = {"frame": frame, "params": true.tolist(), "first_pass": {"params": off.tolist(), "energy": 1}}
+    assert np.isclose(benchmarks.search_error_mm(model, refined, truth), 50.0)
+    assert np.isclose(benchmarks.search_error_mm(model, {"frame": frame, "params": true.tolist()}, truth), 0.0,
+                      atol=1e-6)
