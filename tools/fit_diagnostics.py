@@ -1,0 +1,116 @@
+"""Why a fitted run is off where it is: energies against the truth's, lag, late frames.
+
+    python tools/fit_diagnostics.py RESULT SEQUENCE [--every 5] [--restart-at N]
+
+RESULT is a `mocap fit` result folder of SEQUENCE, which must have truth.jsonl. Prints:
+- per frame (every --every frames): the fit's energy, the truth's energy and the error. Where
+  the truth's energy is lower, better search would help; where it is higher, the energy itself
+  prefers the wrong pose;
+- lag: the root's error along its direction of motion and the angles' error along the sign of
+  their velocity (negative: the fit trails the actor), against the motion per frame;
+- with --restart-at N: the frames from N on fitted again from the truth of frame N, so that
+  late frames' error can be told apart from error that grows with tracking time (drift).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from common.body import JOINT_NAMES, forward_kinematics, load_body_model  # noqa: E402
+from common.fitting import FitOptions, FrameData, full_energy  # noqa: E402
+from common.sequence import load_sequence  # noqa: E402
+from server.session import LocalSolver, load_records, run_fit  # noqa: E402
+
+WINDOW = 20  # frames in the first and last windows of the drift comparison
+
+
+def joint_error_mm(model, params: np.ndarray, truth_frame) -> float:
+    fitted = forward_kinematics(model, params).joints[0]
+    true = np.array([truth_frame.joints[n] for n in JOINT_NAMES])
+    return float(np.linalg.norm(fitted - true, axis=1).mean() * 1000.0)
+
+
+def energies_against_truth(model, seq, truth, records, every: int) -> None:
+    lower = 0
+    for r in records[::every]:
+        data = FrameData(model, seq.studio, seq.silhouettes(r["frame"]))
+        t = truth[r["frame"]]
+        e_truth = full_energy(model, data, t.params)
+        lower += e_truth < r["energy"]
+        print(f"frame {r['frame']:5d}  fit {r['energy']:7d}  truth {e_truth:7d}  "
+              f"{100.0 * (r['energy'] - e_truth) / e_truth:+5.1f}%  error {joint_error_mm(model, np.array(r['params']), t):5.1f} mm")
+    print(f"the truth's energy is lower in {lower} of {len(records[::every])} frames")
+
+
+def lag(truth, records) -> None:
+    X = np.array([r["params"] for r in records])
+    T = np.array([truth[r["frame"]].params for r in records])
+    velocity = np.gradient(T[:, :3], axis=0)
+    speed = np.linalg.norm(velocity, axis=1)
+    along = ((X[:, :3] - T[:, :3]) * velocity).sum(axis=1) / np.maximum(speed, 1e-9)
+    angular = np.gradient(T[:, 3:], axis=0)
+    print(f"root error along its motion: {1000 * along.mean():+.1f} mm (moving {1000 * speed.mean():.1f} mm/frame)")
+    print(f"angle error along its velocity: {((X[:, 3:] - T[:, 3:]) * np.sign(angular)).mean():+.4f} rad "
+          f"(moving {np.abs(angular).mean():.4f} rad/frame)")
+
+
+def restart_from_truth(model, seq, records, start: int, options: FitOptions) -> None:
+    frames = [r["frame"] for r in records]
+    if start not in frames[1:]:
+        raise SystemExit(f"--restart-at {start}: not a fitted frame after the first")
+    k = frames.index(start)
+    with tempfile.TemporaryDirectory() as tmp:
+        part = Path(tmp) / "sequence"
+        part.mkdir()
+        meta = json.loads((seq.path / "sequence.json").read_text())
+        meta["frames"] = frames[k:]
+        meta.pop("source_frames", None)
+        (part / "sequence.json").write_text(json.dumps(meta))
+        for name in ("calibration.json", "truth.jsonl"):
+            shutil.copy(seq.path / name, part / name)
+        (part / "silhouettes").symlink_to((seq.path / "silhouettes").resolve())
+        again = run_fit(model, load_sequence(part), Path(tmp) / "result", options, LocalSolver(model, options),
+                        init="truth")
+    late = again["per_frame_error_mm"][-WINDOW:]
+    whole = [r for r in records if r["frame"] in frames[-WINDOW:]]
+    truth = seq.truth()
+    tracked = [joint_error_mm(model, np.array(r["params"]), truth[r["frame"]]) for r in whole]
+    print(f"last {WINDOW} frames: {np.mean(tracked):.1f} mm tracked from frame {frames[0]}, "
+          f"{np.mean(late):.1f} mm tracked from the truth at frame {start}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("result", type=Path)
+    ap.add_argument("sequence", type=Path)
+    ap.add_argument("--every", type=int, default=5, help="energies of every N-th frame (default 5)")
+    ap.add_argument("--restart-at", type=int, default=None, metavar="FRAME")
+    args = ap.parse_args(argv)
+    model = load_body_model()
+    seq = load_sequence(args.sequence)
+    truth = seq.truth()
+    if not truth:
+        raise SystemExit(f"{args.sequence}: no truth.jsonl")
+    records = load_records(args.result)
+    # the run's own options, so that the restart fits as the run did
+    options = FitOptions.from_wire(json.loads((args.result / "summary.json").read_text())["options"])
+    energies_against_truth(model, seq, truth, records, args.every)
+    lag(truth, records)
+    errors = [joint_error_mm(model, np.array(r["params"]), truth[r["frame"]]) for r in records]
+    print(f"first {WINDOW} / last {WINDOW} frames: {np.mean(errors[:WINDOW]):.1f} / {np.mean(errors[-WINDOW:]):.1f} mm")
+    if args.restart_at is not None:
+        restart_from_truth(model, seq, records, args.restart_at, options)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
