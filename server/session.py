@@ -2,13 +2,15 @@
 
 The torso and head are solved here; limb chains go to a ``Solver`` (local, or a cluster of
 clients). A frame whose energy jumps above the recent frames' is a loss of tracking: it is
-fitted again from its voxels, as a first frame is, and the better fit kept. ``mocap fit`` is this loop with the local solver: single-process mode is the server
-with zero clients.
+fitted again from its voxels, as a first frame is, and the better fit kept. A run that starts
+from a search (no truth) fits its first frames again backwards once tracking has settled
+(``refine_backward``). ``mocap fit`` is this loop with the local solver: single-process mode
+is the server with zero clients.
 
 Result folder:
-    poses.jsonl   one line per frame: frame, params, joints, energy, seconds, ... (appended and
-                  flushed per frame, so an interrupted run keeps what it had and --resume
-                  continues after the last complete line)
+    poses.jsonl   one line per frame: frame, params, joints, energy, seconds, ... (appended
+                  per frame, so an interrupted run keeps what it had and --resume continues
+                  after the last complete line; replaced whole, once, by the backward pass)
     summary.json  run summary, accuracy against truth.jsonl when the sequence has one
     motion.bvh    the fitted motion
 """
