@@ -556,7 +556,7 @@ ABANDON_MARGIN = 0.03
 
 
 def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: FitOptions,
-              dispatch: Dispatch | None = None) -> FrameResult:
+              dispatch: Dispatch | None = None, extra_starts: tuple = ()) -> FrameResult:
     """Fit one frame from ``start`` (the previous frame's pose). ``dispatch`` solves limb chains.
 
     The frame is fitted from several hypotheses and the one of lowest full energy is kept (the
@@ -573,6 +573,7 @@ def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: Fi
       truth with the hips twisted back to keep the legs in place, a coordinated minimum that the
       torso-then-limbs hierarchy cannot leave, since neither the torso nor a limb alone can undo
       it. Refitting from turned starts can.
+    - each of ``extra_starts`` (35,), e.g. ``tilted_ahead``'s.
     Every hypothesis is fitted to the end unless its first round leaves it ABANDON_MARGIN above
     the best so far: choosing the best after the first round (to save time) lost an arm on the
     dance clip. The best then gets up to ``options.polish_iterations`` more rounds while its
@@ -586,6 +587,7 @@ def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: Fi
     hypotheses = [(start, schedule == "position-first") for schedule in SCHEDULES[:options.hypotheses]]
     hypotheses += [(turned(start, sign * step * options.turn_step_rad), False)
                    for step in range(1, options.turn_hypotheses + 1) for sign in (-1, 1)]
+    hypotheses += [(np.asarray(x, dtype=np.float64), False) for x in extra_starts]
     results = []
     for x, position_first in hypotheses:
         # a hypothesis far above the best so far after its first round is not fitted on
@@ -622,6 +624,28 @@ def turned(params: np.ndarray, angle: float) -> np.ndarray:
     out = np.array(params, dtype=np.float64)
     out[P["root_heading"]] += angle
     return out
+
+
+TILT_MOVING_RAD = 0.03  # pelvis tilt change per frame above which a tilted-ahead start is tried
+TILT_AHEAD_RAD = 0.25   # how far ahead of the last tilt that start is
+
+
+def tilted_ahead(params: np.ndarray, params_before: np.ndarray | None) -> tuple:
+    """() or a 1-tuple of (35,): ``params`` with the pelvis tilted TILT_AHEAD_RAD further along
+    the way its tilt moved since ``params_before`` (the frame before), when it moved by at
+    least TILT_MOVING_RAD. The turn hypotheses turn about the vertical only; a dancer bending
+    the pelvis far forward or sideways (a penche) outruns the fit's tilt, which then trails
+    further every frame."""
+    if params_before is None:
+        return ()
+    tilt = [P["root_tilt_x"], P["root_tilt_y"]]
+    moved = np.asarray(params, dtype=np.float64)[tilt] - np.asarray(params_before, dtype=np.float64)[tilt]
+    size = float(np.linalg.norm(moved))
+    if size < TILT_MOVING_RAD:
+        return ()
+    ahead = clip_to_limits(np.array(params, dtype=np.float64))
+    ahead[tilt] = np.clip(ahead[tilt] + TILT_AHEAD_RAD * moved / size, PARAM_LIMITS[tilt, 0], PARAM_LIMITS[tilt, 1])
+    return (ahead,)
 
 
 def lowest_energy(results: list) -> FrameResult:

@@ -29,7 +29,7 @@ from common import voxels
 from common.body import JOINT_NAMES, LIMB_CHAINS, P, BodyModel, forward_kinematics, joints_dict, rest_params
 from common.errors import InputFileError, UserError
 from common.fitting import (ChainResult, FitOptions, FrameData, FrameResult, fit_frame, limb_alternatives,
-                            lowest_energy, solve_chain, spot_grid)
+                            lowest_energy, solve_chain, spot_grid, tilted_ahead)
 from common.sequence import Sequence
 
 POSES_FILE = "poses.jsonl"
@@ -358,6 +358,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     stats = RunStats()
     wall0 = time.perf_counter()
     x = np.asarray(done[-1]["params"], dtype=np.float64) if done else None
+    x_before = np.asarray(done[-2]["params"], dtype=np.float64) if len(done) > 1 else None
     energies = [int(d["energy"]) for d in done]
     # a run that starts from a search goes back over its first frames once tracking has settled
     settle_index = min(SETTLE_FRAMES, len(frames) - 1) if init != "truth" else -1
@@ -372,7 +373,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
             result = search_frame(model, data, frame, initial_starts(model, seq, data, init), options, solver)
         else:
             solver.begin_frame(frame, data, x, options)
-            result = fit_frame(model, data, x, options, solver.solve)
+            result = fit_frame(model, data, x, options, solver.solve, extra_starts=tilted_ahead(x, x_before))
         recovered = limbs_redetected = False
         if tracking_lost(energies, result.energy, LIMB_LOSS_ENERGY_RATIO):
             # every limb searched over its whole range, from the fitted torso
@@ -389,7 +390,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
             result = lowest_energy([result, again])
             recovered = result is again
         energies.append(result.energy)
-        x = result.params
+        x_before, x = x, result.params
         seconds = time.perf_counter() - t0
         joints = forward_kinematics(model, x).joints[0]
         record = {

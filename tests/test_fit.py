@@ -132,6 +132,43 @@ def test_turn_hypotheses_undo_a_start_turned_from_the_truth(model, frames):
     np.testing.assert_allclose(turned(start, -0.15), truth[2].params, atol=1e-12)
 
 
+def test_tilted_ahead_follows_the_pelvis_tilt_only_while_it_moves(model, frames):
+    from common.fitting import TILT_AHEAD_RAD, TILT_MOVING_RAD, tilted_ahead
+
+    _, truth = frames
+    x = truth[2].params
+    tilt = [P["root_tilt_x"], P["root_tilt_y"]]
+    assert tilted_ahead(x, None) == ()
+    still = x.copy()
+    still[tilt] -= 0.4 * TILT_MOVING_RAD
+    assert tilted_ahead(x, still) == ()
+    before = x.copy()
+    before[tilt] -= (0.06, -0.08)  # the tilt moved by (0.06, -0.08) rad since the frame before
+    (ahead,) = tilted_ahead(x, before)
+    np.testing.assert_allclose(ahead[tilt] - x[tilt], TILT_AHEAD_RAD * np.array([0.6, -0.8]))
+    others = np.ones(PARAM_COUNT, dtype=bool)
+    others[tilt] = False
+    np.testing.assert_array_equal(ahead[others], x[others])
+
+
+def test_a_tilted_ahead_start_catches_a_pelvis_the_fit_trails(model, frames):
+    """A start whose pelvis trails the truth's forward tilt by 0.25 rad, having moved that way
+    since the frame before: the tilted-ahead start lands on the truth, and wins on energy."""
+    from common.fitting import TILT_AHEAD_RAD, tilted_ahead
+
+    data, truth = frames
+    options = FitOptions(turn_hypotheses=0, redetect_limbs=False)
+    lagging = truth[2].params.copy()
+    lagging[P["root_tilt_x"]] -= TILT_AHEAD_RAD
+    before = lagging.copy()
+    before[P["root_tilt_x"]] -= 0.1
+    plain = fit_frame(model, data[2], lagging, options)
+    ahead = fit_frame(model, data[2], lagging, options, extra_starts=tilted_ahead(lagging, before))
+    assert ahead.energy < plain.energy
+    assert abs(ahead.params[P["root_tilt_x"]] - truth[2].params[P["root_tilt_x"]]) < 0.02
+    assert joint_errors_mm(model, ahead.params, truth[2]).mean() < joint_errors_mm(model, plain.params, truth[2]).mean()
+
+
 def test_redetection_finds_a_lost_arm(model, small_loaded):
     """An arm swung 1.5 rad away is beyond the local grid and Powell; the whole-range search
     (the re-detection round) brings it back. A fitting round does not re-detect."""
