@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from common.body import CHAINS, JOINT_NAMES, forward_kinematics, load_body_model, rest_params
+from common.body import CHAINS, forward_kinematics, load_body_model, rest_params
 from common.energy import ARM_WINDOW, SMALL_WINDOW, make_energy
 from common.fitting import FitOptions, FrameData
 
@@ -198,10 +198,11 @@ def shared_clips(root: Path | None = None) -> list[Path]:
 def search_error_mm(model, record: dict, truth: dict) -> float:
     """Mean joint error (mm) of a record's forward fit: its "first_pass" where a backward
     refinement replaced it."""
+    from server.session import joint_errors_mm
+
     params = record.get("first_pass", record)["params"]
     fitted = forward_kinematics(model, np.asarray(params)).joints[0]
-    true = np.array([truth[record["frame"]].joints[n] for n in JOINT_NAMES])
-    return float(np.linalg.norm(fitted - true, axis=1).mean() * 1000.0)
+    return float(joint_errors_mm(fitted, truth[record["frame"]]).mean())
 
 
 def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpose: bool = False) -> list[dict]:

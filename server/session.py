@@ -110,7 +110,6 @@ class LocalSolver:
 class RunStats:
     seconds: list = field(default_factory=list)
     evaluations: list = field(default_factory=list)
-    energies: list = field(default_factory=list)
     chain_cpu: dict = field(default_factory=dict)        # chain -> total CPU seconds
     chain_wall: dict = field(default_factory=dict)       # chain -> total wall seconds
     chain_evaluations: dict = field(default_factory=dict)
@@ -282,18 +281,18 @@ def _rewrite_complete(path: Path, records: list[dict]) -> None:
     os.replace(tmp, path)
 
 
+def joint_errors_mm(joints: np.ndarray, truth_frame) -> np.ndarray:
+    """(17,) distances of fitted joints (17, 3) metres, in JOINT_NAMES order, from a TruthFrame's, mm."""
+    true = np.array([truth_frame.joints[n] for n in JOINT_NAMES])
+    return np.linalg.norm(np.asarray(joints) - true, axis=1) * 1000.0
+
+
 def accuracy(records: list[dict], truth: dict | None) -> dict:
     """Joint position errors against the truth, millimetres."""
     if not truth:
         return {}
-    errs = []
-    for r in records:
-        t = truth.get(r["frame"])
-        if t is None:
-            continue
-        fitted = np.array([r["joints"][n] for n in JOINT_NAMES])
-        true = np.array([t.joints[n] for n in JOINT_NAMES])
-        errs.append(np.linalg.norm(fitted - true, axis=1) * 1000.0)
+    errs = [joint_errors_mm([r["joints"][n] for n in JOINT_NAMES], truth[r["frame"]])
+            for r in records if r["frame"] in truth]
     if not errs:
         return {}
     E = np.array(errs)
@@ -407,7 +406,6 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
             fh.write(json.dumps(record) + "\n")
         stats.seconds.append(seconds)
         stats.evaluations.append(result.evaluations)
-        stats.energies.append(result.energy)
         stats.add_chains(result.chains)
         if n == settle_index > 0:
             if progress:

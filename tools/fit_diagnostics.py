@@ -25,18 +25,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common.body import JOINT_NAMES, forward_kinematics, load_body_model  # noqa: E402
+from common.body import forward_kinematics, load_body_model  # noqa: E402
 from common.fitting import FitOptions, FrameData, full_energy  # noqa: E402
-from common.sequence import load_sequence  # noqa: E402
-from server.session import LocalSolver, load_records, run_fit  # noqa: E402
+from common.sequence import load_sequence, write_sequence_meta  # noqa: E402
+from server.session import LocalSolver, joint_errors_mm, load_records, run_fit  # noqa: E402
 
 WINDOW = 20  # frames in the first and last windows of the drift comparison
 
 
-def joint_error_mm(model, params: np.ndarray, truth_frame) -> float:
-    fitted = forward_kinematics(model, params).joints[0]
-    true = np.array([truth_frame.joints[n] for n in JOINT_NAMES])
-    return float(np.linalg.norm(fitted - true, axis=1).mean() * 1000.0)
+def joint_error_mm(model, params, truth_frame) -> float:
+    """Mean joint error of a (35,) pose against a TruthFrame, mm."""
+    return float(joint_errors_mm(forward_kinematics(model, np.asarray(params)).joints[0], truth_frame).mean())
 
 
 def energies_against_truth(model, seq, truth, records, every: int) -> None:
@@ -47,7 +46,7 @@ def energies_against_truth(model, seq, truth, records, every: int) -> None:
         e_truth = full_energy(model, data, t.params)
         lower += e_truth < r["energy"]
         print(f"frame {r['frame']:5d}  fit {r['energy']:7d}  truth {e_truth:7d}  "
-              f"{100.0 * (r['energy'] - e_truth) / e_truth:+5.1f}%  error {joint_error_mm(model, np.array(r['params']), t):5.1f} mm")
+              f"{100.0 * (r['energy'] - e_truth) / e_truth:+5.1f}%  error {joint_error_mm(model, r['params'], t):5.1f} mm")
     print(f"the truth's energy is lower in {lower} of {len(records[::every])} frames")
 
 
@@ -71,10 +70,7 @@ def restart_from_truth(model, seq, records, start: int, options: FitOptions) -> 
     with tempfile.TemporaryDirectory() as tmp:
         part = Path(tmp) / "sequence"
         part.mkdir()
-        meta = json.loads((seq.path / "sequence.json").read_text())
-        meta["frames"] = frames[k:]
-        meta.pop("source_frames", None)
-        (part / "sequence.json").write_text(json.dumps(meta))
+        write_sequence_meta(part, frames[k:], seq.fps, seq.studio.names)
         for name in ("calibration.json", "truth.jsonl"):
             shutil.copy(seq.path / name, part / name)
         (part / "silhouettes").symlink_to((seq.path / "silhouettes").resolve())
@@ -83,7 +79,7 @@ def restart_from_truth(model, seq, records, start: int, options: FitOptions) -> 
     late = again["per_frame_error_mm"][-WINDOW:]
     whole = [r for r in records if r["frame"] in frames[-WINDOW:]]
     truth = seq.truth()
-    tracked = [joint_error_mm(model, np.array(r["params"]), truth[r["frame"]]) for r in whole]
+    tracked = [joint_error_mm(model, r["params"], truth[r["frame"]]) for r in whole]
     print(f"last {WINDOW} frames: {np.mean(tracked):.1f} mm tracked from frame {frames[0]}, "
           f"{np.mean(late):.1f} mm tracked from the truth at frame {start}")
 
@@ -105,7 +101,7 @@ def main(argv=None) -> int:
     options = FitOptions.from_wire(json.loads((args.result / "summary.json").read_text())["options"])
     energies_against_truth(model, seq, truth, records, args.every)
     lag(truth, records)
-    errors = [joint_error_mm(model, np.array(r["params"]), truth[r["frame"]]) for r in records]
+    errors = [joint_error_mm(model, r["params"], truth[r["frame"]]) for r in records]
     print(f"first {WINDOW} / last {WINDOW} frames: {np.mean(errors[:WINDOW]):.1f} / {np.mean(errors[-WINDOW:]):.1f} mm")
     if args.restart_at is not None:
         restart_from_truth(model, seq, records, args.restart_at, options)
