@@ -69,6 +69,7 @@ class FitOptions:
     turn_hypotheses: int = 2            # also fit from the start turned by -+1..n turn steps about the vertical
     turn_step_rad: float = 0.15
     polish_iterations: int = 2          # further rounds for the best hypothesis, while the energy still falls
+    refine_passes: int = 1              # after tracking, passes over all frames (backward, forward, ...): see server.session
 
     def __post_init__(self):
         if self.energy not in ENERGY_BACKENDS:
@@ -83,6 +84,8 @@ class FitOptions:
             raise ValueError(f"max_iterations must be 1..{REDETECT_ROUND - 1}, got {self.max_iterations}")
         if self.polish_iterations < 0:
             raise ValueError(f"polish_iterations must be >= 0, got {self.polish_iterations}")
+        if self.refine_passes < 0:
+            raise ValueError(f"refine_passes must be >= 0, got {self.refine_passes}")
         if self.turn_hypotheses < 0:
             raise ValueError(f"turn_hypotheses must be >= 0, got {self.turn_hypotheses}")
         if not 0.0 < self.turn_step_rad * max(self.turn_hypotheses, 1) < np.pi:

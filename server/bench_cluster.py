@@ -130,7 +130,7 @@ def bench_cluster(sequence, frames: int | None = None, clients: int = DEFAULT_CL
     ``xor``); return the comparison."""
     model = load_body_model()
     seq = load_sequence(Path(sequence))
-    options = options or FitOptions()
+    options = options or FitOptions(refine_passes=0)  # the paper's Table 2 times tracking
     with tempfile.TemporaryDirectory(prefix="bench-cluster-") as tmp:
         root = Path(out) if out else Path(tmp)
 

@@ -52,9 +52,12 @@ def main(argv=None) -> int:
         report = write_report(result, seq)
     print()
     print(f"  {'frames':22} {summary['frames']}")
-    print(f"  {'seconds per frame':22} {summary['seconds_per_frame']:.3f} (median, {summary['mode']})")
-    print(f"  {'mean joint error':22} {summary['mean_joint_error_mm']:.1f} mm")
-    print(f"  {'max joint error':22} {summary['max_joint_error_mm']:.1f} mm")
+    print(f"  {'seconds per frame':22} {summary['seconds_per_frame']:.3f} (tracking, median, {summary['mode']}) "
+          f"+ {summary['refine_seconds_per_frame']:.3f} (refinement)")
+    print(f"  {'mean joint error':22} {summary['mean_joint_error_mm']:.1f} mm "
+          f"(tracking alone {summary['tracking_mean_joint_error_mm']:.1f} mm)")
+    print(f"  {'max joint error':22} {summary['max_joint_error_mm']:.1f} mm "
+          f"(tracking alone {summary['tracking_max_joint_error_mm']:.1f} mm)")
     print(f"  {'result':22} {result}/ (poses.jsonl, motion.bvh, summary.json)")
     if report:
         print(f"  {'report':22} {report}")

@@ -10,7 +10,7 @@ from common.fitting import FitOptions
 from common.sequence import load_sequence
 from server.cluster import LOCAL_BIND, ClusterSolver
 from server.session import run_fit
-from test_cluster_support import (HEARTBEAT, PY, ROOT, THREAD_HEARTBEAT, env, poses, records, reference_fit,
+from test_cluster_support import (HEARTBEAT, PY, ROOT, THREAD_HEARTBEAT, TRACKING_ONLY, env, poses, records, reference_fit,
                                   thread_workers)
 
 TOLERANCE = 1e-9
@@ -30,7 +30,7 @@ def reference(seq_path, tmp_path_factory):
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize("n", [1, 2, 4, 6])
 def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
-    options = FitOptions()
+    options = FitOptions(refine_passes=0)
     solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     try:
         with thread_workers(model, solver.endpoint, n) as workers:
@@ -59,12 +59,34 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     assert all(w.dropped == {} for w in workers)
 
 
+@pytest.mark.timeout(120)
+def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_path):
+    """Tracking, then a backward and a forward pass, with two clients: each frame's poses and
+    which frames the passes replaced are the single process's."""
+    from server.session import LocalSolver
+
+    options = FitOptions(refine_passes=2)
+    seq = load_sequence(seq_path)
+    single = run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options), max_frames=EQUAL_FRAMES)
+    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    try:
+        with thread_workers(model, solver.endpoint, 2):
+            solver.wait_for_clients(2, timeout=10)
+            cluster = run_fit(model, seq, tmp_path / "cluster", options, solver, max_frames=EQUAL_FRAMES)
+    finally:
+        solver.close(shutdown="done")
+    np.testing.assert_array_equal(poses(tmp_path / "cluster"), poses(tmp_path / "single"))
+    assert [p["frames_replaced"] for p in cluster["refinement_passes"]] == \
+        [p["frames_replaced"] for p in single["refinement_passes"]]
+    assert [p["direction"] for p in cluster["refinement_passes"]] == ["backward", "forward"]
+
+
 @pytest.mark.timeout(90)
 def test_two_hypotheses_same_poses_as_single_process(model, seq_path, tmp_path):
     """Both schedules dispatch the same frame's iteration 0 in turn: the rounds must not mix."""
     from server.session import LocalSolver
 
-    options = FitOptions(hypotheses=2)
+    options = FitOptions(hypotheses=2, refine_passes=0)
     seq = load_sequence(seq_path)
     run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options), max_frames=EQUAL_FRAMES)
     solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
@@ -113,7 +135,7 @@ def test_with_no_clients_the_server_solves_everything(model, seq_path, reference
 def test_mocap_fit_with_local_clients(seq_path, reference, tmp_path):
     out = tmp_path / "fit"
     proc = subprocess.run([PY, "-m", "server.cli", "fit", str(seq_path), "--out", str(out), "--clients", "2",
-                           "--heartbeat", str(HEARTBEAT), "--quiet"],
+                           "--heartbeat", str(HEARTBEAT), "--quiet", *TRACKING_ONLY],
                           cwd=ROOT, env=env(), capture_output=True, text=True, timeout=50)
     assert proc.returncode == 0, proc.stderr
     assert np.abs(poses(out) - reference).max() <= TOLERANCE

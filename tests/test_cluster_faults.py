@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from test_cluster_support import (FRAMES, HEARTBEAT, PY, ROOT, alive, children, env, free_port, poses, records,
+from test_cluster_support import (FRAMES, HEARTBEAT, PY, ROOT, TRACKING_ONLY, alive, children, env, free_port, poses, records,
                                   reference_fit, start_client, start_server, stop, wait_for)
 
 TOLERANCE = 1e-9
@@ -124,7 +124,7 @@ def test_client_joins_late(seq_path, reference, tmp_path):
 def test_sigterm_stops_everything_and_resume_finishes(seq_path, reference, tmp_path):
     out = tmp_path / "out"
     cmd = [PY, "-m", "server.cli", "fit", str(seq_path), "--out", str(out), "--clients", "2",
-           "--heartbeat", str(HEARTBEAT), "--quiet"]
+           "--heartbeat", str(HEARTBEAT), "--quiet", *TRACKING_ONLY]
     with open(tmp_path / "fit.log", "w") as log:
         fit = subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=log, stderr=log)
     try:

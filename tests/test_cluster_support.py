@@ -21,17 +21,20 @@ HEARTBEAT = 0.3  # seconds: fast failure detection in tests with client processe
 # in-thread workers share the GIL with the server's fits: a slower beat, so none is taken for dead
 THREAD_HEARTBEAT = 1.0
 FRAMES = 3  # conftest.SMALL_FRAMES
+# faults are tested while tracking; the refinement passes solve through the same solver, and
+# tests/test_cluster.py checks that they too give the single process's poses
+TRACKING_ONLY = ("--refine-passes", "0")
 
 
 def reference_fit(seq_path: Path, out: Path, max_frames: int | None = None) -> np.ndarray:
-    """(F, 35) poses of the single-process fit with default options (what the CLI uses)."""
+    """(F, 35) poses of the single-process fit with default options (what the CLI uses), tracking only."""
     from common.body import load_body_model
     from common.fitting import FitOptions
     from common.sequence import load_sequence
     from server.session import LocalSolver, run_fit
 
     model = load_body_model()
-    options = FitOptions()
+    options = FitOptions(refine_passes=0)
     run_fit(model, load_sequence(seq_path), out, options, LocalSolver(model, options), max_frames=max_frames)
     return poses(out)
 
@@ -96,7 +99,8 @@ def start_client(endpoint: str, name: str, log: Path, *extra: str) -> subprocess
 def start_server(seq: Path, out: Path, port: int, log: Path, *extra: str) -> subprocess.Popen:
     with open(log, "a") as fh:
         return subprocess.Popen([PY, "-m", "server.cli", "server", str(seq), "--out", str(out), "--bind",
-                                 f"tcp://127.0.0.1:{port}", "--heartbeat", str(HEARTBEAT), "--quiet", *extra],
+                                 f"tcp://127.0.0.1:{port}", "--heartbeat", str(HEARTBEAT), "--quiet", *TRACKING_ONLY,
+                                 *extra],
                                 cwd=ROOT, env=env(), stdout=fh, stderr=fh)
 
 

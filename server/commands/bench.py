@@ -39,6 +39,8 @@ def register(sub) -> None:
     acc.add_argument("--turn-step", type=float, default=None, metavar="RAD",
                      help="as mocap fit --turn-step (default: its default)")
     acc.add_argument("--no-redetect", action="store_true", help="as mocap fit --no-redetect")
+    acc.add_argument("--refine-passes", type=int, default=None, metavar="N",
+                     help="as mocap fit --refine-passes (default: its default)")
     acc.add_argument("--energy", default="cpu",
                      help="energy backends to compare on the same sequences, comma separated (e.g. cpu,volume)")
     acc.add_argument("--json", type=Path, default=None)
@@ -103,12 +105,13 @@ def run(args) -> int:
             from common.fitting import FitOptions
 
             rows = []
-            turns = {name: value for name, value in (("turn_hypotheses", args.turn_hypotheses),
-                                                     ("turn_step_rad", args.turn_step)) if value is not None}
+            chosen = {name: value for name, value in (("turn_hypotheses", args.turn_hypotheses),
+                                                     ("turn_step_rad", args.turn_step),
+                                                     ("refine_passes", args.refine_passes)) if value is not None}
             for backend in [b for b in args.energy.split(",") if b]:
                 try:
                     options = FitOptions(energy=backend, hypotheses=args.hypotheses,
-                                         redetect_limbs=not args.no_redetect, **turns)
+                                         redetect_limbs=not args.no_redetect, **chosen)
                 except ValueError as exc:
                     raise UserError(f"bad option: {exc}") from None
                 rows += benchmarks.accuracy_rows(args.frames, Path(tmp), options=options)

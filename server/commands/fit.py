@@ -35,6 +35,10 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--polish-iterations", type=int, default=FitOptions.polish_iterations, metavar="N",
                    help="then up to N more rounds for the best of them while the energy still falls "
                         f"(default {FitOptions.polish_iterations}; 0: off)")
+    p.add_argument("--refine-passes", type=int, default=FitOptions.refine_passes, metavar="N",
+                   help="after tracking, fit every frame again N times, backwards then forwards alternately, each "
+                        f"from its neighbour's fit, keeping the lower energy (default {FitOptions.refine_passes}; "
+                        "0: tracking only, half the time)")
     p.add_argument("--turn-step", type=float, default=FitOptions.turn_step_rad, metavar="RAD",
                    help=f"the turn step, rad (default {FitOptions.turn_step_rad})")
     p.add_argument("--no-redetect", action="store_true",
@@ -54,6 +58,7 @@ def options_from_args(args) -> FitOptions:
                           grid_range_rad=args.grid_range, prerender=not args.no_prerender,
                           hypotheses=args.hypotheses, turn_hypotheses=args.turn_hypotheses,
                           turn_step_rad=args.turn_step, polish_iterations=args.polish_iterations,
+                          refine_passes=args.refine_passes,
                           redetect_limbs=not args.no_redetect)
     except ValueError as exc:  # a value out of range: say which option
         raise UserError(f"bad fit option: {exc}") from None
@@ -77,9 +82,16 @@ def print_summary(summary: dict, out) -> None:
             ("energy", summary["energy_backend"]),
             ("s/frame (median)", f"{summary['seconds_per_frame']:.3f}" if summary["seconds_per_frame"] else "-"),
             ("evaluations/frame", f"{summary['evaluations_per_frame']:.0f}" if summary["evaluations_per_frame"] else "-")]
+    passes = summary.get("refinement_passes") or []
+    if passes:
+        rows.append(("refinement s/frame", f"{summary['refine_seconds_per_frame']:.3f} ({len(passes)} "
+                                           f"pass{'es' if len(passes) > 1 else ''}, {summary['frames_refined']} "
+                                           f"frames improved)"))
     if "mean_joint_error_mm" in summary:
-        rows += [("mean joint error", f"{summary['mean_joint_error_mm']:.1f} mm"),
-                 ("max joint error", f"{summary['max_joint_error_mm']:.1f} mm")]
+        tracked = (f" (tracking alone {summary['tracking_mean_joint_error_mm']:.1f} / "
+                   f"{summary['tracking_max_joint_error_mm']:.1f} mm)" if passes else "")
+        rows += [("mean / max joint error", f"{summary['mean_joint_error_mm']:.1f} / "
+                                            f"{summary['max_joint_error_mm']:.1f} mm{tracked}")]
     rows += _cluster_rows(summary)
     width = max(len(k) for k, _ in rows)
     for k, v in rows:

@@ -1,0 +1,33 @@
+"""mocap bench fit / accuracy rows: their schema, and tracking scored apart from refinement."""
+import pytest
+
+from common.fitting import FitOptions
+
+
+@pytest.mark.timeout(300)
+def test_fit_rows_time_tracking_and_the_refinement_from_one_run(tmp_path):
+    from server import benchmarks
+    from server.commands.bench import bench_sequence
+
+    rows = benchmarks.fit_rows(bench_sequence(2, tmp_path), frames=2)
+    by_mode = {r["mode"]: r for r in rows}
+    assert list(by_mode) == ["single_xorpr", "single_xorpr_refined", "single_xor", "single_xorpr_no_turn_hypotheses",
+                             "single_xorpr_no_polish", "single_xorpr_2_hypotheses"]
+    for r in rows:
+        assert set(r) >= {"mode", "energy_backend", "seconds_per_frame", "paper_seconds_per_frame"}
+        assert r["seconds_per_frame"] > 0 and r["frames"] == 2
+    assert by_mode["single_xorpr"]["paper_seconds_per_frame"] == benchmarks.PAPER_TABLE2["single_xorpr"]
+    assert by_mode["single_xorpr_refined"]["seconds_per_frame"] > by_mode["single_xorpr"]["seconds_per_frame"]
+
+
+@pytest.mark.timeout(300)
+def test_accuracy_rows_score_the_result_and_tracking_alone(tmp_path):
+    from server import benchmarks
+
+    options = FitOptions(max_iterations=1, turn_hypotheses=0, refine_passes=1)
+    (row,) = benchmarks.accuracy_rows(3, tmp_path, clips=("cmu_12_01_walk.bvh",), options=options)
+    assert row["frames"] == 3 and row["refine_passes"] == 1
+    for prefix in ("", "tracking_"):
+        assert 0 < row[f"{prefix}mean_joint_error_mm"] <= row[f"{prefix}max_joint_error_mm"] < 100
+        assert row[f"{prefix}first20_mean_mm"] == pytest.approx(row[f"{prefix}mean_joint_error_mm"])  # 3 frames
+    assert row["refine_seconds_per_frame"] > 0
