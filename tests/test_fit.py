@@ -313,6 +313,28 @@ def test_mocap_fit_writes_the_result_folder(fresh_result, small_loaded):
     assert motion.num_frames == 2
 
 
+def test_the_summary_table_shows_refinement_beside_tracking(fresh_result):
+    import io
+
+    from server.commands.fit import print_summary
+
+    summary = json.loads((fresh_result / "summary.json").read_text())
+    out = io.StringIO()
+    print_summary(summary, out)
+    table = out.getvalue()
+    assert f"{summary['refine_seconds_per_frame']:.3f} (1 pass, {summary['frames_refined']} frames improved)" in table
+    assert (f"{summary['mean_joint_error_mm']:.1f} / {summary['max_joint_error_mm']:.1f} mm (tracking alone "
+            f"{summary['tracking_mean_joint_error_mm']:.1f} / {summary['tracking_max_joint_error_mm']:.1f} mm)") in table
+    out = io.StringIO()
+    print_summary({**summary, "refinement_passes": []}, out)
+    assert "refinement" not in out.getvalue() and "tracking alone" not in out.getvalue()
+
+
+def test_fit_refuses_negative_refine_passes(small_sequence, tmp_path, capsys):
+    assert fit(small_sequence, tmp_path / "r", "--refine-passes", "-1") == 2
+    assert "refine_passes" in capsys.readouterr().err
+
+
 def test_mocap_fit_resume_after_a_crash(fresh_result, small_sequence, tmp_path):
     fresh = (fresh_result / "poses.jsonl").read_text().splitlines(keepends=True)
     out = tmp_path / "result"
