@@ -51,7 +51,7 @@ HEARTBEAT_LIVENESS = 3  # silent intervals before the server counts as gone
 RECONNECT_MIN = 1.0  # seconds before the first reconnect; doubles after every failed one
 RECONNECT_MAX = 32.0  # seconds
 MAX_SLEEP = 1.0  # seconds the main loop sleeps at most (it wakes for messages, results and stop())
-FRAMES_KEPT = 2  # FRAME messages cached: the current frame and the one before
+FRAMES_KEPT = 2  # FRAME messages cached: the current frame and the one received before
 
 # energy backends this client can try (a failing one is reported as an ERROR, and the server
 # then solves those chains itself)
@@ -281,10 +281,12 @@ class Worker:
         elif not self.session or msg.session != self.session:
             self._drop("stale", f"{msg.TYPE} for session {msg.session!r}, ours is {self.session!r}")
         elif isinstance(msg, Frame):
+            # the most recently received are kept, not the highest numbered: refinement goes backwards
+            self._frames.pop((msg.session, msg.frame), None)
             self._frames[(msg.session, msg.frame)] = msg
             self._jobs.put(_Job(msg.session, msg, None))  # unpack it while the server fits the torso
-            for key in sorted(self._frames, key=lambda k: k[1])[:-FRAMES_KEPT]:
-                del self._frames[key]
+            while len(self._frames) > FRAMES_KEPT:
+                del self._frames[next(iter(self._frames))]
         else:
             frame = self._frames.get((msg.session, msg.frame))
             if frame is None:

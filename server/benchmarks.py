@@ -157,6 +157,7 @@ def print_energy_table(rows: list[dict]) -> None:
 
 
 ACCURACY_CLIPS = ("cmu_12_01_walk.bvh", "05_10.bvh", "06_08.bvh")  # walk, dance, basketball (bundled)
+MAX_ERROR_TARGET_MM = 40.0  # issue 3: no joint further off in any frame
 
 
 def accuracy_rows(frames: int, workdir: Path, clips=ACCURACY_CLIPS, options: FitOptions | None = None,
@@ -186,7 +187,10 @@ def accuracy_rows(frames: int, workdir: Path, clips=ACCURACY_CLIPS, options: Fit
             row.update({f"{prefix}mean_joint_error_mm": summary[f"{prefix}mean_joint_error_mm"],
                         f"{prefix}max_joint_error_mm": summary[f"{prefix}max_joint_error_mm"],
                         f"{prefix}first20_mean_mm": float(np.mean(per_frame[:20])),
-                        f"{prefix}last20_mean_mm": float(np.mean(per_frame[-20:]))})
+                        f"{prefix}last20_mean_mm": float(np.mean(per_frame[-20:])),
+                        # a max over target from one bad stretch or from many frames
+                        f"{prefix}frames_over_max_target": sum(
+                            v > MAX_ERROR_TARGET_MM for v in summary[f"{prefix}per_frame_max_error_mm"])})
         rows.append({**row, "seconds_per_frame": summary["seconds_per_frame"],
                      "refine_seconds_per_frame": summary["refine_seconds_per_frame"],
                      "per_joint_error_mm": summary["per_joint_error_mm"]})

@@ -304,6 +304,7 @@ def accuracy(records: list[dict], truth: dict | None) -> dict:
         "max_joint_error_mm": float(E.max()),
         "per_joint_error_mm": {n: float(v) for n, v in zip(JOINT_NAMES, E.mean(axis=0))},
         "per_frame_error_mm": [float(v) for v in per_frame],
+        "per_frame_max_error_mm": [float(v) for v in E.max(axis=1)],
     }
 
 

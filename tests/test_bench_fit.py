@@ -30,4 +30,6 @@ def test_accuracy_rows_score_the_result_and_tracking_alone(tmp_path):
     for prefix in ("", "tracking_"):
         assert 0 < row[f"{prefix}mean_joint_error_mm"] <= row[f"{prefix}max_joint_error_mm"] < 100
         assert row[f"{prefix}first20_mean_mm"] == pytest.approx(row[f"{prefix}mean_joint_error_mm"])  # 3 frames
+        over = row[f"{prefix}frames_over_max_target"]
+        assert 0 <= over <= 3 and (over > 0) == (row[f"{prefix}max_joint_error_mm"] > 40.0)
     assert row["refine_seconds_per_frame"] > 0

@@ -308,6 +308,7 @@ def test_mocap_fit_writes_the_result_folder(fresh_result, small_loaded):
                       for n in JOINT_NAMES] for r in records])
     assert summary["mean_joint_error_mm"] == pytest.approx(errs.mean(), rel=1e-9)
     assert summary["max_joint_error_mm"] == pytest.approx(errs.max(), rel=1e-9)
+    assert summary["per_frame_max_error_mm"] == pytest.approx(errs.max(axis=1), rel=1e-9)
     assert summary["mean_joint_error_mm"] < MEAN_JOINT_ERROR_MM
     motion = read_bvh(fresh_result / "motion.bvh")
     assert motion.num_frames == 2
