@@ -122,11 +122,12 @@ def fit_rows(sequence: Path, frames: int) -> list[dict]:
     model = load_body_model()
     seq = load_sequence(sequence)
     rows = []
+    tracking = FitOptions(refine_passes=0)
     for label, options, paper in (("single_xorpr", FitOptions(), PAPER_TABLE2["single_xorpr"]),
-                                  ("single_xor", FitOptions(prerender=False, refine_passes=0), PAPER_TABLE2["single_xor"]),
-                                  ("single_xorpr_no_turn_hypotheses", FitOptions(turn_hypotheses=0, refine_passes=0), None),
-                                  ("single_xorpr_no_polish", FitOptions(polish_iterations=0, refine_passes=0), None),
-                                  ("single_xorpr_2_hypotheses", FitOptions(hypotheses=2, refine_passes=0), None)):
+                                  ("single_xor", replace(tracking, prerender=False), PAPER_TABLE2["single_xor"]),
+                                  ("single_xorpr_no_turn_hypotheses", replace(tracking, turn_hypotheses=0), None),
+                                  ("single_xorpr_no_polish", replace(tracking, polish_iterations=0), None),
+                                  ("single_xorpr_2_hypotheses", replace(tracking, hypotheses=2), None)):
         out = Path(os.environ.get("TMPDIR", "/tmp")) / f"mocap-bench-{label}-{os.getpid()}"
         summary = run_fit(model, seq, out, options, LocalSolver(model, options), max_frames=frames)
         row = {"mode": label, "energy_backend": "cpu", "seconds_per_frame": summary["seconds_per_frame"],

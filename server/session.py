@@ -333,7 +333,8 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
             t0 = time.perf_counter()
             data = FrameData(model, seq.studio, seq.silhouettes(r["frame"]))
             solver.begin_frame(r["frame"], data, neighbour, options)
-            again = fit_frame(model, data, neighbour, options, solver.solve, extra_starts=tilted_ahead(neighbour, beyond))
+            again = fit_frame(model, data, neighbour, options, solver.solve,
+                              extra_starts=tilted_ahead(neighbour, beyond))
             stats.add_chains(again.chains)
             r["refine_seconds"] = r.get("refine_seconds", 0.0) + time.perf_counter() - t0
             r["refine_evaluations"] = r.get("refine_evaluations", 0) + again.evaluations

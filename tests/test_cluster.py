@@ -10,8 +10,8 @@ from common.fitting import FitOptions
 from common.sequence import load_sequence
 from server.cluster import LOCAL_BIND, ClusterSolver
 from server.session import run_fit
-from test_cluster_support import (HEARTBEAT, PY, ROOT, THREAD_HEARTBEAT, TRACKING_ONLY, env, poses, records, reference_fit,
-                                  thread_workers)
+from test_cluster_support import (HEARTBEAT, PY, ROOT, THREAD_HEARTBEAT, TRACKING_ONLY, env, poses, records,
+                                  reference_fit, thread_workers)
 
 TOLERANCE = 1e-9
 EQUAL_FRAMES = 2  # of the small sequence's FRAMES: a second frame sends a second FRAME

@@ -325,7 +325,8 @@ def test_the_summary_table_shows_refinement_beside_tracking(fresh_result):
     table = out.getvalue()
     assert f"{summary['refine_seconds_per_frame']:.3f} (1 pass, {summary['frames_refined']} frames improved)" in table
     assert (f"{summary['mean_joint_error_mm']:.1f} / {summary['max_joint_error_mm']:.1f} mm (tracking alone "
-            f"{summary['tracking_mean_joint_error_mm']:.1f} / {summary['tracking_max_joint_error_mm']:.1f} mm)") in table
+            f"{summary['tracking_mean_joint_error_mm']:.1f} / "
+            f"{summary['tracking_max_joint_error_mm']:.1f} mm)") in table
     out = io.StringIO()
     print_summary({**summary, "refinement_passes": []}, out)
     assert "refinement" not in out.getvalue() and "tracking alone" not in out.getvalue()
