@@ -74,6 +74,19 @@ def test_mocap_report_writes_page_and_pictures(fitted, capsys):
     assert "report.html" in capsys.readouterr().out
 
 
+def test_summary_shows_refinement_beside_tracking(fitted):
+    from server.pictures import load_result
+    from server.report import summary_rows
+
+    seq, res = fitted
+    summary = json.loads((res / "summary.json").read_text())
+    rows = dict(summary_rows(load_result(res, seq)))
+    assert rows["refinement seconds per frame"] == (f"{summary['refine_seconds_per_frame']:.3f} s (1 pass, "
+                                                    f"{summary['frames_refined']} frames improved)")
+    assert rows["tracking alone, mean / max joint error"] == (f"{summary['tracking_mean_joint_error_mm']:.1f} / "
+                                                              f"{summary['tracking_max_joint_error_mm']:.1f} mm")
+
+
 def test_page_is_self_contained(report):
     text = report.read_text()
     assert not re.search(r"""(src|href)\s*=\s*["']?(https?:)?//""", text)
