@@ -27,6 +27,7 @@ from server.pictures import (
     BONES, AGREE, EXTRA, MISSED, ModelPainter, ResultData, camera_indices, default_cameras,
     default_frames, fit_height, worst_frame, load_result, make_plots, model_views, overlay_strip, png_bytes,
 )
+from server.session import refinement_note, tracking_error_note
 
 REPORT_NAME = "report.html"
 STRIP_HEIGHT = 180     # pixels per camera picture in the overlay strips
@@ -79,15 +80,13 @@ def summary_rows(result: ResultData) -> list[tuple[str, str]]:
         rows.append(("mode", f"{s['mode']} ({s.get('clients', 0)} clients)"))
     if "energy_backend" in s:
         rows.append(("energy backend", s["energy_backend"]))
-    passes = len(s.get("refinement_passes") or [])
+    refined = bool(s.get("refinement_passes"))
     rows += [
         ("seconds per frame (median)", _fmt(s.get("seconds_per_frame"), ".3f", " s")),
         ("seconds per frame (mean)", _fmt(s.get("mean_seconds_per_frame"), ".3f", " s")),
         ("wall time", _fmt(s.get("wall_seconds"), ".1f", " s")),
         *([("refinement seconds per frame", _fmt(s.get("refine_seconds_per_frame"), ".3f",
-                                                 f" s ({passes} pass{'es' if passes > 1 else ''}, "
-                                                 f"{s.get('frames_refined', 0)} frames improved)"))]
-          if passes else []),
+                                                 f" s {refinement_note(s)}"))] if refined else []),
         ("evaluations per frame", _fmt(s.get("evaluations_per_frame"), ".0f")),
         ("mean energy (XOR pixels)", _fmt(float(np.nanmean(result.energies)), ".0f")),
     ]
@@ -95,9 +94,8 @@ def summary_rows(result: ResultData) -> list[tuple[str, str]]:
     if err is not None:
         rows += [("mean joint error", _fmt(float(np.nanmean(err)), ".1f", " mm")),
                  ("max joint error", _fmt(float(np.nanmax(err)), ".1f", " mm"))]
-        if passes and "tracking_mean_joint_error_mm" in s:
-            rows.append(("tracking alone, mean / max joint error",
-                         f"{s['tracking_mean_joint_error_mm']:.1f} / {s['tracking_max_joint_error_mm']:.1f} mm"))
+        if refined and "tracking_mean_joint_error_mm" in s:
+            rows.append(("tracking alone, mean / max joint error", tracking_error_note(s)))
     else:
         rows.append(("joint error", "no truth.jsonl in the sequence"))
     if result.sequence is not None:

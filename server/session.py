@@ -470,6 +470,17 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     return summary
 
 
+def refinement_note(summary: dict) -> str:
+    """'(N passes, K frames improved)' for a summary whose run refined (``mocap fit``'s table, the report)."""
+    n = len(summary["refinement_passes"])
+    return f"({n} pass{'es' if n > 1 else ''}, {summary.get('frames_refined', 0)} frames improved)"
+
+
+def tracking_error_note(summary: dict) -> str:
+    """'MEAN / MAX mm': a refined run's joint error as tracking left its frames."""
+    return f"{summary['tracking_mean_joint_error_mm']:.1f} / {summary['tracking_max_joint_error_mm']:.1f} mm"
+
+
 def load_records(out_dir: Path) -> list[dict]:
     path = Path(out_dir) / POSES_FILE
     if not path.exists():

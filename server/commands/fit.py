@@ -12,7 +12,7 @@ from common.fitting import ENERGY_BACKENDS, FitOptions
 from common.sequence import load_sequence
 from server.cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.progress import Progress
-from server.session import LocalSolver, load_records, run_fit
+from server.session import LocalSolver, load_records, refinement_note, run_fit, tracking_error_note
 
 INIT_CHOICES = ("auto", "truth", "standing")
 
@@ -82,14 +82,11 @@ def print_summary(summary: dict, out) -> None:
             ("energy", summary["energy_backend"]),
             ("s/frame (median)", f"{summary['seconds_per_frame']:.3f}" if summary["seconds_per_frame"] else "-"),
             ("evaluations/frame", f"{summary['evaluations_per_frame']:.0f}" if summary["evaluations_per_frame"] else "-")]
-    passes = summary.get("refinement_passes") or []
-    if passes:
-        rows.append(("refinement s/frame", f"{summary['refine_seconds_per_frame']:.3f} ({len(passes)} "
-                                           f"pass{'es' if len(passes) > 1 else ''}, {summary['frames_refined']} "
-                                           f"frames improved)"))
+    refined = bool(summary.get("refinement_passes"))
+    if refined:
+        rows.append(("refinement s/frame", f"{summary['refine_seconds_per_frame']:.3f} {refinement_note(summary)}"))
     if "mean_joint_error_mm" in summary:
-        tracked = (f" (tracking alone {summary['tracking_mean_joint_error_mm']:.1f} / "
-                   f"{summary['tracking_max_joint_error_mm']:.1f} mm)" if passes else "")
+        tracked = f" (tracking alone {tracking_error_note(summary)})" if refined else ""
         rows += [("mean / max joint error", f"{summary['mean_joint_error_mm']:.1f} / "
                                             f"{summary['max_joint_error_mm']:.1f} mm{tracked}")]
     rows += _cluster_rows(summary)
