@@ -70,6 +70,7 @@ class FitOptions:
     turn_step_rad: float = 0.15
     polish_iterations: int = 2          # further rounds for the best hypothesis, while the energy still falls
     refine_passes: int = 1              # after tracking, passes over all frames (backward, forward, ...): see server.session
+    refine_search: bool = False         # the first pass also refits each frame from each limb's other basins (slow)
 
     def __post_init__(self):
         if self.energy not in ENERGY_BACKENDS:
@@ -86,6 +87,8 @@ class FitOptions:
             raise ValueError(f"polish_iterations must be >= 0, got {self.polish_iterations}")
         if self.refine_passes < 0:
             raise ValueError(f"refine_passes must be >= 0, got {self.refine_passes}")
+        if self.refine_search and not self.refine_passes:
+            raise ValueError("refine_search needs refine_passes >= 1: the search runs in the first pass")
         if self.turn_hypotheses < 0:
             raise ValueError(f"turn_hypotheses must be >= 0, got {self.turn_hypotheses}")
         if not 0.0 < self.turn_step_rad * max(self.turn_hypotheses, 1) < np.pi:

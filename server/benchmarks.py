@@ -182,7 +182,7 @@ def accuracy_rows(frames: int, workdir: Path, clips=ACCURACY_CLIPS, options: Fit
         summary = run_fit(model, load_sequence(seq_dir), workdir / f"result-{Path(clip).stem}-{options.energy}", options,
                           LocalSolver(model, options), progress=progress)
         row = {"clip": clip, "energy_backend": options.energy, "frames": summary["frames"],
-               "refine_passes": options.refine_passes}
+               "refine_passes": options.refine_passes, "refine_search": options.refine_search}
         for prefix in ("", "tracking_"):
             per_frame = summary[f"{prefix}per_frame_error_mm"]
             row.update({f"{prefix}mean_joint_error_mm": summary[f"{prefix}mean_joint_error_mm"],

@@ -59,14 +59,16 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     assert all(w.dropped == {} for w in workers)
 
 
-@pytest.mark.timeout(180)
-def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_path):
-    """Tracking, then a backward and a forward pass, with two clients: each frame's poses and
-    which frames the passes replaced are the single process's. Three frames, so that going
-    backwards a client is sent a frame older than the two it holds."""
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("search", [False, True])
+def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_path, search):
+    """Tracking, then a backward and a forward pass (the first searching limbs' other basins,
+    or not), with two clients: each frame's poses and which frames the passes replaced are the
+    single process's. Three frames, so that going backwards a client is sent a frame older than
+    the two it holds."""
     from server.session import LocalSolver
 
-    options = FitOptions(refine_passes=2)
+    options = FitOptions(refine_passes=2, refine_search=search)
     seq = load_sequence(seq_path)
     single = run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options))
     solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)

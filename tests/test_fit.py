@@ -500,6 +500,41 @@ def test_a_refinement_pass_refits_a_spoilt_frame_from_its_neighbour(model, five_
 
 
 @pytest.mark.timeout(300)
+def test_a_searching_pass_refits_a_frame_from_its_limbs_other_basins(model, five_frames, tmp_path):
+    """The pass's first frame, which a plain pass keeps as it is, with its left forearm folded
+    back along the upper arm: the search refits it from the arm's other basins. run_fit searches
+    in its first pass only, and says so."""
+    from common.sequence import load_sequence
+    from server.session import LocalSolver, RunStats, refine_pass, refinement_note, run_fit
+
+    seq = load_sequence(five_frames)
+    options = FitOptions(refine_passes=2, refine_search=True)
+    summary = run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=3)
+    assert [(p["direction"], p["search"]) for p in summary["refinement_passes"]] == [("backward", True),
+                                                                                     ("forward", False)]
+    assert refinement_note(summary) == f"(2 passes, the first searching, {summary['frames_refined']} frames improved)"
+    records = read_lines(tmp_path / "poses.jsonl")
+    spoilt = np.array(records[-1]["params"])
+    spoilt[P["l_elbow"]] = PARAM_LIMITS[P["l_elbow"], 1]
+    data = FrameData(model, seq.studio, seq.silhouettes(records[-1]["frame"]))
+    records[-1].update(params=spoilt.tolist(), energy=full_energy(model, data, spoilt))
+    plain, _ = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats())
+    assert plain[-1] == records[-1]
+    searched, replaced = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats(),
+                                     search=True)
+    assert replaced >= 1 and searched[-1]["energy"] < records[-1]["energy"]
+    assert all(r["energy"] <= b["energy"] for r, b in zip(searched, records))
+    arm = [JOINT_NAMES.index("l_elbow"), JOINT_NAMES.index("l_wrist")]
+    truth = seq.truth()[searched[-1]["frame"]]
+    assert joint_errors_mm(model, np.array(searched[-1]["params"]), truth)[arm].max() < 50.0
+
+
+def test_fit_refuses_a_search_without_refinement_passes(small_sequence, tmp_path, capsys):
+    assert fit(small_sequence, tmp_path / "r", "--refine-search", "--refine-passes", "0") == 2
+    assert "refine_search" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(300)
 def test_refinement_passes_alternate_and_keep_the_tracking_fit_and_its_accuracy(model, five_frames, tmp_path):
     """Two passes after tracking: backward then forward, poses.jsonl rewritten with the lower
     energies, and the summary scoring both the refined frames and the frames as tracked."""

@@ -41,6 +41,7 @@ def register(sub) -> None:
     acc.add_argument("--no-redetect", action="store_true", help="as mocap fit --no-redetect")
     acc.add_argument("--refine-passes", type=int, default=None, metavar="N",
                      help="as mocap fit --refine-passes (default: its default)")
+    acc.add_argument("--refine-search", action="store_true", help="as mocap fit --refine-search")
     acc.add_argument("--energy", default="cpu",
                      help="energy backends to compare on the same sequences, comma separated (e.g. cpu,volume)")
     acc.add_argument("--json", type=Path, default=None)
@@ -107,7 +108,8 @@ def run(args) -> int:
             rows = []
             chosen = {name: value for name, value in (("turn_hypotheses", args.turn_hypotheses),
                                                      ("turn_step_rad", args.turn_step),
-                                                     ("refine_passes", args.refine_passes)) if value is not None}
+                                                     ("refine_passes", args.refine_passes),
+                                                     ("refine_search", args.refine_search or None)) if value is not None}
             for backend in [b for b in args.energy.split(",") if b]:
                 try:
                     options = FitOptions(energy=backend, hypotheses=args.hypotheses,

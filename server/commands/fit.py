@@ -39,6 +39,9 @@ def add_fit_arguments(p) -> None:
                    help="after tracking, fit every frame again N times, backwards then forwards alternately, each "
                         f"from its neighbour's fit, keeping the lower energy (default {FitOptions.refine_passes}; "
                         "0: tracking only, half the time)")
+    p.add_argument("--refine-search", action="store_true",
+                   help="the first refinement pass also fits every frame from each limb's other basins, as a "
+                        "first frame is: more accurate, about eight times tracking's time (offline work)")
     p.add_argument("--turn-step", type=float, default=FitOptions.turn_step_rad, metavar="RAD",
                    help=f"the turn step, rad (default {FitOptions.turn_step_rad})")
     p.add_argument("--no-redetect", action="store_true",
@@ -58,7 +61,7 @@ def options_from_args(args) -> FitOptions:
                           grid_range_rad=args.grid_range, prerender=not args.no_prerender,
                           hypotheses=args.hypotheses, turn_hypotheses=args.turn_hypotheses,
                           turn_step_rad=args.turn_step, polish_iterations=args.polish_iterations,
-                          refine_passes=args.refine_passes,
+                          refine_passes=args.refine_passes, refine_search=args.refine_search,
                           redetect_limbs=not args.no_redetect)
     except ValueError as exc:  # a value out of range: say which option
         raise UserError(f"bad fit option: {exc}") from None
