@@ -332,7 +332,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     With ``search``, each frame is also fitted from each limb's other basins around the better
     of its fits (``limb_alternative_fits``, as a first frame is): tracking and its neighbours
     can share a torso and limb that are off together (basketball frame 84: the left ankle 74 mm
-    off, an alternative leg 1.8% lower in energy). Seven times the cost of a plain pass.
+    off, an alternative leg 1.8% lower in energy). About nine times the cost of a plain pass.
     """
     out = [dict(r) for r in records]
     order = range(len(out) - 1, -1, -1) if backward else range(len(out))

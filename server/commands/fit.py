@@ -41,7 +41,7 @@ def add_fit_arguments(p) -> None:
                         "0: tracking only, half the time)")
     p.add_argument("--refine-search", action="store_true",
                    help="the first refinement pass also fits every frame from each limb's other basins, as a "
-                        "first frame is: more accurate, about eight times tracking's time (offline work)")
+                        "first frame is: more accurate, about nine times tracking's time (offline work)")
     p.add_argument("--turn-step", type=float, default=FitOptions.turn_step_rad, metavar="RAD",
                    help=f"the turn step, rad (default {FitOptions.turn_step_rad})")
     p.add_argument("--no-redetect", action="store_true",
