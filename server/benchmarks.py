@@ -220,7 +220,8 @@ def search_error_mm(model, record: dict, truth: dict) -> float:
     return float(joint_errors_mm(fitted, truth[record["frame"]]).mean())
 
 
-def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpose: bool = False) -> list[dict]:
+def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpose: bool = False,
+              options: FitOptions | None = None) -> list[dict]:
     """Automatic initialisation (issue 7): per clip, from frame 1 ("start", the first frame
     of motion), from a seeded random frame ("random") and, with ``tpose``, from frame 0
     ("tpose"), fit ``frames`` frames from the voxels (no truth) and from the truth.
@@ -237,7 +238,7 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
     from server.session import LocalSolver, load_records, run_fit
 
     model = load_body_model()
-    options = FitOptions()
+    options = options or FitOptions()
     rng = np.random.default_rng(seed)
     rows = []
     for clip in clips:
@@ -257,6 +258,7 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
             first = auto["per_frame_error_mm"][0]
             first_record = load_records(auto_dir)[0]
             rows.append({"clip": clip.name, "start": label, "start_frame": start, "frames": auto["frames"],
+                         "refine_search": options.refine_search,
                          "first_frame_error_mm": first, "first_frame_ok": bool(first <= INIT_TARGET_MM),
                          # the search's own first frame, before the backward refinement replaced it
                          "first_frame_search_error_mm": search_error_mm(model, first_record, seq.truth()),

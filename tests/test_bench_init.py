@@ -33,8 +33,8 @@ def captured(monkeypatch):
     """Replaces init_rows; records the clips and options it was called with."""
     calls = []
 
-    def fake(clips, frames, workdir, seed=0, tpose=False):
-        calls.append({"clips": list(clips), "frames": frames, "tpose": tpose})
+    def fake(clips, frames, workdir, seed=0, tpose=False, options=None):
+        calls.append({"clips": list(clips), "frames": frames, "tpose": tpose, "search": options.refine_search})
         return [_row(c.name, "start", 1, 30.0) for c in clips]
 
     monkeypatch.setattr(benchmarks, "init_rows", fake)
@@ -47,11 +47,11 @@ def test_bench_init_defaults_to_the_shared_clips(tmp_path, monkeypatch, captured
     (shared / "cmu" / "05_02.bvh").write_text("")
     monkeypatch.setattr(benchmarks, "SHARED_CLIPS", shared)
     assert main(["bench", "init", "--frames", "2", "--tpose", "--json", str(tmp_path / "rows.json")]) == 0
-    assert captured[-1] == {"clips": [shared / "cmu" / "05_02.bvh"], "frames": 2, "tpose": True}
+    assert captured[-1] == {"clips": [shared / "cmu" / "05_02.bvh"], "frames": 2, "tpose": True, "search": False}
     assert (tmp_path / "rows.json").exists()
     assert "05_02.bvh" in capsys.readouterr().out
-    assert main(["bench", "init", "--bundled"]) == 0
-    assert captured[-1]["clips"] == BUNDLED and not captured[-1]["tpose"]
+    assert main(["bench", "init", "--bundled", "--refine-search"]) == 0
+    assert captured[-1]["clips"] == BUNDLED and not captured[-1]["tpose"] and captured[-1]["search"]
 
 
 def test_bench_init_falls_back_to_the_bundled_clips(tmp_path, monkeypatch, captured):

@@ -51,6 +51,7 @@ def register(sub) -> None:
     ini.add_argument("--bundled", action="store_true", help="the bundled clips, even where shared data exists")
     ini.add_argument("--tpose", action="store_true", help="also start at frame 0 (the CMU clips' added T-pose)")
     ini.add_argument("--frames", type=int, default=10)
+    ini.add_argument("--refine-search", action="store_true", help="both runs as mocap fit --refine-search")
     ini.add_argument("--json", type=Path, default=None)
     a = bsub.add_parser("all", help="everything, into a folder of JSON files")
     a.add_argument("--out", type=Path, default=Path("bench"))
@@ -126,7 +127,10 @@ def run(args) -> int:
         if missing:
             raise UserError(f"{missing[0]}: no such clip")
         with tempfile.TemporaryDirectory() as tmp:
-            rows = benchmarks.init_rows(clips, args.frames, Path(tmp), tpose=args.tpose)
+            from common.fitting import FitOptions
+
+            rows = benchmarks.init_rows(clips, args.frames, Path(tmp), tpose=args.tpose,
+                                        options=FitOptions(refine_search=args.refine_search))
         if args.json:
             benchmarks.write_json(args.json, rows)
         benchmarks.print_init_table(rows)
