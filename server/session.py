@@ -342,30 +342,39 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
         r = out[i]
         if neighbour is not None or search:
             t0 = time.perf_counter()
-            data = FrameData(model, seq.studio, seq.silhouettes(r["frame"]))
-            fits = []
-            if neighbour is not None:
-                solver.begin_frame(r["frame"], data, neighbour, options)
-                fits.append(fit_frame(model, data, neighbour, options, solver.solve,
-                                      extra_starts=tilted_ahead(neighbour, beyond)))
-            if search:
-                better = fits[0].params if fits and fits[0].energy < r["energy"] else np.asarray(r["params"])
-                fits += limb_alternative_fits(model, data, r["frame"], better, options, solver)
-            again = lowest_energy(fits) if fits else None  # a searched frame may have no other basins
+            fits = _refits(model, seq, r, neighbour, beyond, options, solver, search)
             r["refine_seconds"] = r.get("refine_seconds", 0.0) + time.perf_counter() - t0
-            if again is not None:
+            if fits:  # a searched frame may have no neighbour and no other basins
+                again = lowest_energy(fits)
                 stats.add_chains(again.chains)
                 r["refine_evaluations"] = r.get("refine_evaluations", 0) + again.evaluations
-            if again is not None and again.energy < r["energy"]:
-                r.setdefault("first_pass", {"params": r["params"], "joints": r["joints"], "energy": r["energy"]})
-                r["params"] = [float(v) for v in again.params]
-                r["joints"] = joints_dict(forward_kinematics(model, again.params).joints[0])
-                r["energy"] = int(again.energy)
-                replaced += 1
+                if again.energy < r["energy"]:
+                    r.setdefault("first_pass", {"params": r["params"], "joints": r["joints"], "energy": r["energy"]})
+                    r["params"] = [float(v) for v in again.params]
+                    r["joints"] = joints_dict(forward_kinematics(model, again.params).joints[0])
+                    r["energy"] = int(again.energy)
+                    replaced += 1
         beyond, neighbour = neighbour, np.asarray(r["params"], dtype=np.float64)
         if progress:
             progress(done + 1, len(out), f"refining {'backwards' if backward else 'forwards'}")
     return out, replaced
+
+
+def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray | None,
+            beyond: np.ndarray | None, options: FitOptions, solver: Solver, search: bool) -> list[FrameResult]:
+    """A refinement pass's fits of one frame: from its neighbour's fit (``neighbour``, the one
+    beyond it ``beyond``) where it has one; with ``search``, from each limb's other basins
+    around the better of that fit and the record's."""
+    data = FrameData(model, seq.studio, seq.silhouettes(record["frame"]))
+    fits = []
+    if neighbour is not None:
+        solver.begin_frame(record["frame"], data, neighbour, options)
+        fits.append(fit_frame(model, data, neighbour, options, solver.solve,
+                              extra_starts=tilted_ahead(neighbour, beyond)))
+    if search:
+        better = fits[0].params if fits and fits[0].energy < record["energy"] else np.asarray(record["params"])
+        fits += limb_alternative_fits(model, data, record["frame"], better, options, solver)
+    return fits
 
 
 def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions, solver: Solver,
