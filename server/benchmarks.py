@@ -182,7 +182,8 @@ def accuracy_rows(frames: int, workdir: Path, clips=ACCURACY_CLIPS, options: Fit
         summary = run_fit(model, load_sequence(seq_dir), workdir / f"result-{Path(clip).stem}-{options.energy}", options,
                           LocalSolver(model, options), progress=progress)
         row = {"clip": clip, "energy_backend": options.energy, "frames": summary["frames"],
-               "refine_passes": options.refine_passes, "refine_search": options.refine_search}
+               "refine_passes": options.refine_passes, "refine_search": options.refine_search,
+               "refine_hops": options.refine_hops}
         for prefix in ("", "tracking_"):
             per_frame = summary[f"{prefix}per_frame_error_mm"]
             row.update({f"{prefix}mean_joint_error_mm": summary[f"{prefix}mean_joint_error_mm"],
@@ -258,7 +259,7 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
             first = auto["per_frame_error_mm"][0]
             first_record = load_records(auto_dir)[0]
             rows.append({"clip": clip.name, "start": label, "start_frame": start, "frames": auto["frames"],
-                         "refine_search": options.refine_search,
+                         "refine_search": options.refine_search, "refine_hops": options.refine_hops,
                          "first_frame_error_mm": first, "first_frame_ok": bool(first <= INIT_TARGET_MM),
                          # the search's own first frame, before the backward refinement replaced it
                          "first_frame_search_error_mm": search_error_mm(model, first_record, seq.truth()),

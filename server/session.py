@@ -30,8 +30,8 @@ import numpy as np
 from common import voxels
 from common.body import JOINT_NAMES, LIMB_CHAINS, P, BodyModel, forward_kinematics, joints_dict, rest_params
 from common.errors import InputFileError, UserError
-from common.fitting import (ChainResult, FitOptions, FrameData, FrameResult, fit_frame, limb_alternatives,
-                            lowest_energy, solve_chain, spot_grid, tilted_ahead)
+from common.fitting import (ChainResult, FitOptions, FrameData, FrameResult, fit_frame, hop_fit,
+                            limb_alternatives, lowest_energy, solve_chain, spot_grid, tilted_ahead)
 from common.sequence import Sequence
 
 POSES_FILE = "poses.jsonl"
@@ -318,7 +318,8 @@ SETTLE_FRAMES = 10  # frames tracked after a first-frame search before it is ref
 
 
 def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
-                stats: RunStats, backward: bool = True, progress=None, search: bool = False) -> tuple[list[dict], int]:
+                stats: RunStats, backward: bool = True, progress=None, search: bool = False,
+                hops: int = 0) -> tuple[list[dict], int]:
     """Fitted frames fitted again in one direction, each from its neighbour's fit.
 
     Tracking leaves frames in basins that a later frame escaped (an arm whose twist showed once
@@ -333,6 +334,8 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     of its fits (``limb_alternative_fits``, as a first frame is): tracking and its neighbours
     can share a torso and limb that are off together (basketball frame 84: the left ankle 74 mm
     off, an alternative leg 1.8% lower in energy). About nine times the cost of a plain pass.
+    With ``hops`` > 0, each frame is also fitted by that many hops of ``hop_fit`` from the best
+    of its fits, seeded by the frame's number.
     """
     out = [dict(r) for r in records]
     order = range(len(out) - 1, -1, -1) if backward else range(len(out))
@@ -340,9 +343,9 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     replaced = 0
     for done, i in enumerate(order):
         r = out[i]
-        if neighbour is not None or search:
+        if neighbour is not None or search or hops:
             t0 = time.perf_counter()
-            fits = _refits(model, seq, r, neighbour, beyond, options, solver, search)
+            fits = _refits(model, seq, r, neighbour, beyond, options, solver, search, hops)
             r["refine_seconds"] = r.get("refine_seconds", 0.0) + time.perf_counter() - t0
             if fits:  # a searched frame may have no neighbour and no other basins
                 again = lowest_energy(fits)
@@ -361,10 +364,12 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
 
 
 def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray | None,
-            beyond: np.ndarray | None, options: FitOptions, solver: Solver, search: bool) -> list[FrameResult]:
+            beyond: np.ndarray | None, options: FitOptions, solver: Solver, search: bool,
+            hops: int = 0) -> list[FrameResult]:
     """A refinement pass's fits of one frame: from its neighbour's fit (``neighbour``, the one
     beyond it ``beyond``) where it has one; with ``search``, from each limb's other basins
-    around the better of that fit and the record's."""
+    around the better of that fit and the record's; with ``hops``, basin hopping from the best
+    of all these and the record (on the server: it needs no chain solves)."""
     data = FrameData(model, seq.studio, seq.silhouettes(record["frame"]))
     fits = []
     if neighbour is not None:
@@ -374,6 +379,10 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
     if search:
         better = fits[0].params if fits and fits[0].energy < record["energy"] else np.asarray(record["params"])
         fits += limb_alternative_fits(model, data, record["frame"], better, options, solver)
+    if hops:
+        best = min([(record["energy"], np.asarray(record["params"])), *((f.energy, f.params) for f in fits)],
+                   key=lambda fit: fit[0])[1]
+        fits.append(hop_fit(model, data, best, options, hops, seed=record["frame"]))
     return fits
 
 
@@ -462,9 +471,11 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         t0 = time.perf_counter()
         backward = k % 2 == 0
         search = options.refine_search and k == 0
-        records, replaced = refine_pass(model, seq, records, options, solver, stats, backward, progress, search)
+        hops = options.refine_hops if k == 0 else 0
+        records, replaced = refine_pass(model, seq, records, options, solver, stats, backward, progress, search,
+                                        hops)
         _rewrite_complete(poses_path, records)  # each pass kept whole: an interrupted run keeps the last
-        passes.append({"direction": "backward" if backward else "forward", "search": search,
+        passes.append({"direction": "backward" if backward else "forward", "search": search, "hops": hops,
                        "frames_replaced": replaced, "seconds": time.perf_counter() - t0})
     summary = {
         "sequence": str(seq.path.resolve()),
@@ -499,12 +510,14 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
 
 
 def refinement_note(summary: dict) -> str:
-    """'(N passes[, the first searching], K frames improved)' for a summary whose run refined
-    (``mocap fit``'s table, the report)."""
+    """'(N passes[, the first searching[ and hopping]], K frames improved)' for a summary whose
+    run refined (``mocap fit``'s table, the report)."""
     passes = summary["refinement_passes"]
     n = len(passes)
-    search = (", the first searching" if n > 1 else ", searching") if passes[0].get("search") else ""
-    return f"({n} pass{'es' if n > 1 else ''}{search}, {summary.get('frames_refined', 0)} frames improved)"
+    extra = " and ".join(word for word, on in (("searching", passes[0].get("search")),
+                                               ("hopping", passes[0].get("hops"))) if on)
+    extra = f", {'the first ' if n > 1 else ''}{extra}" if extra else ""
+    return f"({n} pass{'es' if n > 1 else ''}{extra}, {summary.get('frames_refined', 0)} frames improved)"
 
 
 def tracking_error_note(summary: dict) -> str:

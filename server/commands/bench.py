@@ -42,6 +42,7 @@ def register(sub) -> None:
     acc.add_argument("--refine-passes", type=int, default=None, metavar="N",
                      help="as mocap fit --refine-passes (default: its default)")
     acc.add_argument("--refine-search", action="store_true", help="as mocap fit --refine-search")
+    acc.add_argument("--refine-hops", type=int, default=None, metavar="N", help="as mocap fit --refine-hops")
     acc.add_argument("--energy", default="cpu",
                      help="energy backends to compare on the same sequences, comma separated (e.g. cpu,volume)")
     acc.add_argument("--json", type=Path, default=None)
@@ -52,6 +53,7 @@ def register(sub) -> None:
     ini.add_argument("--tpose", action="store_true", help="also start at frame 0 (the CMU clips' added T-pose)")
     ini.add_argument("--frames", type=int, default=10)
     ini.add_argument("--refine-search", action="store_true", help="both runs as mocap fit --refine-search")
+    ini.add_argument("--refine-hops", type=int, default=0, metavar="N", help="both runs as mocap fit --refine-hops")
     ini.add_argument("--json", type=Path, default=None)
     a = bsub.add_parser("all", help="everything, into a folder of JSON files")
     a.add_argument("--out", type=Path, default=Path("bench"))
@@ -110,7 +112,8 @@ def run(args) -> int:
             chosen = {name: value for name, value in (("turn_hypotheses", args.turn_hypotheses),
                                                      ("turn_step_rad", args.turn_step),
                                                      ("refine_passes", args.refine_passes),
-                                                     ("refine_search", args.refine_search or None)) if value is not None}
+                                                     ("refine_search", args.refine_search or None),
+                                                     ("refine_hops", args.refine_hops)) if value is not None}
             for backend in [b for b in args.energy.split(",") if b]:
                 try:
                     options = FitOptions(energy=backend, hypotheses=args.hypotheses,
@@ -129,8 +132,11 @@ def run(args) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             from common.fitting import FitOptions
 
-            rows = benchmarks.init_rows(clips, args.frames, Path(tmp), tpose=args.tpose,
-                                        options=FitOptions(refine_search=args.refine_search))
+            try:
+                options = FitOptions(refine_search=args.refine_search, refine_hops=args.refine_hops)
+            except ValueError as exc:
+                raise UserError(f"bad option: {exc}") from None
+            rows = benchmarks.init_rows(clips, args.frames, Path(tmp), tpose=args.tpose, options=options)
         if args.json:
             benchmarks.write_json(args.json, rows)
         benchmarks.print_init_table(rows)

@@ -42,6 +42,10 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--refine-search", action="store_true",
                    help="the first refinement pass also fits every frame from each limb's other basins, as a "
                         "first frame is: more accurate, about nine times tracking's time (offline work)")
+    p.add_argument("--refine-hops", type=int, default=FitOptions.refine_hops, metavar="N",
+                   help="the first refinement pass also fits every frame by N hops: one chain moved at random, "
+                        "then the whole body fitted at once, the lowest energy kept (basin hopping; 60: about "
+                        "ten times tracking's time, offline work; default 0)")
     p.add_argument("--turn-step", type=float, default=FitOptions.turn_step_rad, metavar="RAD",
                    help=f"the turn step, rad (default {FitOptions.turn_step_rad})")
     p.add_argument("--no-redetect", action="store_true",
@@ -62,6 +66,7 @@ def options_from_args(args) -> FitOptions:
                           hypotheses=args.hypotheses, turn_hypotheses=args.turn_hypotheses,
                           turn_step_rad=args.turn_step, polish_iterations=args.polish_iterations,
                           refine_passes=args.refine_passes, refine_search=args.refine_search,
+                          refine_hops=args.refine_hops,
                           redetect_limbs=not args.no_redetect)
     except ValueError as exc:  # a value out of range: say which option
         raise UserError(f"bad fit option: {exc}") from None
