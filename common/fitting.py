@@ -555,7 +555,7 @@ def hop_fit(model: BodyModel, frame: FrameData, params: np.ndarray, options: Fit
     last, its left ankle 70 mm off): the energy falls all along the straight line from the fit
     to the truth, yet neither a chain's own search nor Powell over all 35 parameters from the
     fit moves down it; a hop from a moved leg does. A whole-image evaluation costs tens of
-    microseconds, so a hop of a few thousand costs about 0.1 s.
+    microseconds, so a hop of a few thousand evaluations costs about 0.1 s.
     """
     energy = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
     rng = np.random.default_rng(seed)
@@ -565,10 +565,11 @@ def hop_fit(model: BodyModel, frame: FrameData, params: np.ndarray, options: Fit
     best_energy = float(energy(best[None])[0])
     evaluations = 1
     for hop in range(hops):
-        idx = np.array(CHAINS[HOP_CHAINS[hop % len(HOP_CHAINS)]].params)
+        chain = HOP_CHAINS[hop % len(HOP_CHAINS)]
+        idx = np.array(CHAINS[chain].params)
         start = best.copy()
         start[idx] += rng.normal(0.0, 1.0, len(idx)) * np.where(idx < 3, HOP_SIGMA_M, HOP_SIGMA_RAD)
-        if idx[0] == 0:  # the torso: the limbs keep their world orientation, as in its solves
+        if chain == "torso":  # the limbs keep their world orientation, as in the torso's solves
             start = hold_limbs_in_world(model, start, best)[0]
         x, value, n, _ = powell(energy, clip_to_limits(start), every, steps, options, HOP_MAX_EVALS)
         evaluations += n
