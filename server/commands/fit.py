@@ -44,8 +44,8 @@ def add_fit_arguments(p) -> None:
                         "first frame is: more accurate, about nine times tracking's time (offline work)")
     p.add_argument("--refine-hops", type=int, default=FitOptions.refine_hops, metavar="N",
                    help="the first refinement pass also fits every frame by N hops: one chain moved at random, "
-                        "then the whole body fitted at once, the lowest energy kept (basin hopping; 60: about "
-                        "ten times tracking's time, offline work; default 0)")
+                        "then the whole body fitted at once, the lowest energy kept (basin hopping; 60: about a "
+                        "dozen times tracking's time, offline work; default 0)")
     p.add_argument("--turn-step", type=float, default=FitOptions.turn_step_rad, metavar="RAD",
                    help=f"the turn step, rad (default {FitOptions.turn_step_rad})")
     p.add_argument("--no-redetect", action="store_true",
