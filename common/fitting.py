@@ -546,9 +546,10 @@ def hop_fit(model: BodyModel, frame: FrameData, params: np.ndarray, options: Fit
     """Basin hopping from ``params`` (35,): ``hops`` times, one chain of the best pose so far
     (the torso, with the limbs held in their world orientation, then each limb in turn) is moved
     by a seeded random step, and the whole body is fitted from there by Powell over all 35
-    parameters at once on the whole-image ``cpu`` energy with the spine prior; a lower energy
-    becomes the new best. Returns the best (``params`` itself when no hop found lower); its
-    energy is ``full_energy``.
+    parameters at once on the whole-image ``cpu`` energy with the spine prior; a lower value of
+    that energy (prior included) becomes the new best. Returns the best (a copy of ``params``
+    when no hop found lower) with its ``full_energy``, which callers compare with their other
+    fits: without the prior it can come out above the start's, and is then not kept.
 
     Why: the hierarchy moves one chain at a time, and a frame whose torso and a limb are off
     together sits in a valley that no single chain can go down. Basketball frame 85 (the clip's

@@ -325,8 +325,8 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     Tracking leaves frames in basins that a later frame escaped (an arm whose twist showed once
     it bent; a first frame found by search, 10-20 mm off). Going backwards each frame starts from
     the (already refined) fit of the frame after it, forwards from the frame before; each keeps
-    the lower energy of its fits. The pass's first frame is where it starts from and stays as it
-    is. A replaced record keeps its tracking fit under "first_pass" (params, joints, energy); the
+    the lower energy of its fits. The pass's first frame is where it starts from: a plain pass
+    keeps it as it is, a searching or hopping one fits it too. A replaced record keeps its tracking fit under "first_pass" (params, joints, energy); the
     pass's time and evaluations add to "refine_seconds" and "refine_evaluations" ("seconds" and
     "evaluations" stay tracking's). Returns the records, changed, and how many were replaced.
 

@@ -34,7 +34,8 @@ def captured(monkeypatch):
     calls = []
 
     def fake(clips, frames, workdir, seed=0, tpose=False, options=None):
-        calls.append({"clips": list(clips), "frames": frames, "tpose": tpose, "search": options.refine_search})
+        calls.append({"clips": list(clips), "frames": frames, "tpose": tpose, "search": options.refine_search,
+                      "hops": options.refine_hops})
         return [_row(c.name, "start", 1, 30.0) for c in clips]
 
     monkeypatch.setattr(benchmarks, "init_rows", fake)
@@ -47,11 +48,13 @@ def test_bench_init_defaults_to_the_shared_clips(tmp_path, monkeypatch, captured
     (shared / "cmu" / "05_02.bvh").write_text("")
     monkeypatch.setattr(benchmarks, "SHARED_CLIPS", shared)
     assert main(["bench", "init", "--frames", "2", "--tpose", "--json", str(tmp_path / "rows.json")]) == 0
-    assert captured[-1] == {"clips": [shared / "cmu" / "05_02.bvh"], "frames": 2, "tpose": True, "search": False}
+    assert captured[-1] == {"clips": [shared / "cmu" / "05_02.bvh"], "frames": 2, "tpose": True, "search": False,
+                            "hops": 0}
     assert (tmp_path / "rows.json").exists()
     assert "05_02.bvh" in capsys.readouterr().out
-    assert main(["bench", "init", "--bundled", "--refine-search"]) == 0
+    assert main(["bench", "init", "--bundled", "--refine-search", "--refine-hops", "20"]) == 0
     assert captured[-1]["clips"] == BUNDLED and not captured[-1]["tpose"] and captured[-1]["search"]
+    assert captured[-1]["hops"] == 20
 
 
 def test_bench_init_falls_back_to_the_bundled_clips(tmp_path, monkeypatch, captured):
@@ -63,6 +66,11 @@ def test_bench_init_falls_back_to_the_bundled_clips(tmp_path, monkeypatch, captu
 def test_bench_init_rejects_a_missing_clip(tmp_path, captured, capsys):
     assert main(["bench", "init", str(tmp_path / "nope.bvh")]) == 2
     assert "nope.bvh" in capsys.readouterr().err and not captured
+
+
+def test_bench_init_rejects_negative_hops(captured, capsys):
+    assert main(["bench", "init", "--bundled", "--refine-hops", "-1"]) == 2
+    assert "refine_hops must be >= 0" in capsys.readouterr().err and not captured
 
 
 def test_init_table_counts_first_frames_on_target(capsys):

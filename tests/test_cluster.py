@@ -60,15 +60,15 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
 
 
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("search", [False, True])
-def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_path, search):
-    """Tracking, then a backward and a forward pass (the first searching limbs' other basins
-    and hopping, or not), with two clients: each frame's poses and which frames the passes
-    replaced are the single process's. Three frames, so that going backwards a client is sent
-    a frame older than the two it holds."""
+@pytest.mark.parametrize("search, hops", [(False, 0), (True, 0), (False, 10)])
+def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_path, search, hops):
+    """Tracking, then a backward and a forward pass (the first plain, searching limbs' other
+    basins, or hopping on the server), with two clients: each frame's poses and which frames
+    the passes replaced are the single process's. Three frames, so that going backwards a
+    client is sent a frame older than the two it holds."""
     from server.session import LocalSolver
 
-    options = FitOptions(refine_passes=2, refine_search=search, refine_hops=5 if search else 0)
+    options = FitOptions(refine_passes=2, refine_search=search, refine_hops=hops)
     seq = load_sequence(seq_path)
     single = run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options))
     solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
@@ -83,6 +83,8 @@ def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_pat
     assert [p["frames_replaced"] for p in cluster["refinement_passes"]] == \
         [p["frames_replaced"] for p in single["refinement_passes"]]
     assert [p["direction"] for p in cluster["refinement_passes"]] == ["backward", "forward"]
+    if hops:  # the backward pass's first frame, which only hops refit, was replaced: they ran
+        assert "first_pass" in records(tmp_path / "cluster")[-1]
 
 
 @pytest.mark.timeout(90)
