@@ -231,7 +231,7 @@ def search_frame(model: BodyModel, data: FrameData, frame: int, starts: list, op
 
 
 def limb_alternative_fits(model: BodyModel, data: FrameData, frame: int, params: np.ndarray, options: FitOptions,
-                          solver: "Solver") -> list[FrameResult]:
+                          solver: Solver) -> list[FrameResult]:
     """The frame fitted again from each limb's other basins (``limb_alternatives`` of
     ``params``), each as a whole body: a limb found wrong holds the torso where it explains that
     limb, and neither can move alone."""
@@ -326,9 +326,10 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     it bent; a first frame found by search, 10-20 mm off). Going backwards each frame starts from
     the (already refined) fit of the frame after it, forwards from the frame before; each keeps
     the lower energy of its fits. The pass's first frame is where it starts from: a plain pass
-    keeps it as it is, a searching or hopping one fits it too. A replaced record keeps its tracking fit under "first_pass" (params, joints, energy); the
-    pass's time and evaluations add to "refine_seconds" and "refine_evaluations" ("seconds" and
-    "evaluations" stay tracking's). Returns the records, changed, and how many were replaced.
+    keeps it as it is, a searching or hopping one fits it too. A replaced record keeps its
+    tracking fit under "first_pass" (params, joints, energy); the pass's time and evaluations add
+    to "refine_seconds" and "refine_evaluations" ("seconds" and "evaluations" stay tracking's).
+    Returns the records, changed, and how many were replaced.
 
     With ``search``, each frame is also fitted from each limb's other basins around the better
     of its fits (``limb_alternative_fits``, as a first frame is): tracking and its neighbours
@@ -372,17 +373,19 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
     of all these and the record (on the server: it needs no chain solves)."""
     data = FrameData(model, seq.studio, seq.silhouettes(record["frame"]))
     fits = []
+
+    def best_so_far() -> np.ndarray:  # the record's pose on a tie
+        return min([(record["energy"], np.asarray(record["params"])), *((f.energy, f.params) for f in fits)],
+                   key=lambda fit: fit[0])[1]
+
     if neighbour is not None:
         solver.begin_frame(record["frame"], data, neighbour, options)
         fits.append(fit_frame(model, data, neighbour, options, solver.solve,
                               extra_starts=tilted_ahead(neighbour, beyond)))
     if search:
-        better = fits[0].params if fits and fits[0].energy < record["energy"] else np.asarray(record["params"])
-        fits += limb_alternative_fits(model, data, record["frame"], better, options, solver)
+        fits += limb_alternative_fits(model, data, record["frame"], best_so_far(), options, solver)
     if hops:
-        best = min([(record["energy"], np.asarray(record["params"])), *((f.energy, f.params) for f in fits)],
-                   key=lambda fit: fit[0])[1]
-        fits.append(hop_fit(model, data, best, options, hops, seed=record["frame"]))
+        fits.append(hop_fit(model, data, best_so_far(), options, hops, seed=record["frame"]))
     return fits
 
 
