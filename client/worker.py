@@ -1,4 +1,5 @@
-"""The limb worker: a DEALER that registers with the server and solves the chains it is sent.
+"""The limb worker: a DEALER that registers with the server and solves the chains it is sent
+(and a refinement's hops, ``common.fitting.solve_job``).
 
 Flow (one connection)::
 
@@ -40,7 +41,7 @@ import zmq.auth
 
 from common.body import BodyModel
 from common.camera import Studio
-from common.fitting import FitOptions, FrameData, solve_chain
+from common.fitting import FitOptions, FrameData, solve_job
 from common.protocol import (
     MAX_MESSAGE_BYTES, Error, Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve, Welcome,
     decode, encode,
@@ -335,8 +336,8 @@ class Worker:
                 if cache is None or cache[0] != key:
                     cache = (key, self._frame_data(job.frame))
                 for chain in solve.chains:
-                    r = solve_chain(self.model, cache[1], chain, np.asarray(solve.params), options,
-                                    iteration=solve.iteration)
+                    r = solve_job(self.model, cache[1], chain, np.asarray(solve.params), options,
+                                  solve.iteration, solve.frame)
                     self.solved += 1
                     self._finish(Result(session=solve.session, frame=solve.frame, iteration=solve.iteration,
                                         request=solve.request, chain=r.chain, params=r.params.tolist(),

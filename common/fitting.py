@@ -8,8 +8,9 @@ Per frame, from the previous frame's pose:
     them and the result does not depend on who solved it or in which order;
  3. repeat until the full energy stops improving or an iteration cap.
 
-``solve_chain`` is the unit of work a client does; ``fit_frame`` is the server's loop, with
-the limb solves handed to a ``dispatch`` callable (local by default).
+``solve_job`` is the unit of work a client does (a chain's ``solve_chain``, or one hop of a
+refinement's ``hop_fit``); ``fit_frame`` is the server's loop, with the limb solves handed to
+a ``dispatch`` callable (local by default).
 """
 from __future__ import annotations
 
@@ -532,69 +533,108 @@ def limb_alternatives(model: BodyModel, frame: FrameData, chain: str, x: np.ndar
     return [poses[k] for k in keep]
 
 
-# Basin hopping (``hop_fit``): each hop moves one chain, in this order, by a random step.
+def full_energy(model: BodyModel, frame: FrameData, params: np.ndarray) -> int:
+    """Whole-body XOR energy at full resolution (the convergence test and the reported energy)."""
+    return int(frame.whole_image_energy()(params)[0])
+
+
+# dispatch(jobs, params, iteration) starts the limb solves (or a refinement's hops, HOP_JOBS)
+# and returns a function that waits for and returns their ChainResults (in the order
+# of ``jobs``); the server solves the head in between, so a cluster's clients and the server
+# work at the same time.
+Dispatch = Callable[[list, np.ndarray, int], Callable[[], list]]
+
+
+def solve_locally(model: BodyModel, frame: FrameData, options: FitOptions, frame_number: int = 0) -> Dispatch:
+    """Dispatch in this process: each job by ``solve_job``, in order."""
+    def dispatch(jobs: list, params: np.ndarray, iteration: int):
+        return lambda: [solve_job(model, frame, j, params, options, iteration, frame_number) for j in jobs]
+
+    return dispatch
+
+
+# Basin hopping (``hop_fit``): each hop moves one chain by a random step, then fits the body.
 HOP_CHAINS = ("torso", *LIMB_CHAINS)
 HOP_SIGMA_RAD = 0.2     # standard deviation of a moved chain's angles, rad
 HOP_SIGMA_M = 0.04      # ... of the root position, m
 HOP_STEP_RAD = 0.1      # Powell's first steps over all 35 parameters: angles, rad
 HOP_STEP_M = 0.03       # ... root position, m
 HOP_MAX_EVALS = 3000    # per hop: a few sweeps over 35 directions
+# The jobs of one round of hops, run side by side (the protocol's HOP_JOB_NAMES): job k is the
+# round's k-th hop. More would be idle clients' speculation that rarely pays.
+HOP_JOBS = ("hops0", "hops1", "hops2", "hops3")
 
 
-def hop_fit(model: BodyModel, frame: FrameData, params: np.ndarray, options: FitOptions, hops: int,
-            seed: int) -> FrameResult:
-    """Basin hopping from ``params`` (35,): ``hops`` times, one chain of the best pose so far
-    (the torso, with the limbs held in their world orientation, then each limb in turn) is moved
-    by a seeded random step, and the whole body is fitted from there by Powell over all 35
-    parameters at once on the whole-image ``cpu`` energy with the spine prior; a lower value of
-    that energy (prior included) becomes the new best. Returns the best (a copy of ``params``
-    when no hop found lower) with its ``full_energy``, which callers compare with their other
-    fits: without the prior it can come out above the start's, and is then not kept.
+def hop(model: BodyModel, frame: FrameData, params: np.ndarray, options: FitOptions, index: int,
+        seed: int, job: str = HOP_JOBS[0]) -> ChainResult:
+    """Hop number ``index`` from ``params`` (35,): chain HOP_CHAINS[index % 5] is moved by a
+    random step drawn from (``seed``, ``index``) alone (the torso with the limbs held in their
+    world orientation), and the whole body is fitted from there by Powell over all 35
+    parameters at once, on the whole-image ``cpu`` energy with the spine prior. Returns it as
+    ``job``'s ChainResult, with the full energies (``full_energy``) before and after."""
+    wall0, cpu0 = _clock()
+    energy = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
+    every = np.arange(len(params))
+    steps = np.where(every < 3, HOP_STEP_M, HOP_STEP_RAD)
+    rng = np.random.default_rng((seed, index))
+    chain = HOP_CHAINS[index % len(HOP_CHAINS)]
+    idx = np.array(CHAINS[chain].params)
+    start = np.array(params, dtype=np.float64)
+    start[idx] += rng.normal(0.0, 1.0, len(idx)) * np.where(idx < 3, HOP_SIGMA_M, HOP_SIGMA_RAD)
+    if chain == "torso":  # the limbs keep their world orientation, as in the torso's solves
+        start = hold_limbs_in_world(model, start, params)[0]
+    x, _, n, _ = powell(energy, clip_to_limits(start), every, steps, options, HOP_MAX_EVALS)
+    before, after = full_energy(model, frame, params), full_energy(model, frame, x)
+    wall1, cpu1 = _clock()
+    return ChainResult(job, x, before, after, n + 2, 1, wall1 - wall0, cpu1 - cpu0)
+
+
+def hop_fit(params: np.ndarray, options: FitOptions, dispatch: Dispatch, side_by_side: int = 1) -> FrameResult:
+    """Basin hopping from ``params`` (35,): ``options.refine_hops`` hops (``hop``), one after
+    another, each from the best pose so far; a hop with a lower full energy becomes the best.
+    ``dispatch`` runs the hops with ``options``, ``side_by_side`` (1..len(HOP_JOBS)) at once,
+    all from the same best: hops k..k+n-1 as jobs HOP_JOBS[:n] with iteration k. Where one of
+    them is lower, the next round starts after it and the hops beyond it are dropped: they
+    started from a pose that is no longer the best. So the result is that of the hops one
+    after another, however many run side by side; a cluster gains where hops fail, as most
+    do once the first few have found the valley. Returns the best (``params`` where no hop was
+    lower) with every hop's ChainResult, dropped ones too, in ``chains``.
 
     Why: the hierarchy moves one chain at a time, and a frame whose torso and a limb are off
     together sits in a valley that no single chain can go down. Basketball frame 85 (the clip's
     last, its left ankle 70 mm off): the energy falls all along the straight line from the fit
     to the truth, yet neither a chain's own search nor Powell over all 35 parameters from the
     fit moves down it; a hop from a moved leg does. A whole-image evaluation costs tens of
-    microseconds, so a hop of a few thousand evaluations costs about 0.1 s.
-    """
-    energy = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
-    rng = np.random.default_rng(seed)
-    every = np.arange(len(params))
-    steps = np.where(every < 3, HOP_STEP_M, HOP_STEP_RAD)
-    best = np.array(params, dtype=np.float64)
-    best_energy = float(energy(best[None])[0])
-    evaluations = 1
-    for hop in range(hops):
-        chain = HOP_CHAINS[hop % len(HOP_CHAINS)]
-        idx = np.array(CHAINS[chain].params)
-        start = best.copy()
-        start[idx] += rng.normal(0.0, 1.0, len(idx)) * np.where(idx < 3, HOP_SIGMA_M, HOP_SIGMA_RAD)
-        if chain == "torso":  # the limbs keep their world orientation, as in the torso's solves
-            start = hold_limbs_in_world(model, start, best)[0]
-        x, value, n, _ = powell(energy, clip_to_limits(start), every, steps, options, HOP_MAX_EVALS)
-        evaluations += n
-        if value < best_energy:
-            best, best_energy = x, value
-    return FrameResult(best, full_energy(model, frame, best), hops, evaluations)
+    microseconds, so a hop of a few thousand evaluations costs about 0.1 s."""
+    if options.refine_hops < 1:
+        raise ValueError(f"hop_fit needs refine_hops >= 1, got {options.refine_hops}")
+    if not 1 <= side_by_side <= len(HOP_JOBS):
+        raise ValueError(f"side_by_side must be 1..{len(HOP_JOBS)}, got {side_by_side}")
+    best, best_energy = np.array(params, dtype=np.float64), None
+    hops, done = [], 0
+    while done < options.refine_hops:
+        results = dispatch(list(HOP_JOBS[:min(side_by_side, options.refine_hops - done)]), best, done)()
+        hops += results
+        if best_energy is None:
+            best_energy = results[0].energy_before
+        lower = next((k for k, r in enumerate(results) if r.energy < best_energy), None)
+        if lower is not None:
+            best, best_energy = results[lower].params, results[lower].energy
+        done += len(results) if lower is None else lower + 1
+    return FrameResult(best, int(best_energy), options.refine_hops, sum(r.evaluations for r in hops), hops)
 
 
-def full_energy(model: BodyModel, frame: FrameData, params: np.ndarray) -> int:
-    """Whole-body XOR energy at full resolution (the convergence test and the reported energy)."""
-    return int(frame.whole_image_energy()(params)[0])
-
-
-# dispatch(chains, params, iteration) starts the limb solves and returns a function that
-# waits for and returns their ChainResults (in the order of ``chains``); the server solves the
-# head in between, so a cluster's clients and the server work at the same time.
-Dispatch = Callable[[list, np.ndarray, int], Callable[[], list]]
-
-
-def solve_locally(model: BodyModel, frame: FrameData, options: FitOptions) -> Dispatch:
-    def dispatch(chains: list, params: np.ndarray, iteration: int):
-        return lambda: [solve_chain(model, frame, c, params, options, iteration=iteration) for c in chains]
-
-    return dispatch
+def solve_job(model: BodyModel, frame: FrameData, job: str, params: np.ndarray, options: FitOptions,
+              iteration: int = 0, frame_number: int = 0) -> ChainResult:
+    """A client's unit of work: a chain's solve (``solve_chain``), or a hop of ``hop_fit``: job
+    HOP_JOBS[k] is hop number ``iteration`` + k, seeded by ``frame_number`` (so the same pose
+    wherever it runs)."""
+    if job not in HOP_JOBS:
+        return solve_chain(model, frame, job, params, options, iteration=iteration)
+    index = iteration + HOP_JOBS.index(job)
+    if index >= options.refine_hops:
+        raise ValueError(f"{job} of round {iteration} is hop {index}; refine_hops={options.refine_hops} has no such hop")
+    return hop(model, frame, params, options, index, frame_number, job)
 
 
 def merge_chains(params: np.ndarray, results: list) -> np.ndarray:

@@ -30,9 +30,13 @@ import numpy as np
 from common.camera import Camera, CalibrationError, Studio, make_camera
 from common.packing import packed_length, unpackbits_masks
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2  # 2: hops (HOP_JOB_NAMES) beside the chains
 PARAM_COUNT = 35  # pose parameters of the body model
 CHAIN_NAMES = ("torso", "head", "left_arm", "right_arm", "left_leg", "right_leg")
+# the hops of a refinement's round (common.fitting.HOP_JOBS): sent and answered as chains are;
+# job k of a Solve with iteration i is hop number i + k
+HOP_JOB_NAMES = ("hops0", "hops1", "hops2", "hops3")
+JOB_NAMES = CHAIN_NAMES + HOP_JOB_NAMES
 
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024  # all frames of one message; also zmq.MAXMSGSIZE
 MAX_HEADER_BYTES = 1024 * 1024  # the msgpack header frame
@@ -137,9 +141,9 @@ def _names(value, name: str, allowed: tuple[str, ...] | None, max_count: int) ->
     return names
 
 
-def _chain(value, name: str) -> str:
-    if not isinstance(value, str) or value not in CHAIN_NAMES:
-        raise ProtocolError("bad_field", f"{name}: {value!r} is not one of {list(CHAIN_NAMES)}")
+def _job(value, name: str) -> str:
+    if not isinstance(value, str) or value not in JOB_NAMES:
+        raise ProtocolError("bad_field", f"{name}: {value!r} is not one of {list(JOB_NAMES)}")
     return value
 
 
@@ -307,7 +311,8 @@ class Frame:
 
 @dataclass(frozen=True, kw_only=True)
 class Solve:
-    """Server -> client, per iteration: fit ``chains`` starting from the full pose ``params``.
+    """Server -> client, per iteration: fit ``chains`` starting from the full pose ``params``
+    (chains of CHAIN_NAMES, or hops of HOP_JOB_NAMES: job k is hop number ``iteration`` + k).
 
     ``options`` holds plain scalars (bool, int, float, str) such as grid steps or the energy
     backend; the solver refuses names it does not know.
@@ -326,7 +331,7 @@ class Solve:
         _session(self, required=True)
         _indices(self, "frame", "iteration", "request")
         _set(self, "params", _floats(self.params, "solve.params", PARAM_COUNT))
-        _set(self, "chains", _names(self.chains, "solve.chains", CHAIN_NAMES, len(CHAIN_NAMES)))
+        _set(self, "chains", _names(self.chains, "solve.chains", JOB_NAMES, len(JOB_NAMES)))
         if not isinstance(self.options, dict):
             raise ProtocolError("bad_field", f"solve.options: expected a map, got {type(self.options).__name__}")
         if len(self.options) > MAX_OPTIONS:
@@ -337,7 +342,7 @@ class Solve:
 
 @dataclass(frozen=True, kw_only=True)
 class Result:
-    """Client -> server: the fitted pose of one chain of a Solve request, and its cost."""
+    """Client -> server: the fitted pose of one chain (or hop) of a Solve request, and its cost."""
 
     TYPE: ClassVar[str] = "result"
     session: str
@@ -357,7 +362,7 @@ class Result:
         _session(self, required=True)
         _indices(self, "frame", "iteration", "request", "evaluations", "iterations")
         _set(self, "energy_before", _float(self.energy_before, "result.energy_before"))
-        _set(self, "chain", _chain(self.chain, "result.chain"))
+        _set(self, "chain", _job(self.chain, "result.chain"))
         _set(self, "params", _floats(self.params, "result.params", PARAM_COUNT))
         _set(self, "energy", _float(self.energy, "result.energy"))
         for n in ("cpu_seconds", "wall_seconds"):

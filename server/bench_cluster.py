@@ -71,6 +71,9 @@ class _PhaseClock:
 
         return timed_collect
 
+    def workers(self):
+        return self.inner.workers()
+
     def timing(self):
         return self.inner.timing()
 
@@ -180,6 +183,37 @@ def bench_cluster(sequence, frames: int | None = None, clients: int = DEFAULT_CL
     }
     result["speedup"] = result["single_seconds_per_frame"] / result["distributed_seconds_per_frame"]
     return result
+
+
+DEFAULT_HOPS = 20
+
+
+def bench_hops(sequence, frames: int | None = None, clients: int = DEFAULT_CLIENTS, hops: int = DEFAULT_HOPS,
+               out: Path | None = None) -> list[dict]:
+    """The refinement's hops (``--refine-hops``, one backward pass) over the first ``frames``
+    frames of ``sequence``, single-process and with ``clients`` local clients running them side
+    by side. One row per mode: {"mode", "clients", "frames", "refine_hops",
+    "refine_seconds_per_frame", "hops_run_per_frame" (dropped hops too), "speedup" (single /
+    this), "max_param_difference" (against single)}."""
+    model = load_body_model()
+    seq = load_sequence(Path(sequence))
+    options = FitOptions(refine_passes=1, refine_hops=hops)
+    with tempfile.TemporaryDirectory(prefix="bench-hops-") as tmp:
+        root = Path(out) if out else Path(tmp)
+        single = run_fit(model, seq, root / "single", options, LocalSolver(model, options), max_frames=frames)
+        with LocalCluster(model, options, clients) as solver:
+            cluster = run_fit(model, seq, root / "distributed", options, solver, max_frames=frames)
+        difference = float(np.abs(_params(root / "single") - _params(root / "distributed")).max())
+    rows = []
+    for mode, summary, n in (("single", single, 0), ("distributed", cluster, clients)):
+        hop_pass = summary["refinement_passes"][0]
+        rows.append({"mode": mode, "clients": n, "frames": summary["frames"], "refine_hops": hops,
+                     "refine_seconds_per_frame": summary["refine_seconds_per_frame"],
+                     "hops_run_per_frame": hop_pass["hops_run"] / summary["frames"],
+                     "speedup": single["refine_seconds_per_frame"] / summary["refine_seconds_per_frame"],
+                     "max_param_difference": 0.0 if mode == "single" else difference,
+                     "cpus": os.cpu_count()})
+    return rows
 
 
 def format_table(r: dict) -> str:

@@ -10,7 +10,8 @@ first, so with fewer clients than limbs a client takes several chains in turn. W
 clients than limbs the spare ones stand by (and take over from a client that fails). When a
 chain is queued and no client is free, the server solves it itself after the head: the
 server is worker zero, and with no clients at all this is the single-process mode.
-The limbs are solved Jacobi-style, so who solves a chain never changes its result.
+The limbs are solved Jacobi-style, so who solves a chain never changes its result. A
+refinement's hops (``common.fitting.hop_fit``) go out the same way, a few side by side.
 
 Reliability (zguide's Paranoid Pirate, adapted):
  - heartbeats both ways every ``heartbeat_interval``; a client silent for ``HEARTBEAT_LIVENESS``
@@ -59,7 +60,7 @@ from zmq.utils.monitor import recv_monitor_message
 
 from common.body import BodyModel
 from common.errors import UserError
-from common.fitting import ChainResult, FitOptions, FrameData, solve_chain
+from common.fitting import ChainResult, FitOptions, FrameData, solve_job
 from common.packing import packbits_masks
 from common.protocol import (
     MAX_MESSAGE_BYTES, Error, Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve, Welcome,
@@ -298,6 +299,10 @@ class ClusterSolver:
                 self._lock.wait(0.2)
             return len(self._peers)
 
+    def workers(self) -> int:
+        """The clients registered now, and the server, which solves what no client is free for."""
+        return self.client_count() + 1
+
     def begin_frame(self, frame: int, data: FrameData, start: np.ndarray, options: FitOptions) -> None:
         t0 = time.perf_counter()
         if self._start_wall is None:
@@ -397,7 +402,7 @@ class ClusterSolver:
                 chain = rnd.pending.popleft()
                 rnd.local.add(chain)
             t0 = time.perf_counter()
-            result = solve_chain(self.model, self._data, chain, rnd.params, rnd.options, iteration=rnd.iteration)
+            result = solve_job(self.model, self._data, chain, rnd.params, rnd.options, rnd.iteration, rnd.frame)
             with self._lock:
                 self._server["local_compute_seconds"] += time.perf_counter() - t0
                 self._counts["local_chains"] += 1

@@ -30,8 +30,8 @@ import numpy as np
 from common import voxels
 from common.body import JOINT_NAMES, LIMB_CHAINS, P, BodyModel, forward_kinematics, joints_dict, rest_params
 from common.errors import InputFileError, UserError
-from common.fitting import (ChainResult, FitOptions, FrameData, FrameResult, fit_frame, hop_fit,
-                            limb_alternatives, lowest_energy, solve_chain, spot_grid, tilted_ahead)
+from common.fitting import (HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult, fit_frame, hop_fit,
+                            limb_alternatives, lowest_energy, solve_job, spot_grid, tilted_ahead)
 from common.sequence import Sequence
 
 POSES_FILE = "poses.jsonl"
@@ -59,7 +59,7 @@ def first_frame_options(options: FitOptions, redetect_turn: str) -> FitOptions:
 
 
 class Solver(Protocol):
-    """Who solves the limb chains: this process, or clients over the network."""
+    """Who solves the limb chains and hop streams: this process, or clients over the network."""
 
     mode: str
     clients: int
@@ -68,7 +68,11 @@ class Solver(Protocol):
         """A new frame: its silhouettes, start pose and the options its chains are solved with."""
 
     def solve(self, chains: list, params: np.ndarray, iteration: int) -> Callable[[], list]:
-        """Start solving ``chains`` from ``params``; the returned function waits for the results."""
+        """Start solving ``chains`` (or hop streams, ``common.fitting.solve_job``) from ``params``;
+        the returned function waits for the results."""
+
+    def workers(self) -> int:
+        """How many jobs it solves at once (clients, and the server beside them)."""
 
     def timing(self) -> dict: ...
 
@@ -87,19 +91,22 @@ class LocalSolver:
         self.compute_seconds = 0.0
 
     def begin_frame(self, frame: int, data: FrameData, start: np.ndarray, options: FitOptions) -> None:
-        self.data = data
+        self.data, self.frame = data, int(frame)
         self.frame_options = options
 
     def solve(self, chains: list, params: np.ndarray, iteration: int) -> Callable[[], list]:
-        data, options = self.data, self.frame_options
+        data, options, frame = self.data, self.frame_options, self.frame
 
         def collect() -> list:
             t0 = time.perf_counter()
-            out = [solve_chain(self.model, data, c, params, options, iteration=iteration) for c in chains]
+            out = [solve_job(self.model, data, c, params, options, iteration, frame) for c in chains]
             self.compute_seconds += time.perf_counter() - t0
             return out
 
         return collect
+
+    def workers(self) -> int:
+        return 1
 
     def timing(self) -> dict:
         return {"processes": []}
@@ -116,6 +123,7 @@ class RunStats:
     chain_wall: dict = field(default_factory=dict)       # chain -> total wall seconds
     chain_evaluations: dict = field(default_factory=dict)
     server_compute: float = 0.0                          # torso + head + energy checks, seconds
+    hops_run: int = 0                                    # hops of the refinement, dropped ones too (hop_fit)
 
     def add_chains(self, chains: list[ChainResult]) -> None:
         for c in chains:
@@ -336,7 +344,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     can share a torso and limb that are off together (basketball frame 84: the left ankle 74 mm
     off, an alternative leg 1.8% lower in energy). About nine times the cost of a plain pass.
     With ``hops`` > 0, each frame is also fitted by that many hops of ``hop_fit`` from the best
-    of its fits, seeded by the frame's number.
+    of its fits, seeded by the frame's number; a cluster's clients run them side by side.
     """
     out = [dict(r) for r in records]
     order = range(len(out) - 1, -1, -1) if backward else range(len(out))
@@ -347,6 +355,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
         if neighbour is not None or search or hops:
             t0 = time.perf_counter()
             fits = _refits(model, seq, r, neighbour, beyond, options, solver, search, hops)
+            stats.hops_run += sum(c.chain in HOP_JOBS for f in fits for c in f.chains)
             r["refine_seconds"] = r.get("refine_seconds", 0.0) + time.perf_counter() - t0
             if fits:  # a searched frame may have no neighbour and no other basins
                 again = lowest_energy(fits)
@@ -370,7 +379,7 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
     """A refinement pass's fits of one frame: from its neighbour's fit (``neighbour``, the one
     beyond it ``beyond``) where it has one; with ``search``, from each limb's other basins
     around the better of that fit and the record's; with ``hops``, basin hopping from the best
-    of all these and the record (on the server: it needs no chain solves)."""
+    of all these and the record."""
     data = FrameData(model, seq.studio, seq.silhouettes(record["frame"]))
     fits = []
 
@@ -385,7 +394,10 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
     if search:
         fits += limb_alternative_fits(model, data, record["frame"], best_so_far(), options, solver)
     if hops:
-        fits.append(hop_fit(model, data, best_so_far(), options, hops, seed=record["frame"]))
+        start = best_so_far()
+        hopping = replace(options, refine_hops=hops)
+        solver.begin_frame(record["frame"], data, start, hopping)
+        fits.append(hop_fit(start, hopping, solver.solve, min(solver.workers(), len(HOP_JOBS))))
     return fits
 
 
@@ -471,7 +483,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     records = read_done_frames(poses_path)
     passes = []
     for k in range(options.refine_passes if len(records) > 1 else 0):
-        t0 = time.perf_counter()
+        t0, hops_before = time.perf_counter(), stats.hops_run
         backward = k % 2 == 0
         search = options.refine_search and k == 0
         hops = options.refine_hops if k == 0 else 0
@@ -479,6 +491,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                                         hops)
         _rewrite_complete(poses_path, records)  # each pass kept whole: an interrupted run keeps the last
         passes.append({"direction": "backward" if backward else "forward", "search": search, "hops": hops,
+                       # more than hops x frames where hops ran side by side and some were dropped
+                       "hops_run": stats.hops_run - hops_before,
                        "frames_replaced": replaced, "seconds": time.perf_counter() - t0})
     summary = {
         "sequence": str(seq.path.resolve()),

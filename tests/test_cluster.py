@@ -63,7 +63,7 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
 @pytest.mark.parametrize("search, hops", [(False, 0), (True, 0), (False, 10)])
 def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_path, search, hops):
     """Tracking, then a backward and a forward pass (the first plain, searching limbs' other
-    basins, or hopping on the server), with two clients: each frame's poses and which frames
+    basins, or hopping, the clients running hops side by side), with two clients: each frame's poses and which frames
     the passes replaced are the single process's. Three frames, so that going backwards a
     client is sent a frame older than the two it holds."""
     from server.session import LocalSolver
@@ -85,6 +85,9 @@ def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_pat
     assert [p["direction"] for p in cluster["refinement_passes"]] == ["backward", "forward"]
     if hops:  # the backward pass's first frame, which only hops refit, was replaced: they ran
         assert "first_pass" in records(tmp_path / "cluster")[-1]
+        # one after another in one process; three at a time (two clients and the server), some dropped
+        assert single["refinement_passes"][0]["hops_run"] == hops * 3
+        assert cluster["refinement_passes"][0]["hops_run"] > hops * 3
 
 
 @pytest.mark.timeout(90)
@@ -182,3 +185,21 @@ def test_bench_cluster_reports_the_comparison(seq_path):
     assert set(r["chain_cpu_seconds_per_frame"]) == {"torso", "head", *LIMB_CHAINS}
     table = format_table(r)
     assert "3.300" in table and "1.160" in table
+
+
+@pytest.mark.timeout(240)
+def test_bench_hops_runs_them_side_by_side_with_the_same_poses(seq_path, tmp_path, capsys):
+    """``mocap bench hops``: local clients (real processes) run the hops side by side, with the
+    single process's poses; dropped hops show as more hops run per frame."""
+    from server.cli import main
+
+    out = tmp_path / "hops.json"
+    assert main(["bench", "hops", str(seq_path), "--frames", "2", "--clients", "2", "--hops", "4",
+                 "--json", str(out)]) == 0
+    single, distributed = json.loads(out.read_text())
+    assert (single["mode"], single["clients"], distributed["mode"], distributed["clients"]) == \
+        ("single", 0, "distributed", 2)
+    assert distributed["max_param_difference"] == 0.0 and single["hops_run_per_frame"] == 4
+    assert distributed["hops_run_per_frame"] >= 4 and distributed["refine_seconds_per_frame"] > 0
+    assert main(["bench", "hops", str(seq_path), "--hops", "0"]) == 2
+    assert "--hops >= 1" in capsys.readouterr().err

@@ -8,7 +8,7 @@ import pytest
 from common import protocol
 from common.camera import circle_studio
 from common.packing import packbits_masks, packed_length
-from common.protocol import (CHAIN_NAMES, MAX_CAMERAS, MAX_HEADER_BYTES, MAX_IMAGE_SIDE, MAX_INDEX,
+from common.protocol import (CHAIN_NAMES, JOB_NAMES, MAX_CAMERAS, MAX_HEADER_BYTES, MAX_IMAGE_SIDE, MAX_INDEX,
                              MAX_MESSAGE_BYTES, PARAM_COUNT, PROTOCOL_VERSION, REASONS, CameraSpec, Error,
                              Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve, Welcome,
                              camera_specs, decode, encode)
@@ -19,6 +19,18 @@ except ImportError:  # not in every environment yet; the fixed examples below st
     given = None
 
 PARAMS = tuple(0.01 * i - 0.1 for i in range(PARAM_COUNT))
+
+
+def test_the_wire_knows_the_fitters_chains_and_hops():
+    from common.body import CHAINS
+    from common.fitting import HOP_JOBS
+
+    assert set(CHAIN_NAMES) == set(CHAINS) and protocol.HOP_JOB_NAMES == HOP_JOBS
+    assert JOB_NAMES == CHAIN_NAMES + HOP_JOBS
+    solve = Solve(session="s", frame=3, iteration=8, request=1, params=PARAMS, chains=HOP_JOBS[:2])
+    assert decode(encode(solve)) == solve
+    with pytest.raises(ProtocolError, match="'hops9' is not one of"):
+        Solve(session="s", frame=3, iteration=8, request=1, params=PARAMS, chains=("hops9",))
 
 
 def make_frame(K=5, H=17, W=33, seed=0, **overrides) -> Frame:
@@ -120,8 +132,8 @@ SOLVE, RESULT, FRAME, REGISTER = EXAMPLES[4], EXAMPLES[6], EXAMPLES[2], EXAMPLES
     b"", b"\xc1", b"\x92\x01", b"\x81\xa1v\x01extra", b"not msgpack at all",
     msgpack.packb([1, 2]), msgpack.packb("solve"), msgpack.packb(None),
     msgpack.packb({1: "int key"}),
-    msgpack.packb({"v": 1, "type": "heartbeat", "blob": b"bytes in the header"}),
-    msgpack.packb({"v": 1, "type": "heartbeat", "t": msgpack.ExtType(5, b"x")}),
+    msgpack.packb({"v": PROTOCOL_VERSION, "type": "heartbeat", "blob": b"bytes in the header"}),
+    msgpack.packb({"v": PROTOCOL_VERSION, "type": "heartbeat", "t": msgpack.ExtType(5, b"x")}),
     b"\x81\xa1v\xa2\xff\xfe",  # invalid UTF-8 string
     msgpack.packb({"text": "x" * (4 * protocol.MAX_TEXT_CHARS + 1)}),
     msgpack.packb({"a": list(range(5000))}),
@@ -131,7 +143,8 @@ def test_not_msgpack(header):
     rejects([header], "not_msgpack")
 
 
-@pytest.mark.parametrize("version", [None, 0, 2, "1", 1.0, True, [1]])
+@pytest.mark.parametrize("version", [None, 0, PROTOCOL_VERSION - 1, PROTOCOL_VERSION + 1, str(PROTOCOL_VERSION),
+                                     float(PROTOCOL_VERSION), True, [PROTOCOL_VERSION]])
 def test_version(version):
     frames = tampered(SOLVE, drop=["v"]) if version is None else tampered(SOLVE, v=version)
     rejects(frames, "version")
@@ -303,7 +316,7 @@ def test_too_large_camera_size():
 def test_too_large_message_and_header():
     header = encode(FRAME)[0]
     rejects([header, bytes(MAX_MESSAGE_BYTES)], "too_large")
-    rejects([msgpack.packb({"v": 1, "pad": "x" * MAX_HEADER_BYTES})], "too_large")
+    rejects([msgpack.packb({"v": PROTOCOL_VERSION, "pad": "x" * MAX_HEADER_BYTES})], "too_large")
 
 
 def test_too_large_on_encode(monkeypatch):
@@ -392,14 +405,14 @@ if given is not None:
 
     @property_test
     @given(name, index, index, index, params,
-           st.lists(st.sampled_from(CHAIN_NAMES), min_size=1, max_size=len(CHAIN_NAMES), unique=True),
+           st.lists(st.sampled_from(JOB_NAMES), min_size=1, max_size=len(JOB_NAMES), unique=True),
            st.dictionaries(name, option_value, max_size=protocol.MAX_OPTIONS))
     def test_solve_property(session, frame, iteration, request, pose, chains, options):
         check_round_trip(Solve(session=session, frame=frame, iteration=iteration, request=request,
                                params=pose, chains=chains, options=options))
 
     @property_test
-    @given(name, index, index, index, st.sampled_from(CHAIN_NAMES), params, finite, index, seconds, seconds)
+    @given(name, index, index, index, st.sampled_from(JOB_NAMES), params, finite, index, seconds, seconds)
     def test_result_property(session, frame, iteration, request, chain, pose, energy, evaluations, cpu, wall):
         check_round_trip(Result(session=session, frame=frame, iteration=iteration, request=request,
                                 chain=chain, params=pose, energy=energy, energy_before=energy,

@@ -11,7 +11,7 @@ BENCH_CLIP_FRAMES = 20  # frames of the bundled walk used for fitting benchmarks
 
 
 def register(sub) -> None:
-    p = sub.add_parser("bench", help="benchmarks (energy, fit, cluster, segment, voxels, all)")
+    p = sub.add_parser("bench", help="benchmarks (energy, fit, cluster, hops, segment, voxels, all)")
     bsub = p.add_subparsers(dest="bench", metavar="WHAT")
     bsub.required = True
     e = bsub.add_parser("energy", help="XOR energy evaluations per second (paper Table 1)")
@@ -27,6 +27,12 @@ def register(sub) -> None:
     c.add_argument("--frames", type=int, default=BENCH_CLIP_FRAMES)
     c.add_argument("--clients", type=int, default=4)
     c.add_argument("--json", type=Path, default=None)
+    h = bsub.add_parser("hops", help="the refinement's hops, single process vs server + clients side by side")
+    h.add_argument("sequence", type=Path)
+    h.add_argument("--frames", type=int, default=10)
+    h.add_argument("--clients", type=int, default=4)
+    h.add_argument("--hops", type=int, default=20, metavar="N", help="as mocap fit --refine-hops")
+    h.add_argument("--json", type=Path, default=None)
     s = bsub.add_parser("segment", help="background subtraction frames/s and error rates")
     s.add_argument("--json", type=Path, default=None)
     v = bsub.add_parser("voxels", help="SPOT voxel reconstruction frames/s")
@@ -114,6 +120,15 @@ def run(args) -> int:
         if not args.sequence.exists():
             raise UserError(f"{args.sequence}: no such sequence")
         _emit(bench_cluster(args.sequence, args.frames, args.clients), args.json)
+        return 0
+    if args.bench == "hops":
+        from server.bench_cluster import bench_hops
+
+        if not args.sequence.exists():
+            raise UserError(f"{args.sequence}: no such sequence")
+        if args.hops < 1 or args.clients < 1 or args.frames < 2:
+            raise UserError("bench hops needs --hops >= 1, --clients >= 1 and --frames >= 2")
+        _emit(bench_hops(args.sequence, args.frames, args.clients, args.hops), args.json)
         return 0
     if args.bench == "accuracy":
         with tempfile.TemporaryDirectory() as tmp:
