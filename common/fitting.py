@@ -561,12 +561,12 @@ HOP_STEP_RAD = 0.1      # Powell's first steps over all 35 parameters: angles, r
 HOP_STEP_M = 0.03       # ... root position, m
 HOP_MAX_EVALS = 3000    # per hop: a few sweeps over 35 directions
 # The jobs of one round of hops, run side by side (the protocol's HOP_JOB_NAMES): job k is the
-# round's k-th hop. More would be idle clients' speculation that rarely pays.
-HOP_JOBS = ("hops0", "hops1", "hops2", "hops3")
+# round's k-th hop. More would mostly be hops dropped after a lower one beside them.
+HOP_JOBS = ("hop0", "hop1", "hop2", "hop3")
 
 
 def hop(model: BodyModel, frame: FrameData, params: np.ndarray, options: FitOptions, index: int,
-        seed: int, job: str = HOP_JOBS[0]) -> ChainResult:
+        seed: int, job: str) -> ChainResult:
     """Hop number ``index`` from ``params`` (35,): chain HOP_CHAINS[index % 5] is moved by a
     random step drawn from (``seed``, ``index``) alone (the torso with the limbs held in their
     world orientation), and the whole body is fitted from there by Powell over all 35
@@ -597,8 +597,10 @@ def hop_fit(params: np.ndarray, options: FitOptions, dispatch: Dispatch, side_by
     them is lower, the next round starts after it and the hops beyond it are dropped: they
     started from a pose that is no longer the best. So the result is that of the hops one
     after another, however many run side by side; a cluster gains where hops fail, as most
-    do once the first few have found the valley. Returns the best (``params`` where no hop was
-    lower) with every hop's ChainResult, dropped ones too, in ``chains``.
+    do once the first few have found the valley. ``dispatch`` must run the hops with these
+    ``options`` (``solve_job`` reads the hop count from them). Returns the best (``params``
+    where no hop was lower); its ``evaluations`` are those of the hops one after another, its
+    ``chains`` every hop's ChainResult, dropped ones too.
 
     Why: the hierarchy moves one chain at a time, and a frame whose torso and a limb are off
     together sits in a valley that no single chain can go down. Basketball frame 85 (the clip's
@@ -611,7 +613,7 @@ def hop_fit(params: np.ndarray, options: FitOptions, dispatch: Dispatch, side_by
     if not 1 <= side_by_side <= len(HOP_JOBS):
         raise ValueError(f"side_by_side must be 1..{len(HOP_JOBS)}, got {side_by_side}")
     best, best_energy = np.array(params, dtype=np.float64), None
-    hops, done = [], 0
+    hops, evaluations, done = [], 0, 0
     while done < options.refine_hops:
         results = dispatch(list(HOP_JOBS[:min(side_by_side, options.refine_hops - done)]), best, done)()
         hops += results
@@ -620,8 +622,10 @@ def hop_fit(params: np.ndarray, options: FitOptions, dispatch: Dispatch, side_by
         lower = next((k for k, r in enumerate(results) if r.energy < best_energy), None)
         if lower is not None:
             best, best_energy = results[lower].params, results[lower].energy
-        done += len(results) if lower is None else lower + 1
-    return FrameResult(best, int(best_energy), options.refine_hops, sum(r.evaluations for r in hops), hops)
+        kept = results if lower is None else results[:lower + 1]
+        evaluations += sum(r.evaluations for r in kept)
+        done += len(kept)
+    return FrameResult(best, int(best_energy), options.refine_hops, evaluations, hops)
 
 
 def solve_job(model: BodyModel, frame: FrameData, job: str, params: np.ndarray, options: FitOptions,

@@ -35,7 +35,7 @@ PARAM_COUNT = 35  # pose parameters of the body model
 CHAIN_NAMES = ("torso", "head", "left_arm", "right_arm", "left_leg", "right_leg")
 # the hops of a refinement's round (common.fitting.HOP_JOBS): sent and answered as chains are;
 # job k of a Solve with iteration i is hop number i + k
-HOP_JOB_NAMES = ("hops0", "hops1", "hops2", "hops3")
+HOP_JOB_NAMES = ("hop0", "hop1", "hop2", "hop3")
 JOB_NAMES = CHAIN_NAMES + HOP_JOB_NAMES
 
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024  # all frames of one message; also zmq.MAXMSGSIZE

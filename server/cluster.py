@@ -71,7 +71,7 @@ DEFAULT_BIND = "tcp://*:5555"
 LOCAL_BIND = "tcp://127.0.0.1:*"  # a random free port on the loopback interface
 HEARTBEAT_INTERVAL = 1.0  # seconds between heartbeats, both ways
 HEARTBEAT_LIVENESS = 3  # silent intervals before a client counts as dead
-CLIENT_TIMEOUT = 10.0  # seconds a chain may take on a client before it is queued again
+CLIENT_TIMEOUT = 10.0  # seconds a chain (or hop) may take on a client before it is queued again
 MAX_SLEEP = 1.0  # seconds the broker sleeps at most; it wakes for messages, commands and deadlines
 SHUTDOWN_GRACE = 1.0  # seconds to wait for clients to acknowledge SHUTDOWN
 CLIENT_START_TIMEOUT = 60.0  # seconds for local clients to start and register
@@ -173,7 +173,8 @@ class _Request:
 
 @dataclass
 class _Round:
-    """One dispatch: the limb chains of one iteration of one frame."""
+    """One dispatch: the limb chains of one iteration of one frame, or a round of hops (the
+    "chains" are then hop jobs, common.fitting.HOP_JOBS)."""
 
     frame: int
     iteration: int
@@ -300,8 +301,10 @@ class ClusterSolver:
             return len(self._peers)
 
     def workers(self) -> int:
-        """The clients registered now, and the server, which solves what no client is free for."""
-        return self.client_count() + 1
+        """The clients that take work now (not stalled, not retired), and the server, which
+        solves what no client is free for."""
+        with self._lock:
+            return 1 + sum(not p.stalled and not p.retired for p in self._peers.values())
 
     def begin_frame(self, frame: int, data: FrameData, start: np.ndarray, options: FitOptions) -> None:
         t0 = time.perf_counter()
@@ -679,7 +682,7 @@ class ClusterSolver:
             self._requeue(request)
 
     def _assign(self) -> None:
-        """Hand queued chains to idle clients, longest idle first."""
+        """Hand queued chains (or hops) to idle clients, longest idle first."""
         rnd = self._round
         if rnd is None:
             return
@@ -789,7 +792,7 @@ def add_cluster_arguments(p, server: bool) -> None:
         p.add_argument("--curve-keys", type=Path, default=None, metavar="DIR",
                        help="CURVE: DIR/server.key_secret, allowed client keys in DIR/clients/*.key")
     p.add_argument("--client-timeout", type=float, default=CLIENT_TIMEOUT,
-                   help=f"seconds a chain may take on a client before it is re-sent (default {CLIENT_TIMEOUT:g})")
+                   help=f"seconds a chain or hop may take on a client before it is re-sent (default {CLIENT_TIMEOUT:g})")
     p.add_argument("--heartbeat", type=float, default=HEARTBEAT_INTERVAL,
                    help=f"heartbeat interval, seconds (default {HEARTBEAT_INTERVAL:g}); a peer silent for "
                         f"{HEARTBEAT_LIVENESS} intervals counts as gone")

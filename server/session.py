@@ -59,7 +59,7 @@ def first_frame_options(options: FitOptions, redetect_turn: str) -> FitOptions:
 
 
 class Solver(Protocol):
-    """Who solves the limb chains and hop streams: this process, or clients over the network."""
+    """Who solves the limb chains and hops: this process, or clients over the network."""
 
     mode: str
     clients: int
@@ -68,7 +68,7 @@ class Solver(Protocol):
         """A new frame: its silhouettes, start pose and the options its chains are solved with."""
 
     def solve(self, chains: list, params: np.ndarray, iteration: int) -> Callable[[], list]:
-        """Start solving ``chains`` (or hop streams, ``common.fitting.solve_job``) from ``params``;
+        """Start solving ``chains`` (or hops, ``common.fitting.solve_job``) from ``params``;
         the returned function waits for the results."""
 
     def workers(self) -> int:
@@ -124,6 +124,7 @@ class RunStats:
     chain_evaluations: dict = field(default_factory=dict)
     server_compute: float = 0.0                          # torso + head + energy checks, seconds
     hops_run: int = 0                                    # hops of the refinement, dropped ones too (hop_fit)
+    hop_seconds: float = 0.0                             # wall seconds in hop_fit
 
     def add_chains(self, chains: list[ChainResult]) -> None:
         for c in chains:
@@ -344,7 +345,9 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     can share a torso and limb that are off together (basketball frame 84: the left ankle 74 mm
     off, an alternative leg 1.8% lower in energy). About nine times the cost of a plain pass.
     With ``hops`` > 0, each frame is also fitted by that many hops of ``hop_fit`` from the best
-    of its fits, seeded by the frame's number; a cluster's clients run them side by side.
+    of its fits, each seeded by the frame's number and its own; a cluster's clients run them
+    side by side. Their time goes to the pass's "hop_seconds", their count, dropped ones too,
+    to its "hops_run"; their chains stay out of the per-chain figures.
     """
     out = [dict(r) for r in records]
     order = range(len(out) - 1, -1, -1) if backward else range(len(out))
@@ -354,12 +357,11 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
         r = out[i]
         if neighbour is not None or search or hops:
             t0 = time.perf_counter()
-            fits = _refits(model, seq, r, neighbour, beyond, options, solver, search, hops)
-            stats.hops_run += sum(c.chain in HOP_JOBS for f in fits for c in f.chains)
+            fits = _refits(model, seq, r, neighbour, beyond, options, solver, search, hops, stats)
             r["refine_seconds"] = r.get("refine_seconds", 0.0) + time.perf_counter() - t0
             if fits:  # a searched frame may have no neighbour and no other basins
                 again = lowest_energy(fits)
-                stats.add_chains(again.chains)
+                stats.add_chains([c for c in again.chains if c.chain not in HOP_JOBS])
                 r["refine_evaluations"] = r.get("refine_evaluations", 0) + again.evaluations
                 if again.energy < r["energy"]:
                     r.setdefault("first_pass", {"params": r["params"], "joints": r["joints"], "energy": r["energy"]})
@@ -375,11 +377,11 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
 
 def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray | None,
             beyond: np.ndarray | None, options: FitOptions, solver: Solver, search: bool,
-            hops: int = 0) -> list[FrameResult]:
+            hops: int, stats: RunStats) -> list[FrameResult]:
     """A refinement pass's fits of one frame: from its neighbour's fit (``neighbour``, the one
     beyond it ``beyond``) where it has one; with ``search``, from each limb's other basins
     around the better of that fit and the record's; with ``hops``, basin hopping from the best
-    of all these and the record."""
+    of all these and the record (its time and hop count added to ``stats``)."""
     data = FrameData(model, seq.studio, seq.silhouettes(record["frame"]))
     fits = []
 
@@ -396,8 +398,11 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
     if hops:
         start = best_so_far()
         hopping = replace(options, refine_hops=hops)
+        t0 = time.perf_counter()
         solver.begin_frame(record["frame"], data, start, hopping)
         fits.append(hop_fit(start, hopping, solver.solve, min(solver.workers(), len(HOP_JOBS))))
+        stats.hop_seconds += time.perf_counter() - t0
+        stats.hops_run += len(fits[-1].chains)
     return fits
 
 
@@ -483,7 +488,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     records = read_done_frames(poses_path)
     passes = []
     for k in range(options.refine_passes if len(records) > 1 else 0):
-        t0, hops_before = time.perf_counter(), stats.hops_run
+        t0, hops_before, hop_seconds_before = time.perf_counter(), stats.hops_run, stats.hop_seconds
         backward = k % 2 == 0
         search = options.refine_search and k == 0
         hops = options.refine_hops if k == 0 else 0
@@ -493,6 +498,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         passes.append({"direction": "backward" if backward else "forward", "search": search, "hops": hops,
                        # more than hops x frames where hops ran side by side and some were dropped
                        "hops_run": stats.hops_run - hops_before,
+                       "hop_seconds": stats.hop_seconds - hop_seconds_before,
                        "frames_replaced": replaced, "seconds": time.perf_counter() - t0})
     summary = {
         "sequence": str(seq.path.resolve()),

@@ -29,8 +29,8 @@ def test_the_wire_knows_the_fitters_chains_and_hops():
     assert JOB_NAMES == CHAIN_NAMES + HOP_JOBS
     solve = Solve(session="s", frame=3, iteration=8, request=1, params=PARAMS, chains=HOP_JOBS[:2])
     assert decode(encode(solve)) == solve
-    with pytest.raises(ProtocolError, match="'hops9' is not one of"):
-        Solve(session="s", frame=3, iteration=8, request=1, params=PARAMS, chains=("hops9",))
+    with pytest.raises(ProtocolError, match="'hop9' is not one of"):
+        Solve(session="s", frame=3, iteration=8, request=1, params=PARAMS, chains=("hop9",))
 
 
 def make_frame(K=5, H=17, W=33, seed=0, **overrides) -> Frame:
