@@ -559,6 +559,29 @@ def clip_to_limits(params: np.ndarray) -> np.ndarray:
     return np.clip(params, PARAM_LIMITS[:, 0], PARAM_LIMITS[:, 1])
 
 
+# Each limb parameter's sign in the limb's mirror image (a reflection through the body's
+# sagittal plane; x is lateral in every joint frame): a rotation vector keeps its x and flips
+# y and z, a hinge keeps its angle. Checked by forward kinematics in tests/test_body.py.
+MIRROR_SIGNS = {
+    "arm": {"shoulder_x": 1.0, "shoulder_y": -1.0, "shoulder_z": -1.0, "elbow": 1.0, "wrist_flex": 1.0,
+            "wrist_dev": -1.0},
+    "leg": {"hip_x": 1.0, "hip_y": -1.0, "hip_z": -1.0, "knee": 1.0, "ankle_flex": 1.0, "ankle_inv": -1.0},
+}
+
+
+def swap_sides(params: np.ndarray, limb: str) -> np.ndarray:
+    """(35,) -> (35,): the left and right ``limb`` ("arm" or "leg") exchanged, each taking the
+    mirror image of the other's pose. Seen from the side the two are alike (a stride with the
+    left foot ahead or the right), so a silhouette fit can settle on the wrong one."""
+    if limb not in MIRROR_SIGNS:
+        raise ValueError(f"limb must be one of {sorted(MIRROR_SIGNS)}, got {limb!r}")
+    out = np.array(params, dtype=np.float64)
+    for name, sign in MIRROR_SIGNS[limb].items():
+        left, right = P[f"l_{name}"], P[f"r_{name}"]
+        out[left], out[right] = sign * params[right], sign * params[left]
+    return out
+
+
 def joints_dict(joints: np.ndarray) -> dict:
     """(17, 3) -> {joint name: [x, y, z]} (plain floats, for JSON)."""
     return {name: [float(v) for v in joints[i]] for i, name in enumerate(JOINT_NAMES)}

@@ -570,10 +570,11 @@ def hop(model: BodyModel, frame: FrameData, params: np.ndarray, options: FitOpti
     """Hop number ``index`` from ``params`` (35,): chain HOP_CHAINS[index % 5] is moved by a
     random step drawn from (``seed``, ``index``) alone (the torso with the limbs held in their
     world orientation), and the whole body is fitted from there by Powell over all 35
-    parameters at once, on the whole-image ``cpu`` energy with the spine prior. Returns it as
-    ``job``'s ChainResult, with the full energies (``full_energy``) before and after."""
+    parameters at once, on the hops' objective: the whole-image ``cpu`` energy plus the spine
+    prior. Returns it as ``job``'s ChainResult whose energies (before, after) are that
+    objective, rounded here to whole pixels so that a cluster compares the same numbers."""
     wall0, cpu0 = _clock()
-    energy = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
+    objective = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
     every = np.arange(len(params))
     steps = np.where(every < 3, HOP_STEP_M, HOP_STEP_RAD)
     rng = np.random.default_rng((seed, index))
@@ -583,15 +584,16 @@ def hop(model: BodyModel, frame: FrameData, params: np.ndarray, options: FitOpti
     start[idx] += rng.normal(0.0, 1.0, len(idx)) * np.where(idx < 3, HOP_SIGMA_M, HOP_SIGMA_RAD)
     if chain == "torso":  # the limbs keep their world orientation, as in the torso's solves
         start = hold_limbs_in_world(model, start, params)[0]
-    x, _, n, _ = powell(energy, clip_to_limits(start), every, steps, options, HOP_MAX_EVALS)
-    before, after = full_energy(model, frame, params), full_energy(model, frame, x)
+    x, _, n, _ = powell(objective, clip_to_limits(start), every, steps, options, HOP_MAX_EVALS)
+    before, after = (round(float(objective(p[None])[0])) for p in (np.asarray(params, dtype=np.float64), x))
     wall1, cpu1 = _clock()
     return ChainResult(job, x, before, after, n + 2, 1, wall1 - wall0, cpu1 - cpu0)
 
 
 def hop_fit(params: np.ndarray, options: FitOptions, dispatch: Dispatch, side_by_side: int = 1) -> FrameResult:
     """Basin hopping from ``params`` (35,): ``options.refine_hops`` hops (``hop``), one after
-    another, each from the best pose so far; a hop with a lower full energy becomes the best.
+    another, each from the best pose so far; a hop with a lower objective (XOR energy plus the
+    spine prior, what each hop's Powell minimises) becomes the best.
     ``dispatch`` runs the hops with ``options``, ``side_by_side`` (1..len(HOP_JOBS)) at once,
     all from the same best: hops k..k+n-1 as jobs HOP_JOBS[:n] with iteration k. Where one of
     them is lower, the next round starts after it and the hops beyond it are dropped: they
@@ -599,8 +601,9 @@ def hop_fit(params: np.ndarray, options: FitOptions, dispatch: Dispatch, side_by
     after another, however many run side by side; a cluster gains where hops fail, as most
     do once the first few have found the valley. ``dispatch`` must run the hops with these
     ``options`` (``solve_job`` reads the hop count from them). Returns the best (``params``
-    where no hop was lower); its ``evaluations`` are those of the hops one after another, its
-    ``chains`` every hop's ChainResult, dropped ones too.
+    where no hop was lower) with its objective as ``energy`` (callers that compare it with other
+    fits take its ``full_energy``); its ``evaluations`` are those of the hops one after
+    another, its ``chains`` every hop's ChainResult, dropped ones too.
 
     Why: the hierarchy moves one chain at a time, and a frame whose torso and a limb are off
     together sits in a valley that no single chain can go down. Basketball frame 85 (the clip's

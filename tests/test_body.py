@@ -6,9 +6,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from common.body import (
-    CHAINS, FORWARD, JOINT_NAMES, LIMB_CHAINS, LIMB_PARTS, P, PARAM_COUNT, PARAM_LIMITS, PARAM_NAMES,
+    CHAINS, FORWARD, JOINT_NAMES, LIMB_CHAINS, LIMB_PARTS, MIRROR_SIGNS, P, PARAM_COUNT, PARAM_LIMITS, PARAM_NAMES,
     SEGMENT_NAMES, SEGMENT_PARENTS, clip_to_limits, forward_kinematics, hold_limbs_in_world,
-    joint_frames, rest_params, rigid_vertices, skinned_vertices,
+    joint_frames, rest_params, rigid_vertices, skinned_vertices, swap_sides,
 )
 
 J = {name: i for i, name in enumerate(JOINT_NAMES)}
@@ -287,3 +287,32 @@ def test_hold_limbs_at_reference_is_identity_on_the_pose(model, rng):
     held = hold_limbs_in_world(model, reference[None], reference)
     np.testing.assert_allclose(forward_kinematics(model, held).joints, forward_kinematics(model, reference).joints,
                                atol=1e-9)
+
+
+@pytest.mark.parametrize("limb, segments", [("arm", ("upperarm", "forearm", "hand")), ("leg", ("thigh", "shin", "foot"))])
+def test_swapped_sides_are_each_others_mirror_image(model, rng, limb, segments):
+    """With the trunk at rest (symmetric), each limb swapped in takes the mirror image of the
+    other's world rotations and joint positions; swapping twice gives the pose back."""
+    x = rest_params(model)
+    for side in "lr":
+        for name in MIRROR_SIGNS[limb]:
+            x[P[f"{side}_{name}"]] = rng.uniform(-0.6, 0.6) + (0.8 if name in ("elbow", "knee") else 0.0)
+    y = swap_sides(x, limb)
+    fx, fy = forward_kinematics(model, x), forward_kinematics(model, y)
+    mirror = np.diag([-1.0, 1.0, 1.0])  # x lateral, the pelvis at x = 0
+    for a, b in (("l", "r"), ("r", "l")):
+        for seg in segments:
+            i, j = SEGMENT_NAMES.index(f"{a}_{seg}"), SEGMENT_NAMES.index(f"{b}_{seg}")
+            np.testing.assert_allclose(mirror @ fx.rotations[0, i] @ mirror, fy.rotations[0, j], atol=1e-9)
+    joints = [n[2:] for n in JOINT_NAMES if n.startswith("l_")]
+    moved = [j for j in joints if not np.allclose(fx.joints[0, JOINT_NAMES.index("l_" + j)],
+                                                  fy.joints[0, JOINT_NAMES.index("l_" + j)])]
+    assert moved  # the swap changed the limb
+    for j in joints:
+        np.testing.assert_allclose(mirror @ fx.joints[0, JOINT_NAMES.index("l_" + j)],
+                                   fy.joints[0, JOINT_NAMES.index("r_" + j)], atol=1e-9)
+    others = [k for k in range(len(x)) if not any(PARAM_NAMES[k] in (f"l_{n}", f"r_{n}") for n in MIRROR_SIGNS[limb])]
+    np.testing.assert_array_equal(y[others], x[others])
+    np.testing.assert_allclose(swap_sides(y, limb), x)
+    with pytest.raises(ValueError, match="limb"):
+        swap_sides(x, "tail")
