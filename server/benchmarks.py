@@ -16,6 +16,7 @@ import numpy as np
 
 from common.body import CHAINS, forward_kinematics, load_body_model, rest_params
 from common.energy import ARM_WINDOW, SMALL_WINDOW, make_energy
+from common.errors import UserError
 from common.fitting import FitOptions, FrameData
 
 # Theobalt et al. 2003, Table 1 (XOR / XORPR evaluations per second) and Table 2 (s/frame, seq. A)
@@ -230,7 +231,9 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
     One row per clip and start: first_frame_error_mm (the voxel-started run's first frame)
     and whether it meets INIT_TARGET_MM, first_frame_seconds (initialisation and first fit),
     the two runs' mean joint errors and their difference (auto minus truth start), and the two
-    runs' errors on their last frame, mm.
+    runs' errors on their last frame, mm. A start whose automatic run fails (``UserError``:
+    no actor in the voxels) gives a row with "error" and first_frame_ok false, and the
+    benchmark goes on.
     """
     from common.bvh import read_bvh
     from common.camera import circle_studio
@@ -253,7 +256,12 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
                        SynthOptions(frames=frames, start=start, noise="cheung", seed=seed))
             seq = load_sequence(seq_dir)
             auto_dir = workdir / f"auto-{clip.stem}-{label}"
-            auto = run_fit(model, seq, auto_dir, options, LocalSolver(model, options), init="auto")
+            try:
+                auto = run_fit(model, seq, auto_dir, options, LocalSolver(model, options), init="auto")
+            except UserError as exc:  # the clip's other rows still count (an actor out of most views)
+                rows.append({"clip": clip.name, "start": label, "start_frame": start, "first_frame_ok": False,
+                             "error": str(exc)})
+                continue
             given = run_fit(model, seq, workdir / f"truth-{clip.stem}-{label}", options, LocalSolver(model, options),
                             init="truth")
             first = auto["per_frame_error_mm"][0]
@@ -278,6 +286,9 @@ def print_init_table(rows: list[dict]) -> None:
     print(f"{'clip':28s} {'start':>6s} {'frame':>6s} {'search mm':>9s} {'first mm':>9s} {'auto mm':>8s} {'truth mm':>9s} "
           f"{'last auto':>9s} {'last truth':>10s} {'s':>5s}")
     for r in rows:
+        if "error" in r:
+            print(f"{r['clip']:28s} {r['start']:>6s} {r['start_frame']:6d} failed: {r['error']}")
+            continue
         print(f"{r['clip']:28s} {r['start']:>6s} {r['start_frame']:6d} {r['first_frame_search_error_mm']:9.1f} "
               f"{r['first_frame_error_mm']:9.1f} "
               f"{r['auto_mean_joint_error_mm']:8.1f} {r['truth_start_mean_joint_error_mm']:9.1f} "

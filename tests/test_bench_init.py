@@ -83,6 +83,24 @@ def test_init_table_counts_first_frames_on_target(capsys):
     assert out[-1] == "first frame <= 50 mm: 2 of 3"
 
 
+@pytest.mark.timeout(120)
+def test_a_start_that_cannot_be_initialised_is_a_failed_row(tmp_path, monkeypatch, capsys):
+    """No actor in the voxels (one out of most views) fails that run, not the benchmark."""
+    from common.errors import UserError
+    from server import session
+
+    def no_actor(model, seq, out_dir, options, solver, init=None, **kw):
+        raise UserError("automatic initialisation failed on the first frame: need at least 8 surface voxels, got 0")
+
+    monkeypatch.setattr(session, "run_fit", no_actor)
+    rows = benchmarks.init_rows(BUNDLED[:1], 1, tmp_path)
+    assert [(r["start"], r["first_frame_ok"]) for r in rows] == [("start", False), ("random", False)]
+    assert all("surface voxels" in r["error"] for r in rows)
+    benchmarks.print_init_table(rows)
+    out = capsys.readouterr().out.splitlines()
+    assert "failed: automatic initialisation" in out[1] and out[-1] == "first frame <= 50 mm: 0 of 2"
+
+
 def test_search_error_is_the_forward_fit_of_a_refined_first_frame(model, small_loaded):
     import numpy as np
 

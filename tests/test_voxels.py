@@ -230,3 +230,21 @@ def test_live_command_errors(tmp_path, sequence, capsys):
     write_sequence_meta(bare, [0], 30.0, [])
     assert main(["live", str(bare)]) == 2
     assert "repeat" in capsys.readouterr().err
+
+
+def test_silhouette_centre_ignores_cameras_that_see_only_noise():
+    """A small ball at the studio's edge, out of two of eight views, with Cheung-like specks in
+    every image: the two cameras that see only specks would pull the centre to their images'
+    middle; their blobs are too small to count."""
+    from common.voxels import silhouette_centre
+
+    studio = circle_studio(8, 320, 240)
+    centre = np.array([0.0, 2.1, 0.9])
+    masks = render_ellipsoids(studio, [centre], [np.eye(3)], [[0.15] * 3])
+    rng = np.random.default_rng(0)
+    specks = rng.random(masks.shape) < 0.02  # single-pixel noise, 2% of the pixels
+    blind = [k for k in range(len(studio)) if not masks[k].any()]
+    assert len(blind) >= 1  # the ball is out of some views
+    found = silhouette_centre(studio, masks | specks)
+    assert np.linalg.norm(found - centre) < 0.1
+    assert np.allclose(silhouette_centre(studio, masks), found, atol=0.05)
