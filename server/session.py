@@ -250,12 +250,7 @@ def swapped_side_fits(model: BodyModel, data: FrameData, frame: int, params: np.
     source frame 127 (the actor 1.5 m off the studio's centre, feet out of three views) was
     found with its legs swapped, the ankles 0.5 m off and 11% above the truth's energy; fitted
     from the legs swapped back it is 15 mm off."""
-    fits = []
-    for limb in MIRROR_SIGNS:
-        start = swap_sides(params, limb)
-        solver.begin_frame(frame, data, start, options)
-        fits.append(fit_frame(model, data, start, options, solver.solve))
-    return fits
+    return whole_body_fits(model, data, frame, [swap_sides(params, limb) for limb in MIRROR_SIGNS], options, solver)
 
 
 def limb_alternative_fits(model: BodyModel, data: FrameData, frame: int, params: np.ndarray, options: FitOptions,
@@ -263,12 +258,18 @@ def limb_alternative_fits(model: BodyModel, data: FrameData, frame: int, params:
     """The frame fitted again from each limb's other basins (``limb_alternatives`` of
     ``params``), each as a whole body: a limb found wrong holds the torso where it explains that
     limb, and neither can move alone."""
-    refits = []
-    for chain in LIMB_CHAINS:
-        for alternative in limb_alternatives(model, data, chain, params, options):
-            solver.begin_frame(frame, data, alternative, options)
-            refits.append(fit_frame(model, data, alternative, options, solver.solve))
-    return refits
+    alternatives = [a for chain in LIMB_CHAINS for a in limb_alternatives(model, data, chain, params, options)]
+    return whole_body_fits(model, data, frame, alternatives, options, solver)
+
+
+def whole_body_fits(model: BodyModel, data: FrameData, frame: int, starts: list, options: FitOptions,
+                    solver: Solver) -> list[FrameResult]:
+    """The frame fitted from each of ``starts`` (35,) in turn, each a separate tracking fit."""
+    fits = []
+    for start in starts:
+        solver.begin_frame(frame, data, start, options)
+        fits.append(fit_frame(model, data, start, options, solver.solve))
+    return fits
 
 
 LOSS_ENERGY_RATIO = 1.25  # a frame's energy this far above the recent median: tracking is lost
