@@ -186,7 +186,7 @@ def voxel_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:
     fitting), for a sequence without truth or T-pose: the voxel fit's front and back
     candidates, then a standing pose at each one's position and heading per
     STANDING_START_TILTS_RAD. ``fit_from_starts`` lets the silhouettes choose."""
-    from common.ellipsoid_fit import initial_pose as fit_to_voxels
+    from common.ellipsoid_fit import head_down_starts, initial_pose as fit_to_voxels
 
     grid = spot_grid(data.studio, data.masks, VOXEL_INIT_GRID).reconstruct(data.masks)
     # front or back: the silhouettes tell them apart better than the voxels' volume energy
@@ -201,7 +201,7 @@ def voxel_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:
             standing = rest_params(model, position=(c[0], c[1], model.joint_rest[0, 2]), heading=c[3])
             standing[P["root_tilt_x"]] = tilt
             starts.append(standing)
-    return starts
+    return starts + list(head_down_starts(model, init.shells))
 
 
 REFIT_GAIN = 0.005   # a first frame is fitted again from its result while the energy falls this much

@@ -6,10 +6,10 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from common.body import JOINT_NAMES, P, forward_kinematics, load_body_model, rest_params
+from common.body import JOINT_NAMES, P, forward_kinematics, load_body_model, rest_params, rot_z, rotvec_to_matrix
 from common.camera import circle_studio
-from common.ellipsoid_fit import (LIMB_GROUPS, SHELL_NAMES, EllipsoidFit, VolumeTarget, _limb_starts, activate,
-                                  fit_ellipsoids, hull_energy, initial_pose, moments, segment_ellipsoids,
+from common.ellipsoid_fit import (HEAD_DOWN_ROLLS, LIMB_GROUPS, SHELL_NAMES, EllipsoidFit, VolumeTarget, _limb_starts,
+                                  activate, fit_ellipsoids, head_down_starts, hull_energy, initial_pose, moments, segment_ellipsoids,
                                   shell_distances, volume_energy)
 from common.voxels import SpotGrid, person_ellipsoids, render_ellipsoids
 
@@ -204,3 +204,36 @@ def test_limb_starts_take_the_nearest_shell_whatever_its_label(person_voxels):
             q[list(LIMB_GROUPS[limb][0])] = start
             elbow = forward_kinematics(model, q).joints[0][JOINT_NAMES.index(limb[0] + "_elbow")]
             assert side * elbow[0] > 0.1, (limb, start)
+
+
+def _root_rotation(params) -> np.ndarray:
+    """(3, 3) the pelvis's world rotation: heading about z, then the tilt."""
+    return rot_z(np.array([params[P["root_heading"]]]))[0] @ rotvec_to_matrix(
+        np.array([params[P["root_tilt_x"]], params[P["root_tilt_y"]], 0.0]))
+
+
+def test_head_down_starts_lie_along_the_trunk_head_down():
+    """A star-shaped cartwheel, head down and leaning: the shells' axes have no sign, and the
+    starts put the head at the trunk's lower end, turned HEAD_DOWN_ROLLS ways; one of them is
+    within the roll step (plus the shell's own tilt error) of the actor's orientation."""
+    model = load_body_model()
+    p = rest_params(model, position=(0.1, -0.2, 0.9), heading=0.7)
+    p[P["root_tilt_x"]], p[P["root_tilt_y"]] = 2.4, 0.5
+    p[P["l_shoulder_y"]], p[P["r_shoulder_y"]] = 1.9, -1.9
+    p[P["l_hip_y"]], p[P["r_hip_y"]] = 0.6, -0.6
+    studio = circle_studio(8, 320, 240)
+    voxels = SpotGrid.build(studio, grid=64).reconstruct(render_ellipsoids(studio, *segment_ellipsoids(model, p)))
+    starts = head_down_starts(model, activate(voxels.surface_points()))
+    assert starts.shape == (HEAD_DOWN_ROLLS, 35)
+    neck, pelvis = JOINT_NAMES.index("neck"), JOINT_NAMES.index("pelvis")
+    truth = forward_kinematics(model, p).joints[0]
+    joints = forward_kinematics(model, starts).joints
+    assert np.all(joints[:, neck, 2] < joints[:, pelvis, 2] - 0.3)  # every start head down
+    spine = truth[neck] - truth[pelvis]
+    for j in joints:  # the spine along the trunk's axis, the trunk where the actor's is (the
+        # trunk's shell takes in the tops of the thighs, so its centre sits towards the pelvis)
+        along = j[neck] - j[pelvis]
+        assert np.dot(along, spine) / np.linalg.norm(along) / np.linalg.norm(spine) > np.cos(0.25)
+        assert np.linalg.norm((j[neck] + j[pelvis]) / 2 - (truth[neck] + truth[pelvis]) / 2) < 0.2
+    turns = [np.arccos(np.clip((np.trace(_root_rotation(s).T @ _root_rotation(p)) - 1) / 2, -1, 1)) for s in starts]
+    assert min(turns) < np.pi / HEAD_DOWN_ROLLS + 0.25, np.round(turns, 2)
