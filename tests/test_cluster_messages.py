@@ -222,7 +222,9 @@ def test_a_client_that_fails_a_chain_gets_no_more_work(model, seq_path, referenc
         done.set()
         ctx.destroy(linger=0)
         solver.close(shutdown="done")
-    assert len(solves) == 1 and stats["resent"] == 1 and stats["lost_clients"] == 0
+    # one resend for the failed chain; on a loaded machine the good client can also overrun
+    # the client timeout (a stall), which may resend its chain too
+    assert len(solves) == 1 and 1 <= stats["resent"] <= 1 + stats["stalls"] and stats["lost_clients"] == 0
     assert np.abs(got - reference).max() <= TOLERANCE
 
 

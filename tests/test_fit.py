@@ -726,21 +726,27 @@ def test_init_auto_ignores_the_truth_and_is_scored_by_it(five_frames, tmp_path):
 
 
 @pytest.mark.timeout(300)
-def test_voxel_starts_cover_both_headings_upright_and_bent(model, five_frames):
+def test_voxel_starts_cover_four_headings_upright_and_bent_and_head_down(model, five_frames):
     from common.body import P
     from common.ellipsoid_fit import HEAD_DOWN_ROLLS
     from common.sequence import load_sequence
-    from server.session import STANDING_START_TILTS_RAD, voxel_starts
+    from server.session import STANDING_START_TILTS_RAD, STANDING_START_TURNS_RAD, voxel_starts
 
     seq = load_sequence(five_frames)
     frame = seq.frames[0]
     starts = voxel_starts(model, FrameData(model, seq.studio, seq.silhouettes(frame)))
-    assert len(starts) == 2 + 2 * len(STANDING_START_TILTS_RAD) + HEAD_DOWN_ROLLS
+    standing_count = 2 * len(STANDING_START_TURNS_RAD) * len(STANDING_START_TILTS_RAD)
+    assert len(starts) == 2 + standing_count + HEAD_DOWN_ROLLS
     front, back = starts[0], starts[1]
     assert np.isclose(abs(np.angle(np.exp(1j * (front[P["root_heading"]] - back[P["root_heading"]])))), np.pi,
                       atol=0.5)
-    standing = np.array(starts[2:2 + 2 * len(STANDING_START_TILTS_RAD)])
+    standing = np.array(starts[2:2 + standing_count])
     assert sorted(set(np.round(standing[:, P["root_tilt_x"]], 6))) == sorted(STANDING_START_TILTS_RAD)
+    # at the voxel fit's front and back headings, and a quarter turn from each
+    headings = standing[:, P["root_heading"]].reshape(2, len(STANDING_START_TURNS_RAD), -1)
+    for candidate, per_turn in zip((front, back), headings):
+        for turn, heading in zip(STANDING_START_TURNS_RAD, per_turn):
+            assert np.allclose(heading, candidate[P["root_heading"]] + turn)
     head_down = forward_kinematics(model, np.array(starts[-HEAD_DOWN_ROLLS:])).joints
     assert np.all(head_down[:, JOINT_NAMES.index("neck"), 2] < head_down[:, 0, 2])
     truth = seq.truth()[frame].params
@@ -778,7 +784,7 @@ def test_fit_from_starts_keeps_the_start_that_explains_the_images(model, five_fr
     """One start 0.6 m beside the actor, one near the truth: the near one wins, and both
     starts' solves are counted."""
     from common.sequence import load_sequence
-    from server.session import fit_from_starts
+    from server.session import LocalSolver, fit_from_starts
 
     seq = load_sequence(five_frames)
     frame = seq.frames[0]
@@ -790,10 +796,50 @@ def test_fit_from_starts_keeps_the_start_that_explains_the_images(model, five_fr
     near[0] += 0.03
     options = FitOptions()
     alone = fit_frame(model, data, near, options)
-    both = fit_from_starts(model, data, [aside, near], options, None)
+    both = fit_from_starts(model, data, frame, [aside, near], [options], LocalSolver(model, options))
     assert both.energy <= alone.energy
     assert joint_errors_mm(model, both.params, truth).mean() < 20.0
     assert len(both.chains) > len(alone.chains)
+
+
+def test_fit_from_starts_refits_the_lowest_few_and_keeps_the_lowest_refit(monkeypatch):
+    """The lowest fit of a start need not refit lowest: the second-lowest refits below it and
+    wins; fits beyond REFITTED_STARTS are not refitted; every fit's solves are counted; a refit
+    uses the options its fit was found with."""
+    from common.fitting import FrameResult
+    from server import session
+
+    # a fake fit: a pose is one number, its basin; a start's fit stays in the start's basin, a
+    # refit moves basin b to REFIT[b]; the second options lower every energy by 5
+    energy = {0: 100, 1: 110, 2: 120, 3: 130, 10: 99, 11: 80, 21: 79}
+    refit = {0: 10, 1: 11, 10: 10, 11: 21, 21: 21}
+    calls = []
+
+    def fake_fit(model, data, start, options, dispatch, **_):
+        basin = int(start[0])
+        moved = refit[basin] if len(calls) >= initial else basin
+        calls.append((basin, options))
+        return FrameResult(np.array([float(moved)]), energy[moved] - 5 * (options is second), 1, 1, chains=[basin])
+
+    class Solver:
+        solve = None
+
+        def begin_frame(self, *args):
+            pass
+
+    monkeypatch.setattr(session, "fit_frame", fake_fit)
+    monkeypatch.setattr(session, "REFITTED_STARTS", 2)
+    first, second = FitOptions(), FitOptions(redetect_turn="all")
+    initial = 4
+    found = session.fit_from_starts(None, None, 0, [np.array([b]) for b in (2, 0, 3, 1)], [first], Solver())
+    assert (found.params[0], found.energy) == (21, 79)  # 1 (110) refits to 21, below 0 (100) refitted: 99
+    assert [basin for basin, _ in calls[initial:]] == [0, 10, 1, 11, 21]  # 2 and 3 not refitted
+    assert sorted(found.chains) == sorted(basin for basin, _ in calls)
+    calls.clear()
+    monkeypatch.setattr(session, "REFITTED_STARTS", 1)
+    found = session.fit_from_starts(None, None, 0, [np.array([3]), np.array([1])], [first, second], Solver())
+    assert (found.params[0], found.energy) == (21, 74)
+    assert [options for _, options in calls[initial:]] == [second] * 3
 
 
 def test_which_limbs_are_redetected_when():
