@@ -223,7 +223,7 @@ def search_error_mm(model, record: dict, truth: dict) -> float:
 
 
 def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpose: bool = False,
-              options: FitOptions | None = None) -> list[dict]:
+              options: FitOptions | None = None, first_frame_only: bool = False) -> list[dict]:
     """Automatic initialisation (issue 7): per clip, from frame 1 ("start", the first frame
     of motion), from a seeded random frame ("random") and, with ``tpose``, from frame 0
     ("tpose"), fit ``frames`` frames from the voxels (no truth) and from the truth.
@@ -233,7 +233,9 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
     the two runs' mean joint errors and their difference (auto minus truth start), and the two
     runs' errors on their last frame, mm. A start whose automatic run fails (``UserError``:
     no actor in the voxels) gives a row with "error" and first_frame_ok false, and the
-    benchmark goes on.
+    benchmark goes on. With ``first_frame_only``, the sequences and starts are the same (the
+    random frames and the actor's place in the studio depend on ``frames``), but each run fits
+    its first frame alone: the search, without the backward refinement.
     """
     from common.bvh import read_bvh
     from common.camera import circle_studio
@@ -244,6 +246,7 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
     model = load_body_model()
     options = options or FitOptions()
     rng = np.random.default_rng(seed)
+    fitted = 1 if first_frame_only else None
     rows = []
     for clip in clips:
         total = read_bvh(clip).num_frames
@@ -257,13 +260,14 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
             seq = load_sequence(seq_dir)
             auto_dir = workdir / f"auto-{clip.stem}-{label}"
             try:
-                auto = run_fit(model, seq, auto_dir, options, LocalSolver(model, options), init="auto")
+                auto = run_fit(model, seq, auto_dir, options, LocalSolver(model, options), init="auto",
+                               max_frames=fitted)
             except UserError as exc:  # the clip's other rows still count (an actor out of most views)
                 rows.append({"clip": clip.name, "start": label, "start_frame": start, "first_frame_ok": False,
                              "error": str(exc)})
                 continue
             given = run_fit(model, seq, workdir / f"truth-{clip.stem}-{label}", options, LocalSolver(model, options),
-                            init="truth")
+                            init="truth", max_frames=fitted)
             first = auto["per_frame_error_mm"][0]
             first_record = load_records(auto_dir)[0]
             rows.append({"clip": clip.name, "start": label, "start_frame": start, "frames": auto["frames"],

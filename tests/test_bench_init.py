@@ -33,9 +33,9 @@ def captured(monkeypatch):
     """Replaces init_rows; records the clips and options it was called with."""
     calls = []
 
-    def fake(clips, frames, workdir, seed=0, tpose=False, options=None):
+    def fake(clips, frames, workdir, seed=0, tpose=False, options=None, first_frame_only=False):
         calls.append({"clips": list(clips), "frames": frames, "tpose": tpose, "search": options.refine_search,
-                      "hops": options.refine_hops})
+                      "hops": options.refine_hops, "first_frame_only": first_frame_only})
         return [_row(c.name, "start", 1, 30.0) for c in clips]
 
     monkeypatch.setattr(benchmarks, "init_rows", fake)
@@ -49,12 +49,14 @@ def test_bench_init_defaults_to_the_shared_clips(tmp_path, monkeypatch, captured
     monkeypatch.setattr(benchmarks, "SHARED_CLIPS", shared)
     assert main(["bench", "init", "--frames", "2", "--tpose", "--json", str(tmp_path / "rows.json")]) == 0
     assert captured[-1] == {"clips": [shared / "cmu" / "05_02.bvh"], "frames": 2, "tpose": True, "search": False,
-                            "hops": 0}
+                            "hops": 0, "first_frame_only": False}
     assert (tmp_path / "rows.json").exists()
     assert "05_02.bvh" in capsys.readouterr().out
     assert main(["bench", "init", "--bundled", "--refine-search", "--refine-hops", "20"]) == 0
     assert captured[-1]["clips"] == BUNDLED and not captured[-1]["tpose"] and captured[-1]["search"]
     assert captured[-1]["hops"] == 20
+    assert main(["bench", "init", "--bundled", "--frames", "100", "--first-frame-only"]) == 0
+    assert captured[-1]["first_frame_only"] and captured[-1]["frames"] == 100
 
 
 def test_bench_init_falls_back_to_the_bundled_clips(tmp_path, monkeypatch, captured):
@@ -89,11 +91,17 @@ def test_a_start_that_cannot_be_initialised_is_a_failed_row(tmp_path, monkeypatc
     from common.errors import UserError
     from server import session
 
-    def no_actor(model, seq, out_dir, options, solver, init=None, **kw):
+    fitted = []
+
+    def no_actor(model, seq, out_dir, options, solver, init=None, max_frames=None, **kw):
+        fitted.append(max_frames)
         raise UserError("automatic initialisation failed on the first frame: need at least 8 surface voxels, got 0")
 
     monkeypatch.setattr(session, "run_fit", no_actor)
     rows = benchmarks.init_rows(BUNDLED[:1], 1, tmp_path)
+    assert fitted == [None, None]
+    benchmarks.init_rows(BUNDLED[:1], 2, tmp_path, first_frame_only=True)  # the first frame alone
+    assert fitted[2:] == [1, 1]
     assert [(r["start"], r["first_frame_ok"]) for r in rows] == [("start", False), ("random", False)]
     assert all("surface voxels" in r["error"] for r in rows)
     benchmarks.print_init_table(rows)

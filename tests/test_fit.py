@@ -721,6 +721,8 @@ def test_init_auto_ignores_the_truth_and_is_scored_by_it(five_frames, tmp_path):
     assert [r["frame"] for r in lines] == load_sequence(five_frames).frames[:2]
     assert auto["frames_refined"] == sum("first_pass" in r for r in lines) <= 1
     assert all(r["energy"] < r["first_pass"]["energy"] for r in lines if "first_pass" in r)
+    # the search ends with hops; they are no chain solves, and the per-chain figures leave them out
+    assert not set(lines[0]["chains"]) & set(HOP_JOBS) and not set(auto["chain_evaluations_per_frame"]) & set(HOP_JOBS)
     assert fit(five_frames, tmp_path / "given", "--frames", "1") == 0
     assert json.loads((tmp_path / "given" / "summary.json").read_text())["init"] == "truth"
 
@@ -762,7 +764,7 @@ def test_a_head_down_actor_is_found_from_the_voxels(model):
     from common.body import rest_params, skinned_vertices
     from common.camera import circle_studio
     from common.render_gl import MeshRenderer
-    from server.session import LocalSolver, search_frame, voxel_starts
+    from server.session import SEARCH_HOPS, LocalSolver, search_frame, voxel_starts
 
     p = rest_params(model, position=(0.1, -0.2, 0.9), heading=0.7)
     p[P["root_tilt_x"]], p[P["root_tilt_y"]] = 2.4, 0.5  # head down, leaning
@@ -777,6 +779,7 @@ def test_a_head_down_actor_is_found_from_the_voxels(model):
     found = search_frame(model, data, 0, voxel_starts(model, data), options, LocalSolver(model, options))
     error_mm = np.linalg.norm(forward_kinematics(model, found.params).joints[0] - pose.joints[0], axis=1) * 1000
     assert error_mm.mean() < 50.0, dict(zip(JOINT_NAMES, error_mm.round()))
+    assert sum(c.chain in HOP_JOBS for c in found.chains) >= SEARCH_HOPS  # the search ends with hops
 
 
 @pytest.mark.timeout(300)

@@ -58,6 +58,8 @@ def register(sub) -> None:
     ini.add_argument("--bundled", action="store_true", help="the bundled clips, even where shared data exists")
     ini.add_argument("--tpose", action="store_true", help="also start at frame 0 (the CMU clips' added T-pose)")
     ini.add_argument("--frames", type=int, default=10)
+    ini.add_argument("--first-frame-only", action="store_true",
+                     help="fit only the first frame of each run (the search alone), on the same clips and starts")
     ini.add_argument("--refine-search", action="store_true", help="both runs as mocap fit --refine-search")
     ini.add_argument("--refine-hops", type=int, default=0, metavar="N", help="both runs as mocap fit --refine-hops")
     ini.add_argument("--json", type=Path, default=None)
@@ -152,7 +154,8 @@ def run(args) -> int:
             raise UserError(f"{missing[0]}: no such clip")
         with tempfile.TemporaryDirectory() as tmp:
             options = _fit_options(refine_search=args.refine_search, refine_hops=args.refine_hops)
-            rows = benchmarks.init_rows(clips, args.frames, Path(tmp), tpose=args.tpose, options=options)
+            rows = benchmarks.init_rows(clips, args.frames, Path(tmp), tpose=args.tpose, options=options,
+                                        first_frame_only=args.first_frame_only)
         if args.json:
             benchmarks.write_json(args.json, rows)
         benchmarks.print_init_table(rows)
