@@ -24,8 +24,8 @@ from typing import Callable
 import numpy as np
 
 from common.body import (
-    CHAINS, LIMB_CHAINS, LIMB_PARTS, P, PARAM_LIMITS, BodyModel, clip_to_limits, forward_kinematics,
-    hold_limbs_in_world, rest_params,
+    CHAINS, JOINT_NAMES, LIMB_CHAINS, LIMB_PARTS, P, PARAM_LIMITS, BodyModel, clip_to_limits, forward_kinematics,
+    hold_limbs_in_world, matrix_to_rotvec, rest_params, rotvec_to_matrix,
 )
 from common import optimize
 from common.camera import Camera, Studio, distort_normalized
@@ -531,6 +531,63 @@ def limb_alternatives(model: BodyModel, frame: FrameData, chain: str, x: np.ndar
     poses = np.array([y for _, y in found]).reshape(-1, len(x))
     keep = distinct_rows(limb_joints(model, chain, poses), count, taken=limb_joints(model, chain, x))
     return [poses[k] for k in keep]
+
+
+# A nearly straight arm's twist about the upper arm hardly shows in silhouettes, and in the
+# wrong twist the elbow cannot bend the way the forearm goes, so it stays straight: the arm sits
+# in a basin of its own that neither its grid nor its other basins (``limb_alternatives``, which
+# tell basins apart by the elbow and wrist) reach. The dance (05_10) frames 15-16: the right
+# shoulder's twist 2 rad off, the elbow at its straight limit, the wrist 60 mm off.
+ARM_CHAINS = ("left_arm", "right_arm")
+ARM_TWISTS = 7                  # turns about the upper arm tried, 360 / (ARM_TWISTS + 1) degrees apart
+ARM_TWIST_MAX_ELBOW_RAD = 0.5   # arms bent less than this are tried
+ARM_TWIST_ELBOW_RAD = 0.3       # each turned start bent at least this much
+
+
+def arm_twists(model: BodyModel, chain: str, params: np.ndarray) -> np.ndarray:
+    """(ARM_TWISTS, 35) ``params`` with ``chain``'s upper arm turned about its own axis by
+    k * 2 pi / (ARM_TWISTS + 1), k = 1..ARM_TWISTS (the elbow stays where it is), and the elbow
+    bent at least ARM_TWIST_ELBOW_RAD, within the joint limits."""
+    side = chain.split("_")[0][0]
+    shoulder = [P[f"{side}_shoulder_{a}"] for a in "xyz"]
+    upper = model.joint_rest[JOINT_NAMES.index(f"{side}_elbow")] - model.joint_rest[JOINT_NAMES.index(f"{side}_shoulder")]
+    upper = upper / np.linalg.norm(upper)  # the rest pose's upper arm in the shoulder's frame
+    angles = np.arange(1, ARM_TWISTS + 1) * (2.0 * np.pi / (ARM_TWISTS + 1))
+    turned = rotvec_to_matrix(np.asarray(params)[shoulder]) @ rotvec_to_matrix(angles[:, None] * upper)
+    out = np.repeat(np.asarray(params, dtype=np.float64)[None], ARM_TWISTS, axis=0)
+    out[:, shoulder] = matrix_to_rotvec(turned)
+    out[:, P[f"{side}_elbow"]] = np.maximum(out[:, P[f"{side}_elbow"]], ARM_TWIST_ELBOW_RAD)
+    return clip_to_limits(out)
+
+
+def shoulder_turn_rad(params: np.ndarray, other: np.ndarray, chain: str) -> float:
+    """The angle between the shoulder rotations of ``chain``'s arm in two poses (35,), radians."""
+    shoulder = list(CHAINS[chain].params[:3])
+    relative = rotvec_to_matrix(np.asarray(params)[shoulder]).T @ rotvec_to_matrix(np.asarray(other)[shoulder])
+    return float(np.linalg.norm(matrix_to_rotvec(relative)))
+
+
+def arm_twist_alternative(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions,
+                          neighbour: np.ndarray | None = None) -> np.ndarray | None:
+    """(35,) ``x`` with ``chain``'s arm solved (``solve_chain`` without its grid) from each of
+    its ``arm_twists``, the lowest, where that is below the arm solved from ``x`` itself; None
+    where none is, or where the arm is bent ARM_TWIST_MAX_ELBOW_RAD or more (its twist shows).
+    Given the ``neighbour`` frame's fit (35,), only the solved arms whose shoulder rotation is
+    nearer the neighbour's than ``x``'s count: an arm does not turn half a turn between
+    frames, and a wrong twist can have less energy (walk frame 12: 15,404 against 15,473 for
+    the arm as tracked, 62 mm off at the wrist against 26)."""
+    if x[P[f"{chain.split('_')[0][0]}_elbow"]] >= ARM_TWIST_MAX_ELBOW_RAD:
+        return None
+    local = replace(options, grid_steps=1)  # the turned starts are the grid; a 3^4 grid each costs 4x
+    turned = [solve_chain(model, frame, chain, y, local, iteration=1) for y in arm_twists(model, chain, x)]
+    if neighbour is not None:
+        away = shoulder_turn_rad(x, neighbour, chain)
+        turned = [r for r in turned if shoulder_turn_rad(r.params, neighbour, chain) < away]
+    if not turned:
+        return None
+    lowest = min(turned, key=lambda r: r.energy)
+    own = solve_chain(model, frame, chain, x, local, iteration=1)
+    return lowest.params if lowest.energy < own.energy else None
 
 
 def full_energy(model: BodyModel, frame: FrameData, params: np.ndarray) -> int:

@@ -31,8 +31,9 @@ from common import voxels
 from common.body import (JOINT_NAMES, LIMB_CHAINS, MIRROR_SIGNS, P, BodyModel, forward_kinematics, joints_dict,
                          rest_params, swap_sides)
 from common.errors import InputFileError, UserError
-from common.fitting import (HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult, fit_frame, full_energy,
-                            hop_fit, limb_alternatives, lowest_energy, solve_job, spot_grid, tilted_ahead)
+from common.fitting import (ARM_CHAINS, HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult,
+                            arm_twist_alternative, fit_frame, full_energy, hop_fit, limb_alternatives,
+                            lowest_energy, solve_job, spot_grid, tilted_ahead)
 from common.sequence import Sequence
 
 POSES_FILE = "poses.jsonl"
@@ -250,14 +251,15 @@ def search_frame(model: BodyModel, data: FrameData, frame: int, starts: list, op
     (FIRST_FRAME_REDETECT_TURNS), the lowest fits fitted again (``fit_from_starts``); then one
     fit with the tracking ``options``, whose local grids and small windows refine what the wide
     search found; then fits with the legs, and the arms, swapped (``swapped_side_fits``); then
-    a fit from each limb's other basins (``limb_alternatives``); each time the lowest energy
-    kept."""
+    a fit from each limb's other basins (``limb_alternatives``) and from each nearly straight
+    arm's lower twist (``arm_twist_fits``); then hops; each time the lowest energy kept."""
     wide = [first_frame_options(options, turn) for turn in FIRST_FRAME_REDETECT_TURNS]
     found = fit_from_starts(model, data, frame, starts, wide, solver)
     solver.begin_frame(frame, data, found.params, options)
     found = lowest_energy([found, fit_frame(model, data, found.params, options, solver.solve)])
     found = lowest_energy([found, *swapped_side_fits(model, data, frame, found.params, options, solver)])
     found = lowest_energy([found, *limb_alternative_fits(model, data, frame, found.params, options, solver)])
+    found = lowest_energy([found, *arm_twist_fits(model, data, frame, found.params, options, solver)])
     return lowest_energy([found, hopped_fit(model, data, frame, found.params, options, SEARCH_HOPS, solver)])
 
 
@@ -271,7 +273,8 @@ def hopped_fit(model: BodyModel, data: FrameData, frame: int, params: np.ndarray
     compares with other fits. A search's torso and limbs can be off together where no chain
     alone goes down: 06_02 from source frame 262 (the actor in five of eight views) is found
     54 mm off, 6% above the truth's energy; 30 hops take it to 27 mm."""
-    hopping = replace(options, refine_hops=hops)
+    # the hop count travels in the options (``solve_job`` reads it), which allow hops only with passes
+    hopping = replace(options, refine_hops=hops, refine_passes=max(options.refine_passes, 1))
     solver.begin_frame(frame, data, params, hopping)
     hopped = hop_fit(params, hopping, solver.solve, min(solver.workers(), len(HOP_JOBS)))
     return replace(hopped, energy=full_energy(model, data, hopped.params))
@@ -295,6 +298,17 @@ def limb_alternative_fits(model: BodyModel, data: FrameData, frame: int, params:
     limb, and neither can move alone."""
     alternatives = [a for chain in LIMB_CHAINS for a in limb_alternatives(model, data, chain, params, options)]
     return whole_body_fits(model, data, frame, alternatives, options, solver)
+
+
+def arm_twist_fits(model: BodyModel, data: FrameData, frame: int, params: np.ndarray, options: FitOptions,
+                   solver: Solver, neighbour: np.ndarray | None = None) -> list[FrameResult]:
+    """The frame fitted again as a whole body from each nearly straight arm turned to a lower
+    twist (``arm_twist_alternative``, solved here; with the ``neighbour`` frame's fit, only a
+    turn towards that fit's twist). The dance's frames 15-16 (05_10) were tracked with the right
+    arm straight and twisted 2 rad off, the wrist 60 mm off."""
+    starts = [alt for chain in ARM_CHAINS
+              if (alt := arm_twist_alternative(model, data, chain, params, options, neighbour)) is not None]
+    return whole_body_fits(model, data, frame, starts, options, solver)
 
 
 def whole_body_fits(model: BodyModel, data: FrameData, frame: int, starts: list, options: FitOptions,
@@ -379,6 +393,10 @@ def accuracy(records: list[dict], truth: dict | None) -> dict:
 
 
 SETTLE_FRAMES = 10  # frames tracked after a first-frame search before it is refined backwards (online runs)
+# hops that refit a pass's first frame, which has no neighbour to be refitted from: the
+# sequence's last frame on a backward pass is otherwise only ever tracking's fit (basketball's
+# last frame: the left ankle 70 mm off, the clip's worst)
+PASS_START_HOPS = 30
 
 
 def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
@@ -389,8 +407,9 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     Tracking leaves frames in basins that a later frame escaped (an arm whose twist showed once
     it bent; a first frame found by search, 10-20 mm off). Going backwards each frame starts from
     the (already refined) fit of the frame after it, forwards from the frame before; each keeps
-    the lower energy of its fits. The pass's first frame is where it starts from: a plain pass
-    keeps it as it is, a searching or hopping one fits it too. A replaced record keeps its
+    the lower energy of its fits. The pass's first frame, which has no neighbour, is fitted by
+    PASS_START_HOPS hops (the pass's own ``hops`` where it has them; the search too, where
+    asked). A replaced record keeps its
     tracking fit under "first_pass" (params, joints, energy); the pass's time and evaluations add
     to "refine_seconds" and "refine_evaluations" ("seconds" and "evaluations" stay tracking's).
     Returns the records, changed, and how many were replaced.
@@ -410,9 +429,10 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     replaced = 0
     for done, i in enumerate(order):
         r = out[i]
-        if neighbour is not None or search or hops:
+        frame_hops = hops or (PASS_START_HOPS if neighbour is None else 0)
+        if neighbour is not None or search or frame_hops:
             t0 = time.perf_counter()
-            fits = _refits(model, seq, r, neighbour, beyond, options, solver, search, hops, stats)
+            fits = _refits(model, seq, r, neighbour, beyond, options, solver, search, frame_hops, stats)
             r["refine_seconds"] = r.get("refine_seconds", 0.0) + time.perf_counter() - t0
             if fits:  # a searched frame may have no neighbour and no other basins
                 again = lowest_energy(fits)
@@ -435,8 +455,9 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
             hops: int, stats: RunStats) -> list[FrameResult]:
     """A refinement pass's fits of one frame: from its neighbour's fit (``neighbour``, the one
     beyond it ``beyond``) where it has one; with ``search``, from each limb's other basins
-    around the better of that fit and the record's; with ``hops``, basin hopping from the best
-    of all these and the record (its time and hop count added to ``stats``)."""
+    around the better of that fit and the record's; from each nearly straight arm's lower twist
+    towards the neighbour's around the best so far (``arm_twist_fits``); with ``hops``, basin hopping from the best of
+    all these and the record (its time and hop count added to ``stats``)."""
     data = FrameData(model, seq.studio, seq.silhouettes(record["frame"]))
     fits = []
 
@@ -450,6 +471,7 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
                               extra_starts=tilted_ahead(neighbour, beyond)))
     if search:
         fits += limb_alternative_fits(model, data, record["frame"], best_so_far(), options, solver)
+    fits += arm_twist_fits(model, data, record["frame"], best_so_far(), options, solver, neighbour)
     if hops:
         t0 = time.perf_counter()
         fits.append(hopped_fit(model, data, record["frame"], best_so_far(), options, hops, solver))
