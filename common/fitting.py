@@ -24,7 +24,7 @@ from typing import Callable
 import numpy as np
 
 from common.body import (
-    CHAINS, JOINT_NAMES, LIMB_CHAINS, LIMB_PARTS, P, PARAM_LIMITS, BodyModel, clip_to_limits, forward_kinematics,
+    CHAINS, LIMB_CHAINS, LIMB_PARTS, P, PARAM_LIMITS, BodyModel, clip_to_limits, forward_kinematics,
     hold_limbs_in_world, matrix_to_rotvec, rest_params, rotvec_to_matrix,
 )
 from common import optimize
@@ -548,15 +548,15 @@ def arm_twists(model: BodyModel, chain: str, params: np.ndarray) -> np.ndarray:
     """(ARM_TWISTS, 35) ``params`` with ``chain``'s upper arm turned about its own axis by
     k * 2 pi / (ARM_TWISTS + 1), k = 1..ARM_TWISTS (the elbow stays where it is), and the elbow
     bent at least ARM_TWIST_ELBOW_RAD, within the joint limits."""
-    side = chain.split("_")[0][0]
-    shoulder = [P[f"{side}_shoulder_{a}"] for a in "xyz"]
-    upper = model.joint_rest[JOINT_NAMES.index(f"{side}_elbow")] - model.joint_rest[JOINT_NAMES.index(f"{side}_shoulder")]
-    upper = upper / np.linalg.norm(upper)  # the rest pose's upper arm in the shoulder's frame
+    shoulder, elbow = list(CHAINS[chain].params[:3]), CHAINS[chain].params[3]
+    upper_arm, forearm = CHAINS[chain].segments[:2]  # a segment's joint is where it starts
+    axis = model.joint_rest[forearm] - model.joint_rest[upper_arm]
+    axis = axis / np.linalg.norm(axis)  # the rest pose's upper arm, in the shoulder's frame
     angles = np.arange(1, ARM_TWISTS + 1) * (2.0 * np.pi / (ARM_TWISTS + 1))
-    turned = rotvec_to_matrix(np.asarray(params)[shoulder]) @ rotvec_to_matrix(angles[:, None] * upper)
+    turned = rotvec_to_matrix(np.asarray(params)[shoulder]) @ rotvec_to_matrix(angles[:, None] * axis)
     out = np.repeat(np.asarray(params, dtype=np.float64)[None], ARM_TWISTS, axis=0)
     out[:, shoulder] = matrix_to_rotvec(turned)
-    out[:, P[f"{side}_elbow"]] = np.maximum(out[:, P[f"{side}_elbow"]], ARM_TWIST_ELBOW_RAD)
+    out[:, elbow] = np.maximum(out[:, elbow], ARM_TWIST_ELBOW_RAD)
     return clip_to_limits(out)
 
 
@@ -576,7 +576,7 @@ def arm_twist_alternative(model: BodyModel, frame: FrameData, chain: str, x: np.
     nearer the neighbour's than ``x``'s count: an arm does not turn half a turn between
     frames, and a wrong twist can have less energy (walk frame 12: 15,404 against 15,473 for
     the arm as tracked, 62 mm off at the wrist against 26)."""
-    if x[P[f"{chain.split('_')[0][0]}_elbow"]] >= ARM_TWIST_MAX_ELBOW_RAD:
+    if x[CHAINS[chain].params[3]] >= ARM_TWIST_MAX_ELBOW_RAD:
         return None
     local = replace(options, grid_steps=1)  # the turned starts are the grid; a 3^4 grid each costs 4x
     turned = [solve_chain(model, frame, chain, y, local, iteration=1) for y in arm_twists(model, chain, x)]
