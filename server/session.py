@@ -409,10 +409,11 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     the (already refined) fit of the frame after it, forwards from the frame before; each keeps
     the lower energy of its fits. The pass's first frame, which has no neighbour, is fitted by
     PASS_START_HOPS hops (the pass's own ``hops`` where it has them; the search too, where
-    asked). A replaced record keeps its
-    tracking fit under "first_pass" (params, joints, energy); the pass's time and evaluations add
-    to "refine_seconds" and "refine_evaluations" ("seconds" and "evaluations" stay tracking's).
-    Returns the records, changed, and how many were replaced.
+    asked). Every frame's nearly straight arms are also tried at their other twists
+    (``arm_twist_fits``). A replaced record keeps its tracking fit under "first_pass" (params,
+    joints, energy); the pass's time and evaluations add to "refine_seconds" and
+    "refine_evaluations" ("seconds" and "evaluations" stay tracking's). Returns the records,
+    changed, and how many were replaced.
 
     With ``search``, each frame is also fitted from each limb's other basins around the better
     of its fits (``limb_alternative_fits``, as a first frame is): tracking and its neighbours
@@ -434,7 +435,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
             t0 = time.perf_counter()
             fits = _refits(model, seq, r, neighbour, beyond, options, solver, search, frame_hops, stats)
             r["refine_seconds"] = r.get("refine_seconds", 0.0) + time.perf_counter() - t0
-            if fits:  # a searched frame may have no neighbour and no other basins
+            if fits:  # a pass's first frame may have no hops, no other basins and no twist to try
                 again = lowest_energy(fits)
                 stats.add_chains([c for c in again.chains if c.chain not in HOP_JOBS])
                 r["refine_evaluations"] = r.get("refine_evaluations", 0) + again.evaluations
@@ -456,8 +457,9 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
     """A refinement pass's fits of one frame: from its neighbour's fit (``neighbour``, the one
     beyond it ``beyond``) where it has one; with ``search``, from each limb's other basins
     around the better of that fit and the record's; from each nearly straight arm's lower twist
-    towards the neighbour's around the best so far (``arm_twist_fits``); with ``hops``, basin hopping from the best of
-    all these and the record (its time and hop count added to ``stats``)."""
+    towards the neighbour's, around the best so far (``arm_twist_fits``); with ``hops``, basin
+    hopping from the best of all these and the record (its time and hop count added to
+    ``stats``)."""
     data = FrameData(model, seq.studio, seq.silhouettes(record["frame"]))
     fits = []
 
