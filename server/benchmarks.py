@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
-import os
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -129,8 +129,8 @@ def fit_rows(sequence: Path, frames: int) -> list[dict]:
                                   ("single_xorpr_no_turn_hypotheses", replace(tracking, turn_hypotheses=0), None),
                                   ("single_xorpr_no_polish", replace(tracking, polish_iterations=0), None),
                                   ("single_xorpr_2_hypotheses", replace(tracking, hypotheses=2), None)):
-        out = Path(os.environ.get("TMPDIR", "/tmp")) / f"mocap-bench-{label}-{os.getpid()}"
-        summary = run_fit(model, seq, out, options, LocalSolver(model, options), max_frames=frames)
+        with tempfile.TemporaryDirectory(prefix=f"mocap-bench-{label}-") as out:
+            summary = run_fit(model, seq, Path(out), options, LocalSolver(model, options), max_frames=frames)
         row = {"mode": label, "energy_backend": "cpu", "seconds_per_frame": summary["seconds_per_frame"],
                "paper_seconds_per_frame": paper, "frames": summary["frames"],
                "mean_joint_error_mm": summary.get("tracking_mean_joint_error_mm")}

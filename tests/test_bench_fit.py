@@ -1,15 +1,21 @@
 """mocap bench fit / accuracy rows: their schema, and tracking scored apart from refinement."""
+import tempfile
+
 import pytest
 
 from common.fitting import FitOptions
 
 
 @pytest.mark.timeout(300)
-def test_fit_rows_time_tracking_and_the_refinement_from_one_run(tmp_path):
+def test_fit_rows_time_tracking_and_the_refinement_from_one_run(tmp_path, monkeypatch):
     from server import benchmarks
     from server.commands.bench import bench_sequence
 
-    rows = benchmarks.fit_rows(bench_sequence(2, tmp_path), frames=2)
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
+    rows = benchmarks.fit_rows(bench_sequence(2, tmp_path / "seq"), frames=2)
+    assert not list(scratch.iterdir())  # each run's result folder is removed
     by_mode = {r["mode"]: r for r in rows}
     assert list(by_mode) == ["single_xorpr", "single_xorpr_refined", "single_xor", "single_xorpr_no_turn_hypotheses",
                              "single_xorpr_no_polish", "single_xorpr_2_hypotheses"]
