@@ -95,6 +95,8 @@ class FitOptions:
             raise ValueError(f"refine_hops must be >= 0, got {self.refine_hops}")
         if self.refine_hops and not self.refine_passes:
             raise ValueError("refine_hops needs refine_passes >= 1: the hops run in the first pass")
+        if not self.spine_twist_prior >= 0:  # NaN too
+            raise ValueError(f"spine_twist_prior must be >= 0, got {self.spine_twist_prior}")
         if self.turn_hypotheses < 0:
             raise ValueError(f"turn_hypotheses must be >= 0, got {self.turn_hypotheses}")
         if not 0.0 < self.turn_step_rad * max(self.turn_hypotheses, 1) < np.pi:

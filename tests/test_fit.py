@@ -719,10 +719,25 @@ def test_refinement_note_names_what_the_first_pass_did():
 
 
 @pytest.mark.parametrize("args, field", [(("--refine-hops", "5", "--refine-passes", "0"), "refine_hops needs"),
-                                         (("--refine-hops", "-1"), "refine_hops must")])
-def test_fit_refuses_hops_without_passes_or_below_zero(small_sequence, tmp_path, capsys, args, field):
+                                         (("--refine-hops", "-1"), "refine_hops must"),
+                                         (("--spine-twist-prior", "-1"), "spine_twist_prior must"),
+                                         (("--spine-twist-prior", "nan"), "spine_twist_prior must")])
+def test_fit_refuses_bad_refinement_and_prior_options(small_sequence, tmp_path, capsys, args, field):
     assert fit(small_sequence, tmp_path / "r", *args) == 2
     assert field in capsys.readouterr().err
+
+
+def test_spine_twist_prior_option_reaches_the_fit_options():
+    import argparse
+
+    from server.commands.fit import add_fit_arguments, options_from_args
+
+    parser = argparse.ArgumentParser()
+    add_fit_arguments(parser)
+    args = parser.parse_args(["seq", "--out", "r"])
+    assert options_from_args(args).spine_twist_prior == FitOptions().spine_twist_prior
+    args = parser.parse_args(["seq", "--out", "r", "--spine-twist-prior", "500"])
+    assert options_from_args(args).spine_twist_prior == 500.0
 
 
 @pytest.mark.timeout(300)

@@ -45,6 +45,8 @@ def register(sub) -> None:
     acc.add_argument("--turn-step", type=float, default=None, metavar="RAD",
                      help="as mocap fit --turn-step (default: its default)")
     acc.add_argument("--no-redetect", action="store_true", help="as mocap fit --no-redetect")
+    acc.add_argument("--spine-twist-prior", type=float, default=None, metavar="PX_PER_RAD2",
+                     help="as mocap fit --spine-twist-prior (default: its default)")
     acc.add_argument("--refine-passes", type=int, default=None, metavar="N",
                      help="as mocap fit --refine-passes (default: its default)")
     acc.add_argument("--refine-search", action="store_true", help="as mocap fit --refine-search")
@@ -139,7 +141,8 @@ def run(args) -> int:
                                                      ("turn_step_rad", args.turn_step),
                                                      ("refine_passes", args.refine_passes),
                                                      ("refine_search", args.refine_search or None),
-                                                     ("refine_hops", args.refine_hops)) if value is not None}
+                                                     ("refine_hops", args.refine_hops),
+                                                     ("spine_twist_prior", args.spine_twist_prior)) if value is not None}
             for backend in [b for b in args.energy.split(",") if b]:
                 options = _fit_options(energy=backend, hypotheses=args.hypotheses,
                                        redetect_limbs=not args.no_redetect, **chosen)

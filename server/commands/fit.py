@@ -46,6 +46,10 @@ def add_fit_arguments(p) -> None:
                    help="the first refinement pass also fits every frame by N hops: one chain moved at random, "
                         "then the whole body fitted at once, the lowest energy kept (basin hopping; 60: about a "
                         "dozen times tracking's time, offline work; default 0)")
+    p.add_argument("--spine-twist-prior", type=float, default=FitOptions.spine_twist_prior, metavar="PX_PER_RAD2",
+                   help="how hard the torso's fit resists twisting the chest against the pelvis, silhouette pixels "
+                        f"per rad^2 (default {FitOptions.spine_twist_prior:g}; the twist hardly shows in silhouettes; "
+                        "lower it for dancers who twist a lot, 0: off)")
     p.add_argument("--turn-step", type=float, default=FitOptions.turn_step_rad, metavar="RAD",
                    help=f"the turn step, rad (default {FitOptions.turn_step_rad})")
     p.add_argument("--no-redetect", action="store_true",
@@ -66,7 +70,7 @@ def options_from_args(args) -> FitOptions:
                           hypotheses=args.hypotheses, turn_hypotheses=args.turn_hypotheses,
                           turn_step_rad=args.turn_step, polish_iterations=args.polish_iterations,
                           refine_passes=args.refine_passes, refine_search=args.refine_search,
-                          refine_hops=args.refine_hops,
+                          refine_hops=args.refine_hops, spine_twist_prior=args.spine_twist_prior,
                           redetect_limbs=not args.no_redetect)
     except ValueError as exc:  # a value out of range: say which option
         raise UserError(f"bad fit option: {exc}") from None
