@@ -41,3 +41,28 @@ def test_a_restart_must_be_a_fitted_frame_after_the_first(small_sequence, tmp_pa
     first = load_sequence(small_sequence).frames[0]
     with pytest.raises(SystemExit, match="restart-at"):
         load_tool().main([str(tmp_path / "fit"), str(small_sequence), "--restart-at", str(first)])
+
+
+@pytest.mark.timeout(300)
+def test_chains_put_one_at_a_time_at_the_truth(small_sequence, tmp_path, capsys):
+    """--chains: a frame fitted from the truth stays near it, and one line per frame gives the
+    energy change of each of the six chains put at the truth alone; a frame not fitted is refused."""
+    from common.body import CHAINS
+    from common.sequence import load_sequence
+    from server.session import load_records
+
+    assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "fit"), "--quiet", "--frames", "2"]) == 0
+    frames = load_sequence(small_sequence).frames
+    capsys.readouterr()
+    assert load_tool().main([str(tmp_path / "fit"), str(small_sequence), "--chains", f"{frames[1]}"]) == 0
+    (line,) = [x for x in capsys.readouterr().out.splitlines() if "one chain at the truth" in x]
+    assert line.split()[1] == str(frames[1])
+    from_truth_mm = float(line.split("fitted from the truth")[1].split("(")[1].split(" mm")[0])
+    assert from_truth_mm < 15.0
+    swaps = line.split("one chain at the truth: ")[1].split(", ")
+    assert [s.split()[0] for s in swaps] == list(CHAINS)
+    record = [r for r in load_records(tmp_path / "fit") if r["frame"] == frames[1]][0]
+    assert int(line.split()[3]) == record["energy"]
+    assert all(s.split()[1][0] in "+-" for s in swaps)  # changes, signed
+    with pytest.raises(SystemExit, match="--chains"):
+        load_tool().main([str(tmp_path / "fit"), str(small_sequence), "--chains", f"{frames[-1] + 1000}"])

@@ -1,6 +1,6 @@
 """Why a fitted run is off where it is: energies against the truth's, lag, late frames.
 
-    python tools/fit_diagnostics.py RESULT SEQUENCE [--every 5] [--restart-at N]
+    python tools/fit_diagnostics.py RESULT SEQUENCE [--every 5] [--restart-at N] [--chains F1,F2,...]
 
 RESULT is a `mocap fit` result folder of SEQUENCE, which must have truth.jsonl. Prints:
 - per frame (every --every frames): the fit's energy, the truth's energy and the error. Where
@@ -9,7 +9,11 @@ RESULT is a `mocap fit` result folder of SEQUENCE, which must have truth.jsonl. 
 - lag: the root's error along its direction of motion and the angles' error along the sign of
   their velocity (negative: the fit trails the actor), against the motion per frame;
 - with --restart-at N: the frames from N on fitted again from the truth of frame N, so that
-  late frames' error can be told apart from error that grows with tracking time (drift).
+  late frames' error can be told apart from error that grows with tracking time (drift);
+- with --chains F1,F2,...: for each of these frames, the frame fitted from the truth (does
+  the truth's basin hold, and how much lower is it?) and the energy change of the fit with
+  each chain alone put at the truth's pose. Where every change is positive while the truth's
+  basin is lower, the torso and limbs are off together: no chain can move alone.
 """
 from __future__ import annotations
 
@@ -25,8 +29,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common.body import forward_kinematics, load_body_model  # noqa: E402
-from common.fitting import FitOptions, FrameData, full_energy  # noqa: E402
+from common.body import CHAINS, forward_kinematics, load_body_model  # noqa: E402
+from common.fitting import FitOptions, FrameData, fit_frame, full_energy  # noqa: E402
 from common.sequence import load_sequence, write_sequence_meta  # noqa: E402
 from server.session import LocalSolver, joint_errors_mm, load_records, run_fit  # noqa: E402
 
@@ -84,12 +88,42 @@ def restart_from_truth(model, seq, records, start: int, options: FitOptions) -> 
           f"{np.mean(late):.1f} mm tracked from the truth at frame {start}")
 
 
+def chains_against_truth(model, seq, truth, records, frames: list[int], options: FitOptions) -> None:
+    by_frame = {r["frame"]: r for r in records}
+    missing = [f for f in frames if f not in by_frame]
+    if missing:
+        raise SystemExit(f"--chains {missing[0]}: not a fitted frame")
+    for f in frames:
+        r, t = by_frame[f], truth[f]
+        data = FrameData(model, seq.studio, seq.silhouettes(f))
+        fit = np.asarray(r["params"])
+        energy = full_energy(model, data, fit)
+        from_truth = fit_frame(model, data, t.params, options)
+        swaps = []
+        for name, chain in CHAINS.items():
+            swapped = fit.copy()
+            swapped[list(chain.params)] = t.params[list(chain.params)]
+            swaps.append(f"{name} {full_energy(model, data, swapped) - energy:+d}")
+        print(f"frame {f:5d}  fit {energy:7d} ({joint_error_mm(model, fit, t):.1f} mm)  fitted from the truth "
+              f"{from_truth.energy:7d} ({joint_error_mm(model, from_truth.params, t):.1f} mm)  "
+              f"one chain at the truth: {', '.join(swaps)}")
+
+
+def frame_list(text: str) -> list[int]:
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected frame numbers separated by commas, got {text!r}") from None
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("result", type=Path)
     ap.add_argument("sequence", type=Path)
     ap.add_argument("--every", type=int, default=5, help="energies of every N-th frame (default 5)")
     ap.add_argument("--restart-at", type=int, default=None, metavar="FRAME")
+    ap.add_argument("--chains", type=frame_list, default=[], metavar="F1,F2,...",
+                    help="these frames fitted from the truth, and each chain alone put at the truth")
     args = ap.parse_args(argv)
     model = load_body_model()
     seq = load_sequence(args.sequence)
@@ -103,6 +137,8 @@ def main(argv=None) -> int:
     lag(truth, records)
     errors = [joint_error_mm(model, r["params"], truth[r["frame"]]) for r in records]
     print(f"first {WINDOW} / last {WINDOW} frames: {np.mean(errors[:WINDOW]):.1f} / {np.mean(errors[-WINDOW:]):.1f} mm")
+    if args.chains:
+        chains_against_truth(model, seq, truth, records, args.chains, options)
     if args.restart_at is not None:
         restart_from_truth(model, seq, records, args.restart_at, options)
     return 0
