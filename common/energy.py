@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from common.body import BodyModel, forward_kinematics
+from common.body import _SEGMENT_PARENTS, PARAM_COUNT, BodyModel, _forward_kinematics, _segment_mask, forward_kinematics
 from common.camera import Studio
 
 ARM_WINDOW = 128   # pixels, windows for upper arm + forearm, thigh + shin
@@ -260,6 +260,23 @@ def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.nd
     return out
 
 
+@njit(cache=True, nogil=True)
+def pose_energies(p, rest_offsets, axis_table, parents, offsets, head_top_offset, needed, seg, local_centres,
+                  local_A, P, y0, x0, rows, width, prefix) -> np.ndarray:
+    """The moving parts' XOR sums of a batch of poses in one compiled call: forward kinematics,
+    posed ellipsoids, conics and spans (each step the same arithmetic as its own kernel).
+
+    p (B, 35); the kinematic tables (``BodyModel.kinematic_tables``), segment parents (16,)
+    and the segments needed (16,) bool; seg (S,) the moving segments, their local ellipsoid
+    centres (S, 3) and axes scaled by radii (S, 3, 3); then as ``xor_span_sums`` -> (B,) int64.
+    One call instead of four kernels and their numpy glue: the glue cost as much as the work.
+    """
+    rot, org, _ = _forward_kinematics(p, rest_offsets, axis_table, parents, offsets, head_top_offset, needed)
+    centres, A = _pose_ellipsoids(rot, org, seg, local_centres, local_A)
+    C, drawable = image_conics(P, centres, A)
+    return xor_span_sums(C, drawable, y0, x0, rows, width, prefix)
+
+
 # ------------------------------------------------------------------------ the energy
 
 @dataclass(frozen=True)
@@ -371,6 +388,12 @@ class CpuEnergy:
         self.static_mask = M
         self.prefix, base = xor_prefix(M, np.ascontiguousarray(setup.inputs, dtype=np.bool_))
         self.base = int(base)
+        seg = np.asarray(self.moving, dtype=np.int64)
+        self._kernel_tables = (*model.kinematic_tables[:2], _SEGMENT_PARENTS, *model.kinematic_tables[2:],
+                               _segment_mask(self.moving), seg,
+                               np.ascontiguousarray(model.ellipsoid_centres[seg]),
+                               model.ellipsoid_axes[seg] * model.ellipsoid_radii[seg][:, None, :],
+                               self.P, self.y0, self.x0, self.rows, self.width, self.prefix)
 
     def _conics(self, params: np.ndarray, segments) -> tuple:
         pose = forward_kinematics(self.model, params, tuple(segments))
@@ -383,10 +406,11 @@ class CpuEnergy:
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
         """(B, 35) or (35,) -> (B,) int64 energies (pixels)."""
-        p = np.atleast_2d(params)
-        C, drawable = self._conics(p, self.moving)
+        p = np.atleast_2d(np.asarray(params, dtype=np.float64))
+        if p.shape[1] != PARAM_COUNT:
+            raise ValueError(f"expected {PARAM_COUNT} parameters, got {p.shape[1]}")
         self.evaluations += len(p)
-        return self.base + xor_span_sums(C, drawable, self.y0, self.x0, self.rows, self.width, self.prefix)
+        return self.base + pose_energies(p, *self._kernel_tables)
 
     def render(self, params: np.ndarray) -> np.ndarray:
         """(35,) -> (K, h, w) bool: the model's silhouette windows (moving and static parts)."""

@@ -33,11 +33,14 @@ class OptimizeResult:
 
 
 def _line_range(x: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> tuple[float, float]:
-    """The interval of t keeping x + t d inside the box [lo, hi]."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1 = np.where(d != 0, (lo - x) / d, -np.inf)
-        t2 = np.where(d != 0, (hi - x) / d, np.inf)
-    return float(np.max(np.minimum(t1, t2))), float(np.min(np.maximum(t1, t2)))
+    """The interval of t keeping x + t d inside the box [lo, hi]. (Python floats: for a few
+    parameters, numpy's per-call overhead cost more than the arithmetic.)"""
+    tmin, tmax = -np.inf, np.inf
+    for xi, di, low, high in zip(x.tolist(), d.tolist(), lo.tolist(), hi.tolist()):
+        if di != 0.0:
+            t1, t2 = (low - xi) / di, (high - xi) / di
+            tmin, tmax = max(tmin, min(t1, t2)), min(tmax, max(t1, t2))
+    return tmin, tmax
 
 
 class _Counter:
@@ -64,7 +67,7 @@ def line_search(f: _Counter, x: np.ndarray, fx: float, d: np.ndarray, lo, hi, to
             return
         t = np.array(cands)
         # clip the points too: x + t d can land one rounding step outside the box
-        vals = f(np.clip(x[None] + t[:, None] * d[None], lo, hi))
+        vals = f(np.minimum(np.maximum(x[None] + t[:, None] * d[None], lo), hi))  # np.clip, at a third of its overhead
         ts.extend(cands)
         fs.extend(vals.tolist())
 

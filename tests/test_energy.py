@@ -114,6 +114,14 @@ def test_batch_equals_single_and_counts_evaluations(model, frame, rng):
         assert energy.evaluations == 18
 
 
+def test_energy_refuses_a_pose_of_the_wrong_length(model, frame):
+    """The compiled kernel indexes 35 parameters without bounds checks: a short pose is refused."""
+    data, truth = frame
+    energy = CpuEnergy(model, data.full_setup(truth, half=True))
+    with pytest.raises(ValueError, match="expected 35 parameters, got 34"):
+        energy(truth[None, :34])
+
+
 def test_prerendered_equals_full_render_in_the_same_window(model, frame, rng):
     """Pre-rendering the parts that do not move changes the cost, not the value."""
     data, truth = frame
