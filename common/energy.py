@@ -389,7 +389,7 @@ class CpuEnergy:
         self.prefix, base = xor_prefix(M, np.ascontiguousarray(setup.inputs, dtype=np.bool_))
         self.base = int(base)
         seg = np.asarray(self.moving, dtype=np.int64)
-        self._kernel_tables = (*model.kinematic_tables[:2], _SEGMENT_PARENTS, *model.kinematic_tables[2:],
+        self.kernel_tables = (*model.kinematic_tables[:2], _SEGMENT_PARENTS, *model.kinematic_tables[2:],
                                _segment_mask(self.moving), seg,
                                np.ascontiguousarray(model.ellipsoid_centres[seg]),
                                model.ellipsoid_axes[seg] * model.ellipsoid_radii[seg][:, None, :],
@@ -410,7 +410,7 @@ class CpuEnergy:
         if p.shape[1] != PARAM_COUNT:
             raise ValueError(f"expected {PARAM_COUNT} parameters, got {p.shape[1]}")
         self.evaluations += len(p)
-        return self.base + pose_energies(p, *self._kernel_tables)
+        return self.base + pose_energies(p, *self.kernel_tables)
 
     def render(self, params: np.ndarray) -> np.ndarray:
         """(35,) -> (K, h, w) bool: the model's silhouette windows (moving and static parts)."""
@@ -433,12 +433,16 @@ def make_energy(backend: str, model: BodyModel, setup: EnergySetup):
 
 def compile_kernels() -> None:
     """Compile (or load from numba's cache) the energies' compiled kernels now, by building and
-    evaluating a tiny pre-rendered energy: a client does this before it takes work, so that its
-    first solve is not several seconds late (the server would hand that limb to another client)."""
+    evaluating a tiny pre-rendered energy and a Powell solve on it: a client does this before it
+    takes work, so that its first solve is not many seconds late (the server would hand that
+    limb to another client)."""
     from common.body import load_body_model, rest_params
     from common.camera import circle_studio
+    from common.powell_cpu import powell_cpu
 
     model = load_body_model()
     studio = circle_studio(1, 16, 16)
     setup = EnergySetup(studio, (Window(0, 0, 16, 16),), np.zeros((1, 16, 16), dtype=bool), (4,), rest_params(model))
-    CpuEnergy(model, setup)(rest_params(model))
+    energy = CpuEnergy(model, setup)
+    energy(rest_params(model))
+    powell_cpu(energy, rest_params(model), [11], np.array([0.1]), 0.1, 1e-4, 10)

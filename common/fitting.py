@@ -30,9 +30,10 @@ from common.body import (
 from common import optimize
 from common.camera import Camera, Studio, distort_normalized
 from common.energy import (
-    ARM_WINDOW, SMALL_WINDOW, EnergySetup, Window, centred_window, cut_window, make_energy,
+    ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window, centred_window, cut_window, make_energy,
 )
 from common.packing import downsample_masks
+from common.powell_cpu import powell_cpu
 
 HALF = 0.5  # torso works at half resolution (paper: 160x120 of 320x240)
 ENERGY_BACKENDS = ("cpu", "gl", "coarse-to-fine", "volume")
@@ -268,11 +269,13 @@ def _limb_centre_segments(chain: str) -> tuple:
 # -------------------------------------------------------------------------- optimizers
 
 def powell(energy, x0: np.ndarray, indices, steps: np.ndarray, options: FitOptions, max_evals: int,
-           complete=None):
+           complete: "HeldLimbs | None" = None):
     """Powell's direction set over ``indices`` of the 35 parameters, others held at x0.
 
-    complete: optional (B, 35) -> (B, 35) applied to every candidate (the torso uses it to hold
-    the limbs' world orientations). Returns (params (35,), energy, evaluations, iterations).
+    complete: optional ``HeldLimbs`` applied to every candidate (the torso). On the ``cpu``
+    energy (with or without the spine prior) the compiled twin ``powell_cpu`` runs, the same
+    steps at a fraction of the overhead; on the others, ``optimize.powell``.
+    Returns (params (35,), energy, evaluations, iterations).
     """
     idx = np.asarray(indices)
     base = np.array(x0, dtype=np.float64)
@@ -282,6 +285,12 @@ def powell(energy, x0: np.ndarray, indices, steps: np.ndarray, options: FitOptio
         cand[:, idx] = Z
         return complete(cand) if complete else cand
 
+    inner, prior = (energy.energy, energy.weight) if isinstance(energy, SpinePrior) else (energy, 0.0)
+    if isinstance(inner, CpuEnergy):
+        x, fun, nfev, nit = powell_cpu(inner, base, idx, steps, options.xtol, options.ftol, max_evals,
+                                       hold_rotations=complete.reference_rotations if complete else None,
+                                       prior_weight=prior, prior_index=P["spine_z"])
+        return candidates(x[None])[0], fun, nfev, nit
     res = optimize.powell(lambda Z: energy(candidates(Z)), base[idx], PARAM_LIMITS[idx, 0], PARAM_LIMITS[idx, 1],
                           steps, xtol=options.xtol, ftol=options.ftol, max_evals=max_evals)
     return candidates(res.x[None])[0], res.fun, res.nfev, res.nit
@@ -307,22 +316,40 @@ def grid_search(energy, x0: np.ndarray, indices, steps: int, half_range: float, 
 
 # ------------------------------------------------------------------------ chain solves
 
-def with_spine_prior(energy, weight: float):
-    """The torso energy plus a soft prior against twisting the spine.
+@dataclass(frozen=True)
+class SpinePrior:
+    """The torso energy plus a soft prior against twisting the spine: ``weight`` silhouette
+    pixels per rad^2 of the chest's twist against the pelvis.
 
     A round pelvis and abdomen make the twist between pelvis and chest almost invisible in
     silhouettes: without a prior the pelvis heading drifts, traded against spine twist and
     hip rotations. The prior keeps that trade-off where the anatomy puts it.
     """
-    if weight <= 0:
-        return energy
-    twist = P["spine_z"]
 
-    def f(params: np.ndarray) -> np.ndarray:
+    energy: Callable
+    weight: float
+
+    def __call__(self, params: np.ndarray) -> np.ndarray:
         p = np.atleast_2d(params)
-        return energy(p) + weight * p[:, twist] ** 2
+        return self.energy(p) + self.weight * p[:, P["spine_z"]] ** 2
 
-    return f
+
+def with_spine_prior(energy, weight: float):
+    """``energy`` with the spine twist prior of ``weight`` (itself where the weight is 0)."""
+    return SpinePrior(energy, weight) if weight > 0 else energy
+
+
+@dataclass(frozen=True)
+class HeldLimbs:
+    """The torso's candidates completed: the limbs held in the world orientation they have at
+    the reference pose (``hold_limbs_in_world``), then clipped into the joint limits."""
+
+    model: BodyModel
+    reference_rotations: np.ndarray  # (16, 3, 3) the reference pose's segment rotations
+
+    def __call__(self, candidates: np.ndarray) -> np.ndarray:
+        """(B, 35) -> (B, 35)"""
+        return clip_to_limits(hold_limbs_in_world(self.model, candidates, None, self.reference_rotations))
 
 
 def _clock():
@@ -349,12 +376,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             before = before if before is not None else int(energy(x)[0])
             idx = CHAINS["torso"].params
             steps = np.array([options.torso_step_m] * 3 + [options.torso_step_rad] * 6)
-            reference = x.copy()
-            reference_rotations = forward_kinematics(model, reference).rotations[0]
-
-            def hold(c):
-                return clip_to_limits(hold_limbs_in_world(model, c, reference, reference_rotations))
-
+            hold = HeldLimbs(model, forward_kinematics(model, x).rotations[0])
             if position_only:
                 idx, steps = idx[:3], steps[:3]
             n = 0
@@ -448,6 +470,7 @@ REDETECT_STARTS_FIRST_FRAME = 8  # ... on a first frame, the best 8, where no li
 REDETECT_STEP_RAD = 0.3   # Powell's first step from a grid point, rad
 REDETECT_GAIN = 0.01      # the alternative must lower the whole-image energy by this fraction
 BASIN_SEPARATION_M = 0.15  # limb poses whose elbow/knee or wrist/ankle lie this far apart: two basins
+BASIN_SCAN_ROWS = 64       # grid points, lowest energy first, searched for basins before all of them
 
 
 def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions):
@@ -486,7 +509,11 @@ def search_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, o
     cand[:, list(proximal)] = np.array(list(product(*axes)))
     order = np.argsort(energy(cand), kind="stable")
     if one_per_basin:
-        order = order[distinct_rows(limb_joints(model, chain, cand[order]), starts)]
+        # the basins' best points are almost always near the top: joints of the best few first
+        kept = distinct_rows(limb_joints(model, chain, cand[order[:BASIN_SCAN_ROWS]]), starts)
+        if len(kept) < starts:
+            kept = distinct_rows(limb_joints(model, chain, cand[order]), starts)
+        order = order[kept]
     n = len(cand) + 1
     found = []
     for k in order[:starts]:

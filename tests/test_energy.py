@@ -149,6 +149,43 @@ def test_prerendered_parts_stay_where_they_were_rendered(model, frame):
     assert pre(moved)[0] != full(moved)[0]
 
 
+def test_compiled_powell_takes_the_same_steps_as_optimize_powell(model, frame, rng):
+    """``fitting.powell`` runs the compiled twin (``common.powell_cpu``) on the cpu energy and
+    ``optimize.powell`` on any other callable: the same poses, objectives, evaluation counts
+    and iterations, for a limb in its window, the torso with its limbs held and the spine prior
+    (half resolution), and all 35 parameters with the prior (a hop)."""
+    from common.body import P
+    from common.fitting import FitOptions, HeldLimbs, SpinePrior, powell
+
+    data, truth = frame
+    options = FitOptions()
+    arm = CHAINS["left_arm"]
+    arm_setup = replace(data.window_setup(truth, arm.segments[:2], ARM_WINDOW, True), moving=arm.segments)
+    torso_energy = CpuEnergy(model, data.full_setup(truth, half=True))
+    hold = HeldLimbs(model, forward_kinematics(model, truth).rotations[0])
+    every = np.arange(PARAM_COUNT)
+    cases = [
+        ("arm", CpuEnergy(model, arm_setup), arm.params[:4], np.full(4, 0.2), None, 400),
+        ("torso", SpinePrior(torso_energy, 1500.0), CHAINS["torso"].params, np.array([0.03] * 3 + [0.1] * 6), hold,
+         600),
+        ("hop", SpinePrior(CpuEnergy(model, data.full_setup(truth)), 1500.0), every,
+         np.where(every < 3, 0.03, 0.1), None, 300),
+    ]
+    for name, energy, idx, steps, complete, budget in cases:
+        start = perturbed(truth, rng, 1, spread=0.2, indices=idx)[0]
+        if isinstance(energy, SpinePrior):
+            start[P["spine_z"]] = 0.1  # the prior pulls
+            plain = SpinePrior(lambda p, e=energy.energy: e(p), energy.weight)
+        else:
+            plain = (lambda p, e=energy: e(p))
+        compiled = powell(energy, start, idx, steps, options, budget, complete=complete)
+        reference = powell(plain, start, idx, steps, options, budget, complete=complete)
+        np.testing.assert_array_equal(compiled[0], reference[0], err_msg=name)
+        assert compiled[1:] == reference[1:], name
+        assert compiled[1] < float(plain(start[None])[0]), name  # it did move downhill
+    assert cases[0][1].evaluations > 0  # the compiled solve counts its evaluations
+
+
 def test_make_energy_rejects_unknown_backend(model, frame):
     data, truth = frame
     with pytest.raises(ValueError, match="nope"):

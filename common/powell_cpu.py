@@ -1,0 +1,182 @@
+"""Powell's direction set (``common.optimize.powell``) compiled around the ``cpu`` energy.
+
+Why a compiled twin: a chain's solve makes thousands of line-search probes of a handful of
+poses each, and with the energy's own kernel taking about 10 microseconds a pose, numpy's and
+Python's per-probe overhead (building candidates, clipping, bookkeeping) cost as much as the
+energy. Here the whole solve is one compiled call. It takes the same steps as
+``common.optimize.powell`` on the same objective (tests/test_optimize.py holds the two equal
+pose for pose), so which one runs changes the time, not the result.
+
+The objective of a solve: the candidate's chain parameters put into the full pose; for the
+torso, the limbs held in their world orientation (``body.hold_limbs_in_world``) and the pose
+clipped into the joint limits; the ``cpu`` energy (``energy.pose_energies``); plus, for the
+torso, the spine twist prior (``fitting.with_spine_prior``).
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from common.body import _LIMB_ROOTS, PARAM_LIMITS, _hold_limbs
+from common.energy import CpuEnergy, pose_energies
+from common.optimize import BRACKET, EXPAND, MAX_EXPANSIONS, REFINE
+
+_NO_HOLD = np.zeros((16, 3, 3))
+_LIMITS_LOW = np.ascontiguousarray(PARAM_LIMITS[:, 0])
+_LIMITS_HIGH = np.ascontiguousarray(PARAM_LIMITS[:, 1])
+
+
+@njit(cache=True, nogil=True)
+def _objective(Z, full, idx, hold, reference_rotations, limb_roots, limits_low, limits_high, prior_weight,
+               prior_index, energy_base, kernel):
+    """Z (m, n) chain parameters -> (m,) objective values, float64 (see the module's docstring)."""
+    m = Z.shape[0]
+    cand = np.empty((m, full.shape[0]))
+    for r in range(m):
+        cand[r] = full
+        for j in range(idx.shape[0]):
+            cand[r, idx[j]] = Z[r, j]
+    if hold:
+        _hold_limbs(cand, reference_rotations, limb_roots)
+        for r in range(m):
+            for i in range(full.shape[0]):
+                cand[r, i] = min(max(cand[r, i], limits_low[i]), limits_high[i])
+    sums = pose_energies(cand, kernel[0], kernel[1], kernel[2], kernel[3], kernel[4], kernel[5], kernel[6],
+                         kernel[7], kernel[8], kernel[9], kernel[10], kernel[11], kernel[12], kernel[13],
+                         kernel[14])
+    out = np.empty(m)
+    for r in range(m):
+        out[r] = float(energy_base + sums[r])
+        if prior_weight > 0:
+            twist = cand[r, prior_index]
+            out[r] += prior_weight * (twist * twist)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _probe(offsets, x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem):
+    """Evaluate the line at the new (clipped, not yet probed) ``offsets``; ts, fs grow."""
+    fresh = np.sort(np.array([min(max(t, tmin), tmax) for t in offsets]))
+    keep = []
+    for t in fresh:
+        if (len(keep) == 0 or t != keep[-1]) and t not in ts:
+            keep.append(t)
+    if len(keep) == 0 or nfev[0] >= max_evals:
+        return
+    X = np.empty((len(keep), x.shape[0]))
+    for r in range(len(keep)):
+        for i in range(x.shape[0]):
+            X[r, i] = min(max(x[i] + keep[r] * d[i], lo[i]), hi[i])
+    values = _objective(X, *problem)
+    nfev[0] += len(keep)
+    for r in range(len(keep)):
+        ts.append(keep[r])
+        fs.append(values[r])
+
+
+@njit(cache=True, nogil=True)
+def _best(ts, fs) -> float:
+    """The probe of lowest value, the first of equals (t = 0 wins ties: no drift)."""
+    best = 0
+    for i in range(1, len(fs)):
+        if fs[i] < fs[best]:
+            best = i
+    return ts[best]
+
+
+@njit(cache=True, nogil=True)
+def _line_search(x, fx, d, lo, hi, tol, nfev, max_evals, problem):
+    """``optimize.line_search``: (t, f) with f <= fx (t = 0 if nothing better)."""
+    tmin, tmax = -np.inf, np.inf
+    for i in range(x.shape[0]):
+        if d[i] != 0.0:
+            t1, t2 = (lo[i] - x[i]) / d[i], (hi[i] - x[i]) / d[i]
+            tmin, tmax = max(tmin, min(t1, t2)), min(tmax, max(t1, t2))
+    ts, fs = [0.0], [fx]
+    _probe(BRACKET, x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem)
+    span = 1.0
+    for _ in range(MAX_EXPANSIONS):
+        best = _best(ts, fs)
+        if abs(best) < span * 0.99 or nfev[0] >= max_evals:
+            break
+        _probe(best * np.array([1.5, EXPAND]), x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem)
+        span *= EXPAND
+    spacing = 0.25 * span
+    while spacing > tol and nfev[0] < max_evals:
+        _probe(_best(ts, fs) + spacing * REFINE, x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem)
+        spacing *= 0.25
+    best = 0
+    for i in range(1, len(fs)):
+        if fs[i] < fs[best]:
+            best = i
+    return ts[best], fs[best]
+
+
+@njit(cache=True, nogil=True)
+def _powell(x0, lo, hi, steps, xtol, ftol, max_evals, max_iter, problem):
+    """``optimize.powell`` -> (x (n,), f, evaluations, iterations)."""
+    nfev = np.zeros(1, np.int64)
+    n = x0.shape[0]
+    x = np.empty(n)
+    for i in range(n):
+        x[i] = min(max(x0[i], lo[i]), hi[i])
+    fx = _objective(x.reshape(1, n), *problem)[0]
+    nfev[0] += 1
+    dirs = np.diag(steps.astype(np.float64))
+    nit = 0
+    while nit < max_iter:
+        nit += 1
+        f_start, x_start = fx, x.copy()
+        biggest, biggest_i = 0.0, 0
+        for i in range(dirs.shape[0]):
+            d = dirs[i]
+            t, ft = _line_search(x, fx, d, lo, hi, xtol, nfev, max_evals, problem)
+            if fx - ft > biggest:
+                biggest, biggest_i = fx - ft, i
+            if ft < fx:
+                for j in range(n):
+                    x[j] = min(max(x[j] + t * d[j], lo[j]), hi[j])
+                fx = ft
+        if nfev[0] >= max_evals:
+            break
+        if 2.0 * (f_start - fx) <= ftol * (abs(f_start) + abs(fx)) + 1e-12:
+            break
+        delta = x - x_start
+        if np.any(delta != 0):
+            t, ft = _line_search(x, fx, delta, lo, hi, xtol, nfev, max_evals, problem)
+            if ft < fx:
+                for j in range(n):
+                    x[j] = min(max(x[j] + t * delta[j], lo[j]), hi[j])
+                fx = ft
+            kept = np.empty_like(dirs)
+            row = 0
+            for i in range(dirs.shape[0]):
+                if i != biggest_i:
+                    kept[row] = dirs[i]
+                    row += 1
+            kept[row] = delta
+            dirs = kept
+    return x, fx, nfev[0], nit
+
+
+def powell_cpu(energy: CpuEnergy, x0: np.ndarray, indices, steps: np.ndarray, xtol: float, ftol: float,
+               max_evals: int, hold_rotations: np.ndarray | None = None, prior_weight: float = 0.0,
+               prior_index: int = 0, max_iter: int = 20) -> tuple:
+    """Powell over ``indices`` of the 35 parameters of x0 (35,), the others held, on ``energy``.
+
+    hold_rotations: (16, 3, 3) the reference pose's segment rotations: hold the limbs in their
+    world orientation and clip into the joint limits (the torso); prior_weight: the spine twist
+    prior's weight on parameter ``prior_index`` (0: none).
+    Returns (chain parameters (n,), objective, evaluations, iterations); ``energy`` counts them.
+    """
+    idx = np.asarray(indices, dtype=np.int64)
+    full = np.ascontiguousarray(x0, dtype=np.float64)
+    hold = hold_rotations is not None
+    problem = (full, idx, hold, np.ascontiguousarray(hold_rotations if hold else _NO_HOLD, dtype=np.float64),
+               _LIMB_ROOTS, _LIMITS_LOW, _LIMITS_HIGH, float(prior_weight), int(prior_index),
+               np.int64(energy.base), energy.kernel_tables)
+    x, fun, nfev, nit = _powell(full[idx], np.ascontiguousarray(PARAM_LIMITS[idx, 0]),
+                                np.ascontiguousarray(PARAM_LIMITS[idx, 1]), np.asarray(steps, dtype=np.float64),
+                                float(xtol), float(ftol), int(max_evals), int(max_iter), problem)
+    energy.evaluations += int(nfev)
+    return x, float(fun), int(nfev), int(nit)
