@@ -329,6 +329,10 @@ class SpinePrior:
     energy: Callable
     weight: float
 
+    def __post_init__(self):
+        if not self.weight > 0:  # the compiled Powell adds the prior only for a positive weight
+            raise ValueError(f"the spine twist prior's weight must be positive, got {self.weight}")
+
     def __call__(self, params: np.ndarray) -> np.ndarray:
         p = np.atleast_2d(params)
         return self.energy(p) + self.weight * p[:, P["spine_z"]] ** 2

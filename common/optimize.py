@@ -20,6 +20,7 @@ BRACKET = np.array([-1.0, -0.5, -0.25, 0.25, 0.5, 1.0])  # first probes, in unit
 EXPAND = 2.0      # bracket growth when the best probe is at the end of the bracket
 MAX_EXPANSIONS = 3
 REFINE = np.array([-0.5, -0.25, 0.25, 0.5])  # refinement probes, in units of the spacing
+MAX_ITERATIONS = 20  # Powell sweeps over the directions, at most
 
 
 @dataclass(frozen=True)
@@ -91,7 +92,8 @@ def line_search(f: _Counter, x: np.ndarray, fx: float, d: np.ndarray, lo, hi, to
 
 
 def powell(f, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, steps: np.ndarray,
-           xtol: float = 0.02, ftol: float = 1e-4, max_evals: int = 400, max_iter: int = 20) -> OptimizeResult:
+           xtol: float = 0.02, ftol: float = 1e-4, max_evals: int = 400,
+           max_iter: int = MAX_ITERATIONS) -> OptimizeResult:
     """Minimise f over the box [lower, upper] from x0 with Powell's direction set.
 
     f: (N, n) -> (N,); steps (n,): initial direction lengths (the first probes reach one step);

@@ -4,24 +4,25 @@ Why a compiled twin: a chain's solve makes thousands of line-search probes of a 
 poses each, and with the energy's own kernel taking about 10 microseconds a pose, numpy's and
 Python's per-probe overhead (building candidates, clipping, bookkeeping) cost as much as the
 energy. Here the whole solve is one compiled call. It takes the same steps as
-``common.optimize.powell`` on the same objective (tests/test_optimize.py holds the two equal
-pose for pose), so which one runs changes the time, not the result.
+``common.optimize.powell`` on the same objective (tests/test_energy.py holds the two equal
+pose for pose), so which one runs changes the time, not the result. (Clipping by min/max keeps
+a -0.0 that np.clip would make +0.0 at a bound of exactly 0; no joint limit is 0.)
 
 The objective of a solve: the candidate's chain parameters put into the full pose; for the
 torso, the limbs held in their world orientation (``body.hold_limbs_in_world``) and the pose
 clipped into the joint limits; the ``cpu`` energy (``energy.pose_energies``); plus, for the
-torso, the spine twist prior (``fitting.with_spine_prior``).
+torso, the spine twist prior (``fitting.SpinePrior``).
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
-from common.body import _LIMB_ROOTS, PARAM_LIMITS, _hold_limbs
+from common.body import _LIMB_ROOTS, PARAM_COUNT, PARAM_LIMITS, _hold_limbs
 from common.energy import CpuEnergy, pose_energies
-from common.optimize import BRACKET, EXPAND, MAX_EXPANSIONS, REFINE
+from common.optimize import BRACKET, EXPAND, MAX_EXPANSIONS, MAX_ITERATIONS, REFINE
 
-_NO_HOLD = np.zeros((16, 3, 3))
+_NO_HOLD = np.zeros((16, 3, 3))  # the reference rotations' place when no limbs are held (one compiled signature)
 _LIMITS_LOW = np.ascontiguousarray(PARAM_LIMITS[:, 0])
 _LIMITS_HIGH = np.ascontiguousarray(PARAM_LIMITS[:, 1])
 
@@ -41,9 +42,7 @@ def _objective(Z, full, idx, hold, reference_rotations, limb_roots, limits_low, 
         for r in range(m):
             for i in range(full.shape[0]):
                 cand[r, i] = min(max(cand[r, i], limits_low[i]), limits_high[i])
-    sums = pose_energies(cand, kernel[0], kernel[1], kernel[2], kernel[3], kernel[4], kernel[5], kernel[6],
-                         kernel[7], kernel[8], kernel[9], kernel[10], kernel[11], kernel[12], kernel[13],
-                         kernel[14])
+    sums = pose_energies(cand, *kernel)
     out = np.empty(m)
     for r in range(m):
         out[r] = float(energy_base + sums[r])
@@ -75,13 +74,13 @@ def _probe(offsets, x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem):
 
 
 @njit(cache=True, nogil=True)
-def _best(ts, fs) -> float:
-    """The probe of lowest value, the first of equals (t = 0 wins ties: no drift)."""
+def _lowest(fs) -> int:
+    """The index of the probe of lowest value, the first of equals (t = 0 wins ties: no drift)."""
     best = 0
     for i in range(1, len(fs)):
         if fs[i] < fs[best]:
             best = i
-    return ts[best]
+    return best
 
 
 @njit(cache=True, nogil=True)
@@ -96,19 +95,16 @@ def _line_search(x, fx, d, lo, hi, tol, nfev, max_evals, problem):
     _probe(BRACKET, x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem)
     span = 1.0
     for _ in range(MAX_EXPANSIONS):
-        best = _best(ts, fs)
+        best = ts[_lowest(fs)]
         if abs(best) < span * 0.99 or nfev[0] >= max_evals:
             break
         _probe(best * np.array([1.5, EXPAND]), x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem)
         span *= EXPAND
     spacing = 0.25 * span
     while spacing > tol and nfev[0] < max_evals:
-        _probe(_best(ts, fs) + spacing * REFINE, x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem)
+        _probe(ts[_lowest(fs)] + spacing * REFINE, x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem)
         spacing *= 0.25
-    best = 0
-    for i in range(1, len(fs)):
-        if fs[i] < fs[best]:
-            best = i
+    best = _lowest(fs)
     return ts[best], fs[best]
 
 
@@ -161,7 +157,7 @@ def _powell(x0, lo, hi, steps, xtol, ftol, max_evals, max_iter, problem):
 
 def powell_cpu(energy: CpuEnergy, x0: np.ndarray, indices, steps: np.ndarray, xtol: float, ftol: float,
                max_evals: int, hold_rotations: np.ndarray | None = None, prior_weight: float = 0.0,
-               prior_index: int = 0, max_iter: int = 20) -> tuple:
+               prior_index: int = 0, max_iter: int = MAX_ITERATIONS) -> tuple:
     """Powell over ``indices`` of the 35 parameters of x0 (35,), the others held, on ``energy``.
 
     hold_rotations: (16, 3, 3) the reference pose's segment rotations: hold the limbs in their
@@ -171,12 +167,20 @@ def powell_cpu(energy: CpuEnergy, x0: np.ndarray, indices, steps: np.ndarray, xt
     """
     idx = np.asarray(indices, dtype=np.int64)
     full = np.ascontiguousarray(x0, dtype=np.float64)
+    steps = np.asarray(steps, dtype=np.float64)
     hold = hold_rotations is not None
+    # the compiled loops index without bounds checks: refuse what would read past an array
+    if full.shape != (PARAM_COUNT,):
+        raise ValueError(f"expected {PARAM_COUNT} parameters, got shape {full.shape}")
+    if idx.ndim != 1 or steps.shape != idx.shape or np.any((idx < 0) | (idx >= PARAM_COUNT)):
+        raise ValueError(f"indices {idx.tolist()} and steps of shape {steps.shape} do not match 35 parameters")
+    if hold and np.shape(hold_rotations) != (16, 3, 3):
+        raise ValueError(f"hold_rotations must be (16, 3, 3), got {np.shape(hold_rotations)}")
     problem = (full, idx, hold, np.ascontiguousarray(hold_rotations if hold else _NO_HOLD, dtype=np.float64),
                _LIMB_ROOTS, _LIMITS_LOW, _LIMITS_HIGH, float(prior_weight), int(prior_index),
                np.int64(energy.base), energy.kernel_tables)
     x, fun, nfev, nit = _powell(full[idx], np.ascontiguousarray(PARAM_LIMITS[idx, 0]),
-                                np.ascontiguousarray(PARAM_LIMITS[idx, 1]), np.asarray(steps, dtype=np.float64),
+                                np.ascontiguousarray(PARAM_LIMITS[idx, 1]), steps,
                                 float(xtol), float(ftol), int(max_evals), int(max_iter), problem)
     energy.evaluations += int(nfev)
     return x, float(fun), int(nfev), int(nit)

@@ -186,6 +186,36 @@ def test_compiled_powell_takes_the_same_steps_as_optimize_powell(model, frame, r
     assert cases[0][1].evaluations > 0  # the compiled solve counts its evaluations
 
 
+def test_compiled_powell_refuses_shapes_its_loops_would_read_past(model, frame):
+    """The compiled loops index without bounds checks: a short pose, steps that do not match the
+    indices, an index past 35 and held rotations of the wrong shape are refused."""
+    from common.powell_cpu import powell_cpu
+
+    data, truth = frame
+    energy = CpuEnergy(model, data.full_setup(truth, half=True))
+    for x0, idx, steps, hold, message in (
+            (truth[:34], [0, 1], [0.1, 0.1], None, "expected 35 parameters"),
+            (truth, [0, 1], [0.1, 0.1, 0.1], None, "do not match"),
+            (truth, [0, 35], [0.1, 0.1], None, "do not match"),
+            (truth, [0, 1], [0.1, 0.1], np.eye(3), r"\(16, 3, 3\)")):
+        with pytest.raises(ValueError, match=message):
+            powell_cpu(energy, x0, idx, np.array(steps), 0.02, 1e-4, 50, hold_rotations=hold)
+    assert energy.evaluations == 0
+
+
+def test_the_kernel_cache_is_keyed_by_every_file_with_cached_kernels():
+    """numba checks a cached kernel against its own file only; the cache folder is named by a
+    hash of KERNEL_SOURCES, so every file with cached kernels must be among them."""
+    from pathlib import Path
+
+    import common
+
+    here = Path(common.__file__).parent
+    cached = {p.name for p in here.glob("*.py") if "cache=True" in p.read_text()}
+    assert cached and cached <= set(common.KERNEL_SOURCES)
+    assert "optimize.py" in common.KERNEL_SOURCES  # the compiled Powell's constants
+
+
 def test_make_energy_rejects_unknown_backend(model, frame):
     data, truth = frame
     with pytest.raises(ValueError, match="nope"):
