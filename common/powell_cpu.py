@@ -52,6 +52,24 @@ def _objective(Z, full, idx, hold, reference_rotations, limb_roots, limits_low, 
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _clipped_step(x, t, d, lo, hi, out) -> None:
+    """out (n,) = x + t d clipped into the box [lo, hi] (``np.clip``; out may be x)."""
+    for i in range(x.shape[0]):
+        out[i] = min(max(x[i] + t * d[i], lo[i]), hi[i])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _line_range(x, d, lo, hi) -> tuple:
+    """``optimize._line_range``: the interval of t keeping x + t d inside the box [lo, hi]."""
+    tmin, tmax = -np.inf, np.inf
+    for i in range(x.shape[0]):
+        if d[i] != 0.0:
+            t1, t2 = (lo[i] - x[i]) / d[i], (hi[i] - x[i]) / d[i]
+            tmin, tmax = max(tmin, min(t1, t2)), min(tmax, max(t1, t2))
+    return tmin, tmax
+
+
 @njit(cache=True, nogil=True)
 def _probe(offsets, x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem):
     """Evaluate the line at the new (clipped, not yet probed) ``offsets``; ts, fs grow."""
@@ -64,8 +82,7 @@ def _probe(offsets, x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem):
         return
     X = np.empty((len(keep), x.shape[0]))
     for r in range(len(keep)):
-        for i in range(x.shape[0]):
-            X[r, i] = min(max(x[i] + keep[r] * d[i], lo[i]), hi[i])
+        _clipped_step(x, keep[r], d, lo, hi, X[r])
     values = _objective(X, *problem)
     nfev[0] += len(keep)
     for r in range(len(keep)):
@@ -86,11 +103,7 @@ def _lowest(fs) -> int:
 @njit(cache=True, nogil=True)
 def _line_search(x, fx, d, lo, hi, tol, nfev, max_evals, problem):
     """``optimize.line_search``: (t, f) with f <= fx (t = 0 if nothing better)."""
-    tmin, tmax = -np.inf, np.inf
-    for i in range(x.shape[0]):
-        if d[i] != 0.0:
-            t1, t2 = (lo[i] - x[i]) / d[i], (hi[i] - x[i]) / d[i]
-            tmin, tmax = max(tmin, min(t1, t2)), min(tmax, max(t1, t2))
+    tmin, tmax = _line_range(x, d, lo, hi)
     ts, fs = [0.0], [fx]
     _probe(BRACKET, x, d, lo, hi, tmin, tmax, ts, fs, nfev, max_evals, problem)
     span = 1.0
@@ -118,7 +131,7 @@ def _powell(x0, lo, hi, steps, xtol, ftol, max_evals, max_iter, problem):
         x[i] = min(max(x0[i], lo[i]), hi[i])
     fx = _objective(x.reshape(1, n), *problem)[0]
     nfev[0] += 1
-    dirs = np.diag(steps.astype(np.float64))
+    dirs = np.diag(steps)
     nit = 0
     while nit < max_iter:
         nit += 1
@@ -130,8 +143,7 @@ def _powell(x0, lo, hi, steps, xtol, ftol, max_evals, max_iter, problem):
             if fx - ft > biggest:
                 biggest, biggest_i = fx - ft, i
             if ft < fx:
-                for j in range(n):
-                    x[j] = min(max(x[j] + t * d[j], lo[j]), hi[j])
+                _clipped_step(x, t, d, lo, hi, x)
                 fx = ft
         if nfev[0] >= max_evals:
             break
@@ -141,8 +153,7 @@ def _powell(x0, lo, hi, steps, xtol, ftol, max_evals, max_iter, problem):
         if np.any(delta != 0):
             t, ft = _line_search(x, fx, delta, lo, hi, xtol, nfev, max_evals, problem)
             if ft < fx:
-                for j in range(n):
-                    x[j] = min(max(x[j] + t * delta[j], lo[j]), hi[j])
+                _clipped_step(x, t, delta, lo, hi, x)
                 fx = ft
             kept = np.empty_like(dirs)
             row = 0
