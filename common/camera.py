@@ -7,6 +7,7 @@ distortion model (k1, k2, p1, p2, k3). Pixel (0, 0) is the centre of the top-lef
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -47,12 +48,16 @@ class Camera:
         """(3,) camera centre in world coordinates, metres."""
         return -self.R.T @ self.t
 
-    @property
+    # Cached: a fit asks for these thousands of times per frame, and a camera does not change
+    # (its arrays are never written after make_camera).
+    @cached_property
     def projection_matrix(self) -> np.ndarray:
-        """(3, 4) P = K [R | t] (ignores distortion)."""
-        return self.K @ np.hstack([self.R, self.t[:, None]])
+        """(3, 4) P = K [R | t] (ignores distortion); read-only."""
+        P = self.K @ np.hstack([self.R, self.t[:, None]])
+        P.setflags(write=False)
+        return P
 
-    @property
+    @cached_property
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist != 0.0))
 
@@ -68,9 +73,10 @@ class Camera:
         y = xc[..., 1] / z
         if self.has_distortion:
             x, y = distort_normalized(x, y, self.dist)
-        u = self.K[0, 0] * x + self.K[0, 1] * y + self.K[0, 2]
-        v = self.K[1, 1] * y + self.K[1, 2]
-        return np.stack([u, v], axis=-1)
+        uv = np.empty(np.shape(x) + (2,))
+        uv[..., 0] = self.K[0, 0] * x + self.K[0, 1] * y + self.K[0, 2]
+        uv[..., 1] = self.K[1, 1] * y + self.K[1, 2]
+        return uv
 
     def depth(self, points: np.ndarray) -> np.ndarray:
         """(..., 3) world points -> (...,) depth along the optical axis, metres."""

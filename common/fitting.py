@@ -34,6 +34,7 @@ from common.energy import (
 )
 from common.packing import downsample_masks
 from common.powell_cpu import powell_cpu
+from common.retarget import heading_tilt
 
 HALF = 0.5  # torso works at half resolution (paper: 160x120 of 320x240)
 ENERGY_BACKENDS = ("cpu", "gl", "coarse-to-fine", "volume")
@@ -819,6 +820,19 @@ def turned(params: np.ndarray, angle: float) -> np.ndarray:
     out = np.array(params, dtype=np.float64)
     out[P["root_heading"]] += angle
     return out
+
+
+def rotated_about_pelvis(model: BodyModel, params: np.ndarray, axis: int, angle: float) -> np.ndarray:
+    """(35,) the same pose with the whole body rotated by ``angle`` (rad) about the pelvis's own
+    axis ``axis`` (0: towards its left, 1: its back, 2: up its spine) through the root joint,
+    the limbs carried along; the heading kept within pi of the pose's own."""
+    x = np.array(params, dtype=np.float64)
+    R = forward_kinematics(model, x, segments=(0,)).rotations[0, 0]
+    heading, tilt = heading_tilt((R @ rotvec_to_matrix(angle * np.eye(3)[axis]))[None])
+    turns = np.round((x[P["root_heading"]] - heading[0]) / (2.0 * np.pi))
+    x[P["root_heading"]] = heading[0] + 2.0 * np.pi * turns
+    x[[P["root_tilt_x"], P["root_tilt_y"]]] = tilt[0]
+    return x
 
 
 TILT_MOVING_RAD = 0.03  # pelvis tilt change per frame above which a tilted-ahead start is tried
