@@ -1,4 +1,5 @@
 """mocap bench fit / accuracy rows: their schema, and tracking scored apart from refinement."""
+import json
 import tempfile
 
 import pytest
@@ -39,3 +40,23 @@ def test_accuracy_rows_score_the_result_and_tracking_alone(tmp_path):
         over = row[f"{prefix}frames_over_max_target"]
         assert 0 <= over <= 3 and (over > 0) == (row[f"{prefix}max_joint_error_mm"] > 40.0)
     assert row["refine_seconds_per_frame"] > 0
+    assert "drift_mm" not in row  # too few frames for a restart apart from the first 20
+
+
+@pytest.mark.timeout(300)
+def test_the_restart_tracks_the_last_frames_from_the_truth_of_the_first_of_them(model, small_loaded, tmp_path):
+    """restarted_tail_errors_mm: the last frames in a run of their own, started at the truth of
+    the first of them (which it keeps, as a run started from the truth does; so do the first 20
+    frames that the last 20 are compared with), tracked with the options' tracking and no
+    refinement."""
+    from server import benchmarks
+    from server.session import load_records
+
+    seq, truth = small_loaded
+    options = FitOptions(max_iterations=1, turn_hypotheses=0, refine_passes=1, refine_hops=2)
+    errors = benchmarks.restarted_tail_errors_mm(model, seq, tmp_path / "tail", options, frames=2)
+    assert errors.shape == (2,) and errors[0] == 0.0 and 0 < errors[1] < 60.0
+    records = load_records(tmp_path / "tail")
+    assert [r["frame"] for r in records] == seq.frames[-2:]
+    summary = json.loads((tmp_path / "tail" / "summary.json").read_text())
+    assert summary["refine_seconds_per_frame"] == 0 and summary["options"]["refine_passes"] == 0

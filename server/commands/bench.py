@@ -53,6 +53,8 @@ def register(sub) -> None:
     acc.add_argument("--refine-hops", type=int, default=None, metavar="N", help="as mocap fit --refine-hops")
     acc.add_argument("--energy", default="cpu",
                      help="energy backends to compare on the same sequences, comma separated (e.g. cpu,volume)")
+    acc.add_argument("--no-restart", action="store_true",
+                     help="skip tracking the last 20 frames again from their first frame's truth (drift_mm)")
     acc.add_argument("--json", type=Path, default=None)
     ini = bsub.add_parser("init", help="automatic first-frame initialisation on every clip")
     ini.add_argument("clips", type=Path, nargs="*",
@@ -146,7 +148,7 @@ def run(args) -> int:
             for backend in [b for b in args.energy.split(",") if b]:
                 options = _fit_options(energy=backend, hypotheses=args.hypotheses,
                                        redetect_limbs=not args.no_redetect, **chosen)
-                rows += benchmarks.accuracy_rows(args.frames, Path(tmp), options=options)
+                rows += benchmarks.accuracy_rows(args.frames, Path(tmp), options=options, restart=not args.no_restart)
             _emit(rows, args.json)
         return 0
     if args.bench == "init":
