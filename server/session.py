@@ -250,7 +250,8 @@ def search_frame(model: BodyModel, data: FrameData, frame: int, starts: list, op
     ``first_frame_options`` from every start, once per way of re-detecting the limbs
     (FIRST_FRAME_REDETECT_TURNS), the lowest fits fitted again (``fit_from_starts``); then one
     fit with the tracking ``options``, whose local grids and small windows refine what the wide
-    search found; then fits with the legs, and the arms, swapped (``swapped_side_fits``); then
+    search found; then the whole body rotated about the pelvis's axes (``rotated_body_fits``);
+    then fits with the legs, and the arms, swapped (``swapped_side_fits``); then
     a fit from each limb's other basins (``limb_alternatives``) and from each nearly straight
     arm's lower twist (``arm_twist_fits``); then hops; each time the lowest energy kept."""
     wide = [first_frame_options(options, turn) for turn in FIRST_FRAME_REDETECT_TURNS]

@@ -54,7 +54,7 @@ def register(sub) -> None:
     acc.add_argument("--energy", default="cpu",
                      help="energy backends to compare on the same sequences, comma separated (e.g. cpu,volume)")
     acc.add_argument("--no-restart", action="store_true",
-                     help="skip tracking the last 20 frames again from their first frame's truth (drift_mm)")
+                     help="skip tracking the last 40 frames again from the truth of the first of them (drift_mm)")
     acc.add_argument("--json", type=Path, default=None)
     ini = bsub.add_parser("init", help="automatic first-frame initialisation on every clip")
     ini.add_argument("clips", type=Path, nargs="*",
