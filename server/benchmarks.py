@@ -5,6 +5,7 @@ beside ours in each row. Rates are evaluations per second of the XOR energy with
 """
 from __future__ import annotations
 
+import copy
 import json
 import multiprocessing as mp
 import tempfile
@@ -171,8 +172,6 @@ DRIFT_FRAMES = 20  # the issue's "last 20 frames"; the drift check tracks them a
 def restarted_tail_errors_mm(model, seq, workdir: Path, options: FitOptions, frames: int) -> np.ndarray:
     """(frames,) per-frame mean joint error (mm) of the sequence's last ``frames`` frames,
     tracked (no refinement) from the truth of the first of them, in a run of their own."""
-    import copy
-
     from server.session import LocalSolver, run_fit
 
     tail = copy.copy(seq)
@@ -208,7 +207,8 @@ def accuracy_rows(frames: int, workdir: Path, clips=ACCURACY_CLIPS, options: Fit
         seq_dir = workdir / f"accuracy-{Path(clip).stem}"
         if not (seq_dir / "sequence.json").exists():  # the same sequences for every backend compared
             synthesize(model, circle_studio(), clip_dir / clip, seq_dir, SynthOptions(frames=frames, noise="cheung", seed=0))
-        summary = run_fit(model, load_sequence(seq_dir), workdir / f"result-{Path(clip).stem}-{options.energy}", options,
+        seq = load_sequence(seq_dir)
+        summary = run_fit(model, seq, workdir / f"result-{Path(clip).stem}-{options.energy}", options,
                           LocalSolver(model, options), progress=progress)
         row = {"clip": clip, "energy_backend": options.energy, "frames": summary["frames"],
                "refine_passes": options.refine_passes, "refine_search": options.refine_search,
@@ -223,7 +223,7 @@ def accuracy_rows(frames: int, workdir: Path, clips=ACCURACY_CLIPS, options: Fit
                         f"{prefix}frames_over_max_target": sum(
                             v > MAX_ERROR_TARGET_MM for v in summary[f"{prefix}per_frame_max_error_mm"])})
         if restart and summary["frames"] >= 3 * DRIFT_FRAMES:  # the restart starts after the first 20
-            restarted = restarted_tail_errors_mm(model, load_sequence(seq_dir),
+            restarted = restarted_tail_errors_mm(model, seq,
                                                  workdir / f"restart-{Path(clip).stem}-{options.energy}", options,
                                                  frames=2 * DRIFT_FRAMES)[-DRIFT_FRAMES:].mean()
             row.update({"restart_last20_mean_mm": float(restarted),
