@@ -835,6 +835,12 @@ def rotated_about_pelvis(model: BodyModel, params: np.ndarray, axis: int, angle:
     return x
 
 
+def midway(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """(35,) the pose halfway between two poses (35,) parameter by parameter, within the joint
+    limits: a frame's start between its neighbours' fits."""
+    return clip_to_limits((np.asarray(before, dtype=np.float64) + np.asarray(after, dtype=np.float64)) / 2.0)
+
+
 TILT_MOVING_RAD = 0.03  # pelvis tilt change per frame above which a tilted-ahead start is tried
 TILT_AHEAD_RAD = 0.25   # how far ahead of the last tilt that start is
 

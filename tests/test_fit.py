@@ -133,6 +133,21 @@ def test_turn_hypotheses_undo_a_start_turned_from_the_truth(model, frames):
     np.testing.assert_allclose(turned(start, -0.15), truth[2].params, atol=1e-12)
 
 
+def test_midway_is_the_mean_pose_within_the_joint_limits():
+    from common.fitting import midway
+
+    rng = np.random.default_rng(5)
+    a, b = rng.normal(0.0, 1.0, (2, PARAM_COUNT))
+    a[P["l_elbow"]] = b[P["l_elbow"]] = PARAM_LIMITS[P["l_elbow"], 0] - 0.4  # both past the limit
+    mid = midway(a, b)
+    inside = np.arange(PARAM_COUNT) != P["l_elbow"]
+    within = (PARAM_LIMITS[:, 0] <= (a + b) / 2) & ((a + b) / 2 <= PARAM_LIMITS[:, 1])
+    np.testing.assert_allclose(mid[inside & within], ((a + b) / 2)[inside & within], atol=1e-15)
+    assert mid[P["l_elbow"]] == PARAM_LIMITS[P["l_elbow"], 0]
+    assert np.all((PARAM_LIMITS[:, 0] <= mid) & (mid <= PARAM_LIMITS[:, 1]))
+    np.testing.assert_array_equal(midway(a, b), midway(b, a))
+
+
 def test_tilted_ahead_follows_the_pelvis_tilt_only_while_it_moves(model, frames):
     from common.fitting import TILT_AHEAD_RAD, TILT_MOVING_RAD, tilted_ahead
 
@@ -502,6 +517,44 @@ def test_a_refinement_pass_refits_a_spoilt_frame_from_its_neighbour(model, five_
     assert joint_errors_mm(model, np.array(refined[spoilt_at]["params"]), truth)[arm].max() < 50.0
     assert np.allclose([refined[spoilt_at]["joints"][n] for n in JOINT_NAMES],
                        forward_kinematics(model, np.array(refined[spoilt_at]["params"])).joints[0])
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("backward", [True, False])
+def test_a_refinement_pass_fits_each_inner_frame_from_halfway_between_its_neighbours(model, five_frames, tmp_path,
+                                                                                     monkeypatch, backward):
+    """Each frame with a neighbour on both sides is also fitted from the mean of the fit the
+    pass just left behind it (refined) and the fit ahead of it (not yet refined); the end frames
+    are not, and every frame keeps the lowest energy of its fits."""
+    from common.fitting import midway
+    from common.sequence import load_sequence
+    from server import session
+    from server.session import LocalSolver, RunStats, refine_pass, run_fit
+
+    seq = load_sequence(five_frames)
+    options = FitOptions(refine_passes=0)
+    run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=4)
+    records = read_lines(tmp_path / "poses.jsonl")
+    starts = []
+    fits = session.whole_body_fits
+
+    def spy(model, data, frame, frame_starts, options, solver):
+        starts.extend((frame, np.array(s)) for s in frame_starts)
+        return fits(model, data, frame, frame_starts, options, solver)
+
+    monkeypatch.setattr(session, "whole_body_fits", spy)
+    monkeypatch.setattr(session, "PASS_START_HOPS", 0)
+    refined, _ = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats(), backward)
+    step = -1 if backward else 1
+    order = list(range(len(records)))[::step]
+    for behind, i in zip(order, order[1:-1]):
+        expected = midway(refined[behind]["params"], records[i + step]["params"])
+        assert any(f == records[i]["frame"] and np.allclose(s, expected, atol=1e-12) for f, s in starts), i
+    for end in (order[0], order[-1]):
+        ends = [s for f, s in starts if f == records[end]["frame"]]
+        assert not any(np.allclose(s, midway(a["params"], b["params"])) for s in ends
+                       for a in (*records, *refined) for b in (*records, *refined))
+    assert all(r["energy"] <= b["energy"] for r, b in zip(refined, records))
 
 
 @pytest.mark.timeout(300)
