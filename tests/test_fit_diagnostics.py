@@ -46,16 +46,25 @@ def test_a_restart_must_be_a_fitted_frame_after_the_first(small_sequence, tmp_pa
 @pytest.mark.timeout(300)
 def test_chains_put_one_at_a_time_at_the_truth(small_sequence, tmp_path, capsys):
     """--chains: a frame fitted from the truth stays near it, and one line per frame gives the
-    energy change of each of the six chains put at the truth alone; a frame not fitted is refused."""
+    energy change of each of the six chains put at the truth alone; a second the fewest chains
+    that lower it together, the straight line's highest energy, and the fit from halfway
+    between the frame's neighbours; a frame not fitted is refused."""
     from common.body import CHAINS
     from common.sequence import load_sequence
     from server.session import load_records
 
-    assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "fit"), "--quiet", "--frames", "2"]) == 0
+    assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "fit"), "--quiet", "--frames", "3"]) == 0
     frames = load_sequence(small_sequence).frames
     capsys.readouterr()
     assert load_tool().main([str(tmp_path / "fit"), str(small_sequence), "--chains", f"{frames[1]}"]) == 0
-    (line,) = [x for x in capsys.readouterr().out.splitlines() if "one chain at the truth" in x]
+    out = capsys.readouterr().out.splitlines()
+    (line,) = [x for x in out if "one chain at the truth" in x]
+    (more,) = [x for x in out if "fewest chains" in x]
+    assert more.split()[1] == str(frames[1])
+    fewest = more.split("lower it: ")[1].split("  ")[0]
+    assert fewest == "none" or all(n in CHAINS for n in fewest.split()[0].split("+"))
+    assert int(more.split("highest ")[1].split()[0]) >= 0  # the fit's own energy is on the line
+    assert f"halfway between frames {frames[0]} and {frames[2]}: " in more
     assert line.split()[1] == str(frames[1])
     from_truth_mm = float(line.split("fitted from the truth")[1].split("(")[1].split(" mm")[0])
     assert from_truth_mm < 15.0

@@ -13,11 +13,17 @@ RESULT is a `mocap fit` result folder of SEQUENCE, which must have truth.jsonl. 
 - with --chains F1,F2,...: for each of these frames, the frame fitted from the truth (does
   the truth's basin hold, and how much lower is it?) and the energy change of the fit with
   each chain alone put at the truth's pose. Where every change is positive while the truth's
-  basin is lower, the torso and limbs are off together: no chain can move alone.
+  basin is lower, the torso and limbs are off together: no chain can move alone. A second
+  line per frame gives the fewest chains that, put at the truth together, lower the energy;
+  the highest energy on the straight line (in all 35 parameters) from the fit to the truth,
+  over the fit's (0: the energy never rises on the way, the valley is there but runs across
+  the chains); and the frame fitted from halfway between its neighbours' fits, as a
+  refinement pass does.
 """
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import shutil
 import sys
@@ -30,11 +36,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from common.body import CHAINS, forward_kinematics, load_body_model  # noqa: E402
-from common.fitting import FitOptions, FrameData, fit_frame, full_energy  # noqa: E402
+from common.fitting import FitOptions, FrameData, fit_frame, full_energy, midway  # noqa: E402
 from common.sequence import load_sequence, write_sequence_meta  # noqa: E402
 from server.session import LocalSolver, joint_errors_mm, load_records, run_fit  # noqa: E402
 
 WINDOW = 20  # frames in the first and last windows of the drift comparison
+LINE_POINTS = 11  # poses on the straight line from a fit to the truth, both ends included
 
 
 def joint_error_mm(model, params, truth_frame) -> float:
@@ -107,6 +114,34 @@ def chains_against_truth(model, seq, truth, records, frames: list[int], options:
         print(f"frame {f:5d}  fit {energy:7d} ({joint_error_mm(model, fit, t):.1f} mm)  fitted from the truth "
               f"{from_truth.energy:7d} ({joint_error_mm(model, from_truth.params, t):.1f} mm)  "
               f"one chain at the truth: {', '.join(swaps)}")
+        whole = data.whole_image_energy()
+        names, change = fewest_chains_lowering(whole, fit, t.params, energy)
+        line = whole(fit[None] + np.linspace(0.0, 1.0, LINE_POINTS)[:, None] * (t.params - fit)[None])
+        fewest = f"{'+'.join(names)} {change:+d}" if names else "none"
+        text = (f"frame {f:5d}  fewest chains at the truth that lower it: {fewest}  "
+                f"straight line to the truth: highest {int(line.max()) - energy:+d}")
+        if f - 1 in by_frame and f + 1 in by_frame:
+            halfway = fit_frame(model, data, midway(by_frame[f - 1]["params"], by_frame[f + 1]["params"]), options)
+            text += (f"  fitted from halfway between frames {f - 1} and {f + 1}: {halfway.energy} "
+                     f"({joint_error_mm(model, halfway.params, t):.1f} mm)")
+        print(text)
+
+
+def fewest_chains_lowering(energy, fit: np.ndarray, truth_params: np.ndarray, fit_energy: int) -> tuple:
+    """(chain names, energy change) of the fewest chains that, put at ``truth_params`` (35,)
+    together, lower ``energy`` below ``fit_energy`` the most among sets of that size; ((), 0)
+    where none does."""
+    for size in range(1, len(CHAINS) + 1):
+        sets = list(itertools.combinations(CHAINS, size))
+        poses = np.repeat(np.asarray(fit, dtype=np.float64)[None], len(sets), axis=0)
+        for pose, names in zip(poses, sets):
+            for name in names:
+                pose[list(CHAINS[name].params)] = truth_params[list(CHAINS[name].params)]
+        changes = energy(poses) - fit_energy
+        best = int(np.argmin(changes))
+        if changes[best] < 0:
+            return sets[best], int(changes[best])
+    return (), 0
 
 
 def frame_list(text: str) -> list[int]:
