@@ -445,8 +445,8 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     mean lies in the truth's (the dance's frames 21 and 39: 54 and 50 mm off; fitted from
     halfway, 16 and 23 mm with 1.2 and 1.4% less energy). The pass's first frame, which has
     no neighbour, is fitted by PASS_START_HOPS hops (the pass's own ``hops`` where it has them;
-    the search too, where asked). Every frame's nearly straight arms are also tried at their other twists
-    (``arm_twist_fits``). A replaced record keeps its tracking fit under "first_pass" (params,
+    the search too, where asked). Every frame's nearly straight arms are also tried at their
+    other twists (``arm_twist_fits``). A replaced record keeps its tracking fit under "first_pass" (params,
     joints, energy); the pass's time and evaluations add to "refine_seconds" and
     "refine_evaluations" ("seconds" and "evaluations" stay tracking's). Returns the records,
     changed, and how many were replaced.
@@ -494,11 +494,11 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
             search: bool, hops: int, stats: RunStats) -> list[FrameResult]:
     """A refinement pass's fits of one frame: from its neighbour's fit (``neighbour``, the one
     beyond it ``beyond``) where it has one, and from halfway between that fit and the fit of its
-    neighbour on the other side (``other``, not yet refined in this pass) where it has both; with ``search``, from each limb's other basins
-    around the better of that fit and the record's; from each nearly straight arm's lower twist
-    towards the neighbour's, around the best so far (``arm_twist_fits``); with ``hops``, basin
-    hopping from the best of all these and the record (its time and hop count added to
-    ``stats``)."""
+    neighbour on the other side (``other``, not yet refined in this pass) where it has both;
+    with ``search``, from each limb's other basins around the better of that fit and the
+    record's; from each nearly straight arm's lower twist towards the neighbour's, around the
+    best so far (``arm_twist_fits``); with ``hops``, basin hopping from the best of all these
+    and the record (its time and hop count added to ``stats``)."""
     data = FrameData(model, seq.studio, seq.silhouettes(record["frame"]))
     fits = []
 
