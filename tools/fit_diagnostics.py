@@ -35,7 +35,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common.body import CHAINS, forward_kinematics, load_body_model  # noqa: E402
+from common.body import CHAINS, P, forward_kinematics, load_body_model  # noqa: E402
 from common.fitting import FitOptions, FrameData, fit_frame, full_energy, midway  # noqa: E402
 from common.sequence import load_sequence, write_sequence_meta  # noqa: E402
 from server.session import LocalSolver, joint_errors_mm, load_records, run_fit  # noqa: E402
@@ -115,8 +115,9 @@ def chains_against_truth(model, seq, truth, records, frames: list[int], options:
               f"{from_truth.energy:7d} ({joint_error_mm(model, from_truth.params, t):.1f} mm)  "
               f"one chain at the truth: {', '.join(swaps)}")
         whole = data.whole_image_energy()
-        names, change = fewest_chains_lowering(whole, fit, t.params, energy)
-        line = whole(fit[None] + np.linspace(0.0, 1.0, LINE_POINTS)[:, None] * (t.params - fit)[None])
+        target = heading_near(t.params, fit)
+        names, change = fewest_chains_lowering(whole, fit, target, energy)
+        line = whole(fit[None] + np.linspace(0.0, 1.0, LINE_POINTS)[:, None] * (target - fit)[None])
         fewest = f"{'+'.join(names)} {change:+d}" if names else "none"
         text = (f"frame {f:5d}  fewest chains at the truth that lower it: {fewest}  "
                 f"straight line to the truth: highest {int(line.max()) - energy:+d}")
@@ -125,6 +126,17 @@ def chains_against_truth(model, seq, truth, records, frames: list[int], options:
             text += (f"  fitted from halfway between frames {f - 1} and {f + 1}: {halfway.energy} "
                      f"({joint_error_mm(model, halfway.params, t):.1f} mm)")
         print(text)
+
+
+def heading_near(params: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(35,) ``params`` with its root heading moved by whole turns to within pi of the
+    ``reference`` pose's (35,): the same pose. The heading is unwrapped, and a run started
+    from a search can track a whole turn away from the truth's numbers; a straight line to
+    the truth's own would spin the body round on the way."""
+    out = np.array(params, dtype=np.float64)
+    h = P["root_heading"]
+    out[h] += 2.0 * np.pi * np.round((reference[h] - out[h]) / (2.0 * np.pi))
+    return out
 
 
 def fewest_chains_lowering(energy, fit: np.ndarray, truth_params: np.ndarray, fit_energy: int) -> tuple:
