@@ -30,6 +30,7 @@ from common.body import (
 )
 from common.bvh import BvhMotion, bvh_global_transforms, end_site_positions, write_bvh
 from common.errors import UserError
+from common.retarget import nearest_turn
 
 FORMATS = ("bvh", "c3d", "trc", "json", "csv")
 SUFFIXES = {"bvh": ".bvh", "c3d": ".c3d", "trc": ".trc", "json": ".jsonl", "csv": ".csv"}
@@ -146,7 +147,7 @@ def continuous_euler_zxy(R: np.ndarray) -> np.ndarray:
     for f in range(1, len(e)):
         best, best_d = None, np.inf
         for cand in (e[f], alt[f]):
-            c = cand + 2.0 * np.pi * np.round((out[f - 1] - cand) / (2.0 * np.pi))
+            c = nearest_turn(cand, out[f - 1])
             d = np.abs(c - out[f - 1]).sum()
             if d < best_d:
                 best, best_d = c, d

@@ -34,7 +34,7 @@ from common.energy import (
 )
 from common.packing import downsample_masks
 from common.powell_cpu import powell_cpu
-from common.retarget import heading_tilt
+from common.retarget import heading_tilt, nearest_turn
 
 HALF = 0.5  # torso works at half resolution (paper: 160x120 of 320x240)
 ENERGY_BACKENDS = ("cpu", "gl", "coarse-to-fine", "volume")
@@ -829,8 +829,7 @@ def rotated_about_pelvis(model: BodyModel, params: np.ndarray, axis: int, angle:
     x = np.array(params, dtype=np.float64)
     R = forward_kinematics(model, x, segments=(0,)).rotations[0, 0]
     heading, tilt = heading_tilt((R @ rotvec_to_matrix(angle * np.eye(3)[axis]))[None])
-    turns = np.round((x[P["root_heading"]] - heading[0]) / (2.0 * np.pi))
-    x[P["root_heading"]] = heading[0] + 2.0 * np.pi * turns
+    x[P["root_heading"]] = nearest_turn(heading[0], x[P["root_heading"]])
     x[[P["root_tilt_x"], P["root_tilt_y"]]] = tilt[0]
     return x
 

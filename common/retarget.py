@@ -39,6 +39,12 @@ def frame_from_two(primary: np.ndarray, secondary: np.ndarray) -> np.ndarray:
     return np.stack([a, b, np.cross(a, b)], axis=-1)
 
 
+def nearest_turn(angle, reference):
+    """``angle`` (rad, any shape) moved by whole turns to within pi of ``reference`` (the same
+    shape or broadcast): the same rotation, numbered as the reference's neighbour."""
+    return angle + 2.0 * np.pi * np.round((reference - angle) / (2.0 * np.pi))
+
+
 def heading_tilt(R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(F, 3, 3) root rotations -> heading (F,) unwrapped, tilt (F, 2) with R = Rz(h) exp(tilt)."""
     from scipy.spatial.transform import Rotation

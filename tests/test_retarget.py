@@ -180,3 +180,15 @@ def test_import_keeps_the_source_vertical(model, clip):
     src, ours, _ = bone_directions(model, clip, idx)
     R = kabsch(src.reshape(-1, 3), ours.reshape(-1, 3))
     assert np.degrees(np.arccos(np.clip(R[2, 2], -1, 1))) < 1.0
+
+
+def test_nearest_turn_moves_an_angle_by_whole_turns_to_within_pi_of_the_reference():
+    from common.retarget import nearest_turn
+
+    angles = np.array([0.3, 0.3 + 4.0 * np.pi, -2.0 * np.pi + 0.1, 3.0])
+    reference = np.array([0.2, 0.0, 2.0 * np.pi, -3.0])
+    moved = nearest_turn(angles, reference)
+    assert np.all(np.abs(moved - reference) <= np.pi)
+    turns = (moved - angles) / (2.0 * np.pi)
+    np.testing.assert_allclose(turns, np.round(turns), atol=1e-12)
+    np.testing.assert_allclose(moved, [0.3, 0.3, 2.0 * np.pi + 0.1, 3.0 - 2.0 * np.pi], atol=1e-12)

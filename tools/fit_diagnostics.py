@@ -37,6 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 from common.body import CHAINS, P, forward_kinematics, load_body_model  # noqa: E402
 from common.fitting import FitOptions, FrameData, fit_frame, full_energy, midway  # noqa: E402
+from common.retarget import nearest_turn  # noqa: E402
 from common.sequence import load_sequence, write_sequence_meta  # noqa: E402
 from server.session import LocalSolver, joint_errors_mm, load_records, run_fit  # noqa: E402
 
@@ -134,8 +135,7 @@ def heading_near(params: np.ndarray, reference: np.ndarray) -> np.ndarray:
     from a search can track a whole turn away from the truth's numbers; a straight line to
     the truth's own would spin the body round on the way."""
     out = np.array(params, dtype=np.float64)
-    h = P["root_heading"]
-    out[h] += 2.0 * np.pi * np.round((reference[h] - out[h]) / (2.0 * np.pi))
+    out[P["root_heading"]] = nearest_turn(out[P["root_heading"]], reference[P["root_heading"]])
     return out
 
 
