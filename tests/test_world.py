@@ -1,0 +1,79 @@
+"""The world's up axis (common.world), the postures (common.postures) and multi-view mask
+consistency (common.consistency)."""
+import numpy as np
+import pytest
+
+from common.body import JOINT_NAMES, P, forward_kinematics, load_body_model, rigid_vertices
+from common.camera import Studio, circle_studio
+from common.consistency import supported_masks
+from common.errors import UserError
+from common.postures import POSTURES, posture_params, varied_posture
+from common.world import UP_CHOICES, cameras_below_floor, detect_up, resolve_world, world_frame
+
+
+def user_studio(studio: Studio, up: str) -> Studio:
+    """Our z-up studio re-expressed in a world whose up axis is ``up``."""
+    return world_frame(up).studio_to_fit(studio) if up == "+z" else Studio(
+        tuple(type(c)(c.name, c.K, c.dist, c.R @ world_frame(up).rotation, c.t, c.width, c.height) for c in studio))
+
+
+@pytest.mark.parametrize("up", [u for u in UP_CHOICES if u != "auto"])
+def test_detect_up_finds_each_axis_and_the_fit_frame_is_ours(up):
+    ours = circle_studio(8, 320, 240)
+    theirs = user_studio(ours, up)
+    assert detect_up(theirs) == up
+    world = resolve_world(theirs)
+    back = world.studio_to_fit(theirs)
+    point = np.array([[0.3, -0.2, 1.1]])
+    for a, b in zip(ours, back):
+        np.testing.assert_allclose(a.project(point), b.project(point), atol=1e-9)
+    # points go to the user's frame and back; the user's frame projects with the user's cameras
+    user_point = world.points_to_user(point)
+    np.testing.assert_allclose(world.points_to_fit(user_point), point, atol=1e-12)
+    np.testing.assert_allclose(theirs[0].project(user_point), ours[0].project(point), atol=1e-9)
+    assert cameras_below_floor(theirs, world) == []
+
+
+def test_cameras_below_the_floor_are_named_for_a_wrong_axis():
+    studio = user_studio(circle_studio(4, 320, 240), "-z")
+    assert cameras_below_floor(studio, world_frame("+z")) == [c.name for c in studio]
+    with pytest.raises(UserError, match="--up"):
+        world_frame("up")
+
+
+@pytest.mark.parametrize("name", sorted(POSTURES))
+def test_postures_stand_on_the_floor(name):
+    model = load_body_model()
+    params = posture_params(model, name, 0.4, -0.2, 1.0)
+    lowest = rigid_vertices(model, forward_kinematics(model, params))[:, 2].min()
+    assert abs(lowest) < 1e-9
+    assert params[P["root_x"]] == 0.4 and params[P["root_heading"]] == 1.0
+
+
+def test_seated_posture_bends_hips_and_knees_and_variation_is_seeded():
+    model = load_body_model()
+    seated = posture_params(model, "seated")
+    joints = dict(zip(JOINT_NAMES, forward_kinematics(model, seated).joints[0]))
+    assert 0.35 < joints["pelvis"][2] < 0.6          # on a chair's seat
+    assert abs(joints["l_knee"][2] - joints["l_hip"][2]) < 0.1  # the thigh level
+    a = varied_posture(model, "seated", np.random.default_rng(3))
+    b = varied_posture(model, "seated", np.random.default_rng(3))
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, seated)
+
+
+def test_blobs_one_camera_sees_alone_are_dropped_and_the_actor_kept():
+    from common.energy import EnergySetup, Window, make_energy
+    model = load_body_model()
+    studio = circle_studio(6, 160, 120)
+    params = posture_params(model, "seated")
+    setup = EnergySetup(studio, tuple(Window(0, 0, 160, 120) for _ in studio), np.zeros((6, 120, 160), bool),
+                        tuple(range(16)), params, prerender=False)
+    masks = make_energy("cpu", model, setup).render(params)
+    noisy = masks.copy()
+    noisy[0, 2:10, 2:12] = True      # a light in one view
+    noisy[3, 100:118, 140:158] = True  # a floor seam in another
+    cleaned, removed = supported_masks(studio, noisy, np.array([0.0, 0.0, 0.6]))
+    assert not cleaned[0, 2:10, 2:12].any() and not cleaned[3, 100:118, 140:158].any()
+    np.testing.assert_array_equal(cleaned, masks)
+    assert removed[0] == 80 and removed[3] == 18 * 18 and removed[1] == 0
