@@ -4,35 +4,60 @@ Our own JSON format (``calibration.json``)::
 
     {"format": "silhouette-mocap-calibration", "version": 1, "units": "m",
      "cameras": [{"name": str, "K": 3x3, "dist": [k1, k2, p1, p2, k3], "R": 3x3,
-                  "t": [3], "width": int, "height": int}, ...]}
+                  "t": [3], "width": int, "height": int, "size_guessed": bool (optional)}, ...]}
 
-Other formats (``FORMATS``), read and written the way their tools do:
+Other formats (``FORMATS``; ``WRITE_FORMATS`` are also written), the way their tools lay them out:
 
 - ``easymocap``: a folder with OpenCV FileStorage YAML ``intri.yml`` (``names``, ``K_<cam>``,
-  ``dist_<cam>``, optional ``H_<cam>``/``W_<cam>``) and ``extri.yml`` (``R_<cam>`` Rodrigues,
-  ``Rot_<cam>`` 3x3, ``T_<cam>``), as EasyMocap's ``write_camera`` writes them.
+  ``dist_<cam>``, optional ``H_<cam>``/``W_<cam>``: EasyMocap's ``write_intri`` writes none) and
+  ``extri.yml`` (``R_<cam>`` Rodrigues, ``Rot_<cam>`` 3x3, ``T_<cam>``).
 - ``pose2sim``: ``Calib.toml``, ``[cam_01]`` sections with name, size, matrix, 4 distortions
   (k1 k2 p1 p2; a 5th, k3, is written only when non-zero), Rodrigues rotation, translation,
   ``fisheye = false``; ``[metadata]``.
 - ``anipose``: ``calibration.toml`` as aniposelib's ``CameraGroup.dump`` writes it
   (``[cam_0]`` ... with 5 distortions; ``[metadata]``).
-- ``opencv-xml``: OpenCV FileStorage XML, one file per camera (a folder of ``<cam>.xml``, or of
-  ``<cam>/<any>.xml``), tag names matched case-insensitively from common spellings.
+- ``opencv-xml``: OpenCV FileStorage XML, one file per camera, tag names matched
+  case-insensitively from common spellings (``XML_TAGS``).
+- ``projection``: one 3x4 projection matrix P = K [R | t] per camera: a ``.txt`` of 12 numbers
+  (``#`` comment lines and a PMVS ``CONTOUR`` header allowed) or an OpenCV XML file with a
+  ``P``/``ProjectionMatrix`` node. P is split into K, R, t by an RQ decomposition (fx, fy > 0,
+  det R = +1, K[2, 2] = 1); no distortion. A skew |K[0, 1]| above ``SKEW_WARNING`` * fx is kept
+  (our cameras model skew) and reported in a warning line, since it usually means a poor P.
+- ``qualisys``: a QTM ``.qca.txt`` (XML ``<calibration><cameras><camera serial=...>``), read as
+  Pose2Sim's ``calib_qca_fun``: ``intrinsic`` values (focal lengths, centre point, distortions)
+  in 1/64 pixel, principal point shifted by ``fov_video`` left/top, image size from
+  ``fov_video``, ``transform`` the camera's position (mm) and rotation (r11..r33 column-major,
+  as Pose2Sim reads them) in a camera frame with y up and z backwards, turned by pi about x into
+  OpenCV's. ``viewrotation`` (0/90/180/270, taken as clockwise) turns the image: K, R, the
+  tangential distortion and the size follow. Cameras whose ``model`` is marker-only are skipped.
 
-Camera sections in TOML files and XML files in folders are taken in natural order
-(``cam_2`` before ``cam_10``). Translations are metres inside; files other than our JSON do
+A folder of per-camera files (``opencv-xml`` and ``projection``) is either ``<cam>.xml`` /
+``<cam>.txt`` files at the top, or ``<cam>/`` sub-folders each holding one file with a camera
+(K, R and t, or P). Files holding no camera (a board description, an intrinsics-only estimate
+next to the full camera) are skipped and named in one warning line; two files with a camera in
+one sub-folder are an error. A ``.txt`` made only of numbers is a projection file (12 numbers).
+
+Image sizes are optional in every format: without one in the file or ``size``, a camera's size
+is twice its principal point, rounded (as Pose2Sim's converters do), one warning line names the
+cameras, and ``Camera.size_guessed`` is set (kept in our JSON as ``"size_guessed": true``) so
+that ``with_image_sizes`` can later put in the images' real size.
+
+Camera sections in TOML files and files in folders are taken in natural order (``cam_2`` before
+``cam_10``). Translations are metres inside; files other than our JSON and Qualisys (mm) do
 not say their units, so ``units`` scales them, and without ``units`` a rig whose cameras stand
 more than ``MAX_CAMERA_DISTANCE`` from the origin is refused as probably millimetres.
 Numbers are written with full double precision (EasyMocap itself writes 6 decimals), so every
-format round-trips exactly.
+written format round-trips exactly.
 """
 from __future__ import annotations
 
 import json
 import re
+import sys
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import yaml
@@ -47,13 +72,24 @@ except ModuleNotFoundError:  # Python 3.10
 JSON_FORMAT_NAME = "silhouette-mocap-calibration"
 JSON_VERSION = 1
 UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per unit
-FORMATS = ("json", "easymocap", "pose2sim", "anipose", "opencv-xml")
+WRITE_FORMATS = ("json", "easymocap", "pose2sim", "anipose", "opencv-xml")
+FORMATS = WRITE_FORMATS + ("projection", "qualisys")
 ROUNDING_TOLERANCE = 1e-5  # |R^T R - I| of a rotation matrix written with 6 decimals; snapped
 MAX_CAMERA_DISTANCE = 50.0  # metres; a camera centre farther from the origin means "not metres"
 EASYMOCAP_FILES = ("intri.yml", "extri.yml")
 TOML_NON_CAMERA_SECTIONS = ("metadata", "capture_volume", "charuco", "checkerboard")  # FreeMocap adds the last three
 YAML_KEY_NAME = re.compile(r"^[A-Za-z0-9_\-]+$")  # what OpenCV FileStorage accepts in K_<cam> keys
 FILE_NAME = re.compile(r"^(?!\.\.?$)[^/\\\x00-\x1f]+$")  # a camera name usable as <cam>.xml
+SKEW_WARNING = 0.01  # |K[0, 1]| / fx of a decomposed P above which a warning names the camera
+SINGULAR_P = 1e-12  # |det M| / |M|^3 (M = P[:, :3]) below which a projection matrix is singular
+QUALISYS_SUBPIXELS = 64.0  # Qualisys writes intrinsics and distortions in 1/64 pixel
+QUALISYS_SUFFIX = ".qca.txt"
+QUALISYS_VIEW_ROTATIONS = (0, 90, 180, 270)  # degrees, clockwise
+CONTOUR_HEADER = "CONTOUR"  # first line of PMVS / VisualSFM projection files
+FULL_KINDS = ("camera", "projection")  # file kinds holding a whole camera
+TOP_CAMERA_KINDS = FULL_KINDS + ("broken", "foreign")  # read (and refused if bad) when files are at the top
+QUALISYS_TO_OPENCV = np.diag([1.0, -1.0, -1.0])  # Qualisys camera frame (y up, z backwards) -> OpenCV's
+TURN_CLOCKWISE = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # camera frame of a turned image
 
 # OpenCV XML node names per field, compared after lower-casing and dropping underscores.
 XML_TAGS = {
@@ -64,7 +100,11 @@ XML_TAGS = {
     "width": ("image_width", "width"),
     "height": ("image_height", "height"),
     "size": ("ImageSize", "image_size", "size"),
+    "P": ("ProjectionMatrix", "P", "projection_matrix"),
 }
+CAMERA_FIELDS = ("K", "R", "t")  # an XML file with all three (or a P) holds a camera
+
+Warn = Callable[[str], None]  # receives one line to show the user
 
 
 # ----------------------------------------------------------------------------- our JSON
@@ -76,7 +116,8 @@ def studio_to_json(studio: Studio) -> dict:
         "units": "m",
         "cameras": [
             {"name": c.name, "K": c.K.tolist(), "dist": c.dist.tolist(), "R": c.R.tolist(),
-             "t": c.t.tolist(), "width": c.width, "height": c.height}
+             "t": c.t.tolist(), "width": c.width, "height": c.height,
+             **({"size_guessed": True} if c.size_guessed else {})}
             for c in studio
         ],
     }
@@ -102,7 +143,11 @@ def studio_from_json(doc, source: str, units: str | None = None) -> Studio:
             if key not in c:
                 raise CalibrationError(source, f"cameras[{i}].{key}", "missing")
         t = np.asarray(c["t"], dtype=np.float64) * scale if _numeric(c["t"]) else c["t"]
-        out.append(make_camera(c["name"], c["K"], c.get("dist"), c["R"], t, c["width"], c["height"], source))
+        guessed = c.get("size_guessed", False)
+        if not isinstance(guessed, bool):
+            raise CalibrationError(source, f"cameras[{i}].size_guessed", f"expected true or false, got {guessed!r}")
+        cam = make_camera(c["name"], c["K"], c.get("dist"), c["R"], t, c["width"], c["height"], source)
+        out.append(replace(cam, size_guessed=guessed))
     studio = Studio(tuple(out), source)
     if "units" not in doc and units is None:
         check_units(studio, source)
@@ -118,12 +163,19 @@ def _numeric(value) -> bool:
 
 # ----------------------------------------------------------------------------- public API
 
+def print_warning(line: str) -> None:
+    """The default ``warn``: one line on stderr."""
+    print(f"warning: {line}", file=sys.stderr)
+
+
 def load_calibration(path, units: str | None = None, fmt: str | None = None,
-                     size: tuple[int, int] | None = None) -> Studio:
+                     size: tuple[int, int] | None = None, warn: Warn = print_warning) -> Studio:
     """Read a studio from ``path`` in any of ``FORMATS`` (detected when ``fmt`` is None).
 
     units: "m", "cm" or "mm" for files that do not say (None: metres, checked for plausibility).
-    size: (width, height) pixels for cameras whose file gives no image size.
+    size: (width, height) pixels for cameras whose file gives no image size; without it their
+    size is guessed (``Camera.size_guessed``) and one line passed to ``warn`` names them.
+    warn: receives each warning line (guessed sizes, skipped files, skewed projection matrices).
     """
     path = Path(path)
     if units is not None and units not in UNIT_SCALE:
@@ -135,25 +187,69 @@ def load_calibration(path, units: str | None = None, fmt: str | None = None,
         if path.is_dir():
             raise CalibrationError(str(path), "<file>", "is a folder, expected a calibration JSON file")
         return studio_from_json(_read_json(path), str(path), units)
-    scale = UNIT_SCALE[units or "m"]
-    if fmt == "easymocap":
-        studio = _read_easymocap(path.parent if path.is_file() else path, scale, size)
-    elif fmt in ("pose2sim", "anipose"):
-        studio = _read_toml(path, scale, size)
-    elif fmt == "opencv-xml":
-        studio = _read_xml(path, scale, size)
-    else:
-        raise CalibrationError(str(path), "format", f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
+    lines: list[str] = []  # warnings wait for success: a failed read says one thing, its error
+    studio = _read_format(path, fmt, units, size, lines.append)
+    guessed = [c.name for c in studio if c.size_guessed]
+    if guessed:
+        lines.append(f"{path}: no image size for {', '.join(guessed)}; guessed as twice the principal point "
+                     "(pass --size WxH, or take the size from the images)")
     if units is None:
         check_units(studio, str(path))
+    for line in lines:
+        warn(line)
     return studio
 
 
+def _read_format(path: Path, fmt: str, units: str | None, size, warn: Warn) -> Studio:
+    """A studio from a file or folder in ``fmt`` (not json)."""
+    scale = UNIT_SCALE[units or "m"]
+    if fmt == "easymocap":
+        return _read_easymocap(path.parent if path.is_file() else path, scale, size)
+    if fmt in ("pose2sim", "anipose"):
+        return _read_toml(path, scale, size)
+    if fmt in ("opencv-xml", "projection"):
+        return _read_camera_files(path, scale, size, warn)
+    if fmt == "qualisys":
+        if units not in (None, "mm"):
+            raise CalibrationError(str(path), "units", f"Qualisys files are in millimetres; drop --units {units}")
+        return _read_qualisys(_qualisys_file(path), size, warn)
+    raise CalibrationError(str(path), "format", f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
+
+
+def with_image_sizes(studio: Studio, sizes: dict[str, tuple[int, int]], source: str) -> Studio:
+    """``studio`` with each camera named in ``sizes`` at its images' (width, height) pixels.
+
+    A guessed size (``Camera.size_guessed``) is replaced; a size from the calibration file that
+    differs from the images' raises CalibrationError. ``source`` names the images (for messages).
+    """
+    unknown = [name for name in sizes if name not in studio.names]
+    if unknown:
+        raise CalibrationError(studio.source, "cameras", f"no camera {unknown[0]!r} for the images of {source} "
+                               f"(cameras: {', '.join(studio.names)})")
+    cams = []
+    for cam in studio:
+        if cam.name not in sizes:
+            cams.append(cam)
+            continue
+        width, height = (int(v) for v in sizes[cam.name])
+        if width <= 0 or height <= 0:
+            raise CalibrationError(source, f"{cam.name}.size", f"must be positive, got {width}x{height}")
+        if cam.size_guessed:
+            cam = replace(cam, width=width, height=height, size_guessed=False)
+        elif (cam.width, cam.height) != (width, height):
+            raise CalibrationError(studio.source, f"{cam.name}.size", f"the calibration says {cam.width}x{cam.height} "
+                                   f"but the images ({source}) are {width}x{height}")
+        cams.append(cam)
+    return Studio(tuple(cams), studio.source)
+
+
 def save_calibration(studio: Studio, path, fmt: str | None = None) -> None:
-    """Write ``studio`` to ``path`` as ``fmt`` (default: from the name, see ``output_format``).
+    """Write ``studio`` to ``path`` as ``fmt`` (one of ``WRITE_FORMATS``; default: from the name, see
+    ``output_format``).
 
     easymocap and opencv-xml write into a folder ``path`` (opencv-xml writes one file when
-    ``path`` ends in .xml and the studio has one camera).
+    ``path`` ends in .xml and the studio has one camera); they leave out guessed sizes, as the
+    files they read came without.
     """
     path = Path(path)
     fmt = output_format(path, fmt)
@@ -189,10 +285,15 @@ def detect_format(path) -> str:
     if path.is_dir():
         if all((path / name).is_file() for name in EASYMOCAP_FILES):
             return "easymocap"
-        if _xml_camera_files(path):
-            return "opencv-xml"
+        entries = _camera_files(path)
+        if entries:
+            return "projection" if any(kind == "projection" for _, _, kind in entries) else "opencv-xml"
+        if len(list(path.glob("*" + QUALISYS_SUFFIX))) == 1:
+            return "qualisys"
         raise CalibrationError(str(path), "<folder>", "no calibration found: expected intri.yml + extri.yml "
-                               "(EasyMocap) or OpenCV .xml files (one per camera, or one per sub-folder)")
+                               "(EasyMocap), one .qca.txt (Qualisys), or camera files (.xml with K, R, t or P; "
+                               ".txt with a 3x4 P), one per camera or one per sub-folder")
+    name = path.name.lower()
     suffix = path.suffix.lower()
     if suffix == ".toml":
         doc = _read_toml_doc(path)
@@ -200,8 +301,13 @@ def detect_format(path) -> str:
         if sections and all(isinstance(doc[s], dict) and "fisheye" in doc[s] for s in sections):
             return "pose2sim"
         return "anipose"
-    if suffix == ".xml":
-        return "opencv-xml"
+    if name.endswith(QUALISYS_SUFFIX):
+        return "qualisys"
+    if suffix in (".xml", ".txt"):
+        kind = _file_kind(path)
+        if kind in ("qualisys", "projection"):
+            return kind
+        return "projection" if suffix == ".txt" else "opencv-xml"
     if suffix in (".yml", ".yaml"):
         return "easymocap"
     return "json"
@@ -215,8 +321,9 @@ def output_format(path, fmt: str | None = None) -> str:
     """
     path = Path(path)
     if fmt is not None:
-        if fmt not in FORMATS:
-            raise CalibrationError(str(path), "format", f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
+        if fmt not in WRITE_FORMATS:
+            raise CalibrationError(str(path), "format", f"cannot write format {fmt!r}; expected one of "
+                                   + ", ".join(WRITE_FORMATS))
         return fmt
     by_suffix = {".json": "json", ".toml": "pose2sim", ".xml": "opencv-xml"}
     suffix = path.suffix.lower()
@@ -312,6 +419,8 @@ def _numbers(value, source: str, field: str) -> np.ndarray:
         return _cvmat(value, source, field)
     if isinstance(value, str):
         value = value.split()
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
 
     def scalar(x):
         if isinstance(x, bool) or x is None:
@@ -368,31 +477,41 @@ def _pixels(value, source: str, field: str) -> int:
     return int(arr[0])
 
 
-def _build(name: str, K, dist, R, t, width, height, scale: float, fields: dict) -> Camera:
+def _build(name: str, K, dist, R, t, width, height, scale: float, fields: dict, size=None) -> Camera:
     """Parse and validate one camera; ``fields`` maps K/dist/R/t/size -> (source, field in the file).
 
-    R may be a Rodrigues vector or a 3x3 matrix; t is scaled to metres.
+    R may be a Rodrigues vector or a 3x3 matrix; t is scaled to metres. Without width and
+    height the size is ``size``, else guessed from the principal point (``size_guessed``).
     """
     K = _numbers(K, *fields["K"])
     dist = _numbers(dist, *fields["dist"]) if dist is not None else None
     R = _rotation(R, *fields["R"])
     t = _numbers(t, *fields["t"])
-    width = _pixels(width, *fields["size"])
-    height = _pixels(height, *fields["size"])
+    guessed = width is None or height is None
+    if not guessed:
+        width, height = _pixels(width, *fields["size"]), _pixels(height, *fields["size"])
+    elif size is not None:
+        (width, height), guessed = size, False
+    else:
+        width, height = _guessed_size(K, *fields["size"])
     try:
-        return make_camera(name, K, dist, R, t * scale, width, height, fields["K"][0])
+        cam = make_camera(name, K, dist, R, t * scale, width, height, fields["K"][0])
     except CalibrationError as exc:  # name the field as the file spells it
         key = exc.field_name.rsplit(".", 1)[-1]
         source, field = fields.get(key, (exc.source, exc.field_name))
         raise CalibrationError(source, field, exc.problem) from None
+    return replace(cam, size_guessed=True) if guessed else cam
 
 
-def _size_or_fallback(width, height, size, source: str, field: str):
-    if width is not None and height is not None:
-        return width, height
-    if size is not None:
-        return size
-    raise CalibrationError(source, field, "missing (the file gives no image size; pass --size WxH)")
+def _guessed_size(K: np.ndarray, source: str, field: str) -> tuple:
+    """(width, height) as twice the principal point, rounded; (None, None) for a K make_camera refuses."""
+    if K.size != 9:
+        return None, None
+    width, height = (int(np.floor(2.0 * c + 0.5)) for c in K.reshape(3, 3)[:2, 2])
+    if width <= 0 or height <= 0:
+        raise CalibrationError(source, field, f"missing, and the principal point ({K.reshape(3, 3)[0, 2]:g}, "
+                               f"{K.reshape(3, 3)[1, 2]:g}) gives no size to guess; pass --size WxH")
+    return width, height
 
 
 def _check_names(studio: Studio, target: str, pattern: re.Pattern, allowed: str) -> None:
@@ -456,11 +575,9 @@ def _read_easymocap(folder: Path, scale: float, size) -> Studio:
         R, r_key = _yaml_node(extri, se, f"R_{name}", f"Rot_{name}")  # EasyMocap itself uses the Rodrigues R_
         t, t_key = _yaml_node(extri, se, f"T_{name}")
         height, width = intri.get(f"H_{name}"), intri.get(f"W_{name}")
-        size_field = f"H_{name}/W_{name}"
-        width, height = _size_or_fallback(width, height, size, si, size_field)
         fields = {"K": (si, k_key), "dist": (si, d_key), "R": (se, r_key), "t": (se, t_key),
-                  "size": (si, size_field)}
-        cams.append(_build(name, K, dist, R, t, width, height, scale, fields))
+                  "size": (si, f"H_{name}/W_{name}")}
+        cams.append(_build(name, K, dist, R, t, width, height, scale, fields, size))
     return Studio(tuple(cams), str(folder))
 
 
@@ -484,7 +601,8 @@ def _easymocap_texts(studio: Studio) -> tuple[str, str]:
     intri, extri = list(head), list(head)
     for c in studio:
         intri += _yaml_matrix(f"K_{c.name}", c.K) + _yaml_matrix(f"dist_{c.name}", c.dist[None])
-        intri += [f"H_{c.name}: {c.height}", f"W_{c.name}: {c.width}"]
+        if not c.size_guessed:
+            intri += [f"H_{c.name}: {c.height}", f"W_{c.name}: {c.width}"]
         extri += _yaml_matrix(f"R_{c.name}", matrix_to_rodrigues(c.R)[:, None])
         extri += _yaml_matrix(f"Rot_{c.name}", c.R) + _yaml_matrix(f"T_{c.name}", c.t[:, None])
     return "".join(line + "\r\n" for line in intri), "".join(line + "\r\n" for line in extri)
@@ -521,19 +639,15 @@ def _read_toml(path: Path, scale: float, size) -> Studio:
         if c.get("fisheye") is True:
             raise CalibrationError(source, f"{sec}.fisheye", "fisheye cameras are not supported "
                                    "(pinhole with k1 k2 p1 p2 k3 only)")
-        if "size" in c:
-            dims = c["size"]
-            if not isinstance(dims, list) or len(dims) != 2:
-                raise CalibrationError(source, f"{sec}.size", f"expected [width, height], got {dims!r}")
-            width, height = dims
-        else:
-            width, height = _size_or_fallback(None, None, size, source, f"{sec}.size")
+        dims = c.get("size", [None, None])
+        if not isinstance(dims, list) or len(dims) != 2:
+            raise CalibrationError(source, f"{sec}.size", f"expected [width, height], got {dims!r}")
         fields = {"K": (source, f"{sec}.matrix"), "dist": (source, f"{sec}.distortions"),
                   "R": (source, f"{sec}.rotation"), "t": (source, f"{sec}.translation"),
                   "size": (source, f"{sec}.size")}
         name = c.get("name", sec)
         cams.append(_build(str(name), c["matrix"], c["distortions"], c["rotation"], c["translation"],
-                           width, height, scale, fields))
+                           *dims, scale, fields, size))
     return Studio(tuple(cams), source)
 
 
@@ -583,35 +697,167 @@ def _anipose_text(studio: Studio) -> str:
     return "".join(out)
 
 
-# ----------------------------------------------------------------------------- OpenCV XML
+# ----------------------------------------------------------------------------- camera files: OpenCV XML, P
 
-def _xml_camera_files(folder: Path) -> list[tuple[str, Path]]:
-    """(camera name, file) for a folder of <cam>.xml, or of <cam>/ sub-folders holding one .xml."""
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() == ".xml"]
-    if files:
-        return sorted(((p.stem, p) for p in files), key=lambda e: natural_key(e[0]))
-    found = []
-    for sub in folder.iterdir():
-        if not sub.is_dir():
-            continue
-        xmls = sorted(p for p in sub.iterdir() if p.is_file() and p.suffix.lower() == ".xml")
-        if len(xmls) > 1:
-            raise CalibrationError(str(sub), "<folder>", "expected one .xml file per camera folder, found "
-                                   + ", ".join(p.name for p in xmls))
-        if xmls:
-            found.append((sub.name, xmls[0]))
-    return sorted(found, key=lambda e: natural_key(e[0]))
+def _camera_candidates(folder: Path) -> list[Path]:
+    """The .xml and .txt files (not .qca.txt) directly in ``folder``, in natural order."""
+    return sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in (".xml", ".txt")
+                   and not p.name.lower().endswith(QUALISYS_SUFFIX)), key=lambda p: natural_key(p.name))
 
 
-def _read_xml(path: Path, scale: float, size) -> Studio:
+def _camera_files(folder: Path, warn: Warn | None = None) -> list[tuple[str, Path, str]]:
+    """(camera name, file, kind) for a folder of per-camera files, in natural order of names.
+
+    Files at the top are the cameras when one of them holds a whole camera; otherwise each
+    sub-folder's one camera file. Files passed over are named in one line to ``warn``.
+    """
+    top = [(p.stem, p, _file_kind(p)) for p in _camera_candidates(folder)]
+    entries, skipped = [], []
+    if not any(kind in FULL_KINDS for _, _, kind in top):
+        entries, skipped = _sub_folder_cameras(folder)
+    if entries:
+        skipped = [p for _, p, _ in top] + skipped
+    else:  # cameras at the top; a broken one among them is reported when read
+        entries = [e for e in top if e[2] in TOP_CAMERA_KINDS]
+        skipped = [p for _, p, kind in top if kind not in TOP_CAMERA_KINDS]
+    if warn is not None and entries and skipped:
+        warn(f"{folder}: skipped (no camera fields): " + ", ".join(p.relative_to(folder).as_posix() for p in skipped))
+    return sorted(entries, key=lambda e: natural_key(e[0]))
+
+
+def _sub_folder_cameras(folder: Path) -> tuple[list[tuple[str, Path, str]], list[Path]]:
+    """(camera name = sub-folder, file, kind) for each sub-folder with a camera file, and the files skipped."""
+    entries, skipped = [], []
+    for sub in sorted(d for d in folder.iterdir() if d.is_dir()):
+        files = [(p, _file_kind(p)) for p in _camera_candidates(sub)]
+        full = [p for p, kind in files if kind in FULL_KINDS]
+        if len(full) > 1:
+            raise CalibrationError(str(sub), "<folder>", "more than one file holds a camera (K, R, t or P): "
+                                   + ", ".join(p.name for p in full) + "; keep one")
+        chosen = full or [p for p, kind in files if kind == "broken"][:1]  # reported when read
+        entries += [(sub.name, p, kind) for p, kind in files if p in chosen]
+        skipped += [p for p, _ in files if p not in chosen]
+    return entries, skipped
+
+
+def _file_kind(path: Path) -> str:
+    """What a calibration file holds, read leniently (errors come when it is read as a camera).
+
+    "camera": OpenCV XML with K, R and t; "projection": OpenCV XML with P, or a .txt of numbers;
+    "qualisys": a Qualisys <calibration>; "broken": OpenCV XML with some of K, R, t, or not
+    valid XML; "foreign": XML of another kind; "none": no camera fields at all.
+    """
+    if _is_projection_text(path):
+        try:
+            text = _projection_text(path)
+            _numbers(text, str(path), "P")
+        except CalibrationError:
+            return "none"
+        return "projection" if text.strip() else "none"
+    try:
+        root = _parse_xml(path)
+    except CalibrationError:
+        return "broken"
+    if root.tag != "opencv_storage":
+        return "qualisys" if root.tag == "calibration" else "foreign"
+    nodes = _xml_nodes(path, root)
+    present = [field for field in CAMERA_FIELDS if _xml_find(nodes, field)[0] is not None]
+    if len(present) == len(CAMERA_FIELDS):
+        return "camera"
+    if _xml_find(nodes, "P")[0] is not None:
+        return "projection"
+    return "broken" if present else "none"
+
+
+def _read_camera_files(path: Path, scale: float, size, warn: Warn) -> Studio:
     if path.is_dir():
-        entries = _xml_camera_files(path)
+        entries = _camera_files(path, warn)
         if not entries:
-            raise CalibrationError(str(path), "<folder>", "no .xml camera files")
+            raise CalibrationError(str(path), "<folder>", "no camera files (.xml with K, R, t or P; .txt with a 3x4 P)")
     else:
-        entries = [(path.stem, path)]
-    cams = tuple(_read_xml_camera(name, p, scale, size) for name, p in entries)
-    return Studio(cams, str(path))
+        entries = [(path.stem, path, "")]
+    read = [_read_camera_file(name, p, scale, size) for name, p, _ in entries]
+    skewed = [cam.name for cam, from_p in read if from_p and abs(cam.K[0, 1]) > SKEW_WARNING * cam.K[0, 0]]
+    if skewed:
+        warn(f"{path}: the projection matrices of {', '.join(skewed)} decompose with a skew above "
+             f"{SKEW_WARNING:.0%} of fx (kept as it is; a poor or mis-assembled P?)")
+    return Studio(tuple(cam for cam, _ in read), str(path))
+
+
+def _read_camera_file(name: str, path: Path, scale: float, size) -> tuple[Camera, bool]:
+    """One camera from an OpenCV XML or projection .txt file -> (camera, whether it came from a P)."""
+    source = str(path)
+    if _is_projection_text(path):
+        P = _projection_matrix(_projection_text(path), source, "P")
+        return _projection_camera(name, P, None, None, scale, (source, "P"), (source, "<size>"), size), True
+    nodes = _xml_nodes(path, _parse_xml(path))
+    width, height, size_field = _xml_size(nodes, source)
+    p_tag, P = _xml_find(nodes, "P")
+    if P is not None and any(_xml_find(nodes, field)[0] is None for field in CAMERA_FIELDS):
+        P = _projection_matrix(P, source, p_tag)
+        return _projection_camera(name, P, width, height, scale, (source, p_tag), (source, size_field), size), True
+    k_tag, K = _xml_required(nodes, "K", source)
+    d_tag, dist = _xml_find(nodes, "dist")
+    r_tag, R = _xml_required(nodes, "R", source)
+    t_tag, t = _xml_required(nodes, "t", source)
+    fields = {"K": (source, k_tag), "dist": (source, d_tag or XML_TAGS["dist"][0]), "R": (source, r_tag),
+              "t": (source, t_tag), "size": (source, size_field)}
+    return _build(name, K, dist, R, t, width, height, scale, fields, size), False
+
+
+def _parse_xml(path: Path) -> ET.Element:
+    try:
+        return ET.fromstring(path.read_bytes())
+    except OSError as exc:
+        raise CalibrationError(str(path), "<file>", f"cannot read ({exc})") from None
+    except ET.ParseError as exc:
+        raise CalibrationError(str(path), "<file>", f"not valid XML ({exc})") from None
+
+
+def _xml_nodes(path: Path, root: ET.Element) -> dict:
+    """An OpenCV FileStorage XML root's nodes by tag, lower-cased and without underscores."""
+    if root.tag != "opencv_storage":
+        raise CalibrationError(str(path), "<root>", f"expected <opencv_storage>, got <{root.tag}>")
+    nodes = {}
+    for child in root:
+        nodes.setdefault(_tag_key(child.tag), child)
+    return nodes
+
+
+def _tag_key(tag: str) -> str:
+    return tag.lower().replace("_", "")
+
+
+def _xml_find(nodes: dict, field: str):
+    """(tag as the file spells it, value) of the first of ``XML_TAGS[field]`` present, else (None, None)."""
+    for tag in XML_TAGS[field]:
+        elem = nodes.get(_tag_key(tag))
+        if elem is not None:
+            return elem.tag, _xml_value(elem)
+    return None, None
+
+
+def _xml_required(nodes: dict, field: str, source: str):
+    tag, value = _xml_find(nodes, field)
+    if tag is None:
+        raise CalibrationError(source, XML_TAGS[field][0],
+                               "missing (also accepted: " + ", ".join(XML_TAGS[field][1:]) + ")")
+    return tag, value
+
+
+def _xml_size(nodes: dict, source: str):
+    """(width, height, field) from image_width/image_height or ImageSize; None, None when absent."""
+    w_tag, width = _xml_find(nodes, "width")
+    h_tag, height = _xml_find(nodes, "height")
+    if width is not None and height is not None:
+        return width, height, f"{w_tag}/{h_tag}"
+    s_tag, dims = _xml_find(nodes, "size")
+    if dims is None:
+        return None, None, "image_width/image_height"
+    arr = _numbers(dims, source, s_tag).reshape(-1)
+    if arr.size != 2:
+        raise CalibrationError(source, s_tag, f"expected 2 values (width height), got {arr.size}")
+    return arr[0], arr[1], s_tag
 
 
 def _xml_value(elem: ET.Element):
@@ -622,53 +868,59 @@ def _xml_value(elem: ET.Element):
     return (elem.text or "").strip()
 
 
-def _read_xml_camera(name: str, path: Path, scale: float, size) -> Camera:
-    source = str(path)
+def _is_projection_text(path: Path) -> bool:
+    """A .txt that is not XML (a Qualisys file is XML whatever its name)."""
+    if path.suffix.lower() != ".txt":
+        return False
     try:
-        root = ET.fromstring(path.read_bytes())
-    except OSError as exc:
-        raise CalibrationError(source, "<file>", f"cannot read ({exc})") from None
-    except ET.ParseError as exc:
-        raise CalibrationError(source, "<file>", f"not valid XML ({exc})") from None
-    if root.tag != "opencv_storage":
-        raise CalibrationError(source, "<root>", f"expected <opencv_storage>, got <{root.tag}>")
-    nodes = {}
-    for child in root:
-        nodes.setdefault(child.tag.lower().replace("_", ""), child)
+        return not _read_text(path).lstrip().startswith("<")
+    except CalibrationError:
+        return True  # reported when read
 
-    def find(field):
-        for tag in XML_TAGS[field]:
-            elem = nodes.get(tag.lower().replace("_", ""))
-            if elem is not None:
-                return elem.tag, _xml_value(elem)
-        return None, None
 
-    def required(field):
-        tag, value = find(field)
-        if tag is None:
-            raise CalibrationError(source, XML_TAGS[field][0], "missing (also accepted: "
-                                   + ", ".join(XML_TAGS[field][1:]) + ")")
-        return tag, value
+def _projection_text(path: Path) -> str:
+    """A projection .txt's numbers: without '#' comment lines and a PMVS ``CONTOUR`` header."""
+    lines = [line for line in _read_text(path).splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    if lines and lines[0].strip() == CONTOUR_HEADER:
+        lines = lines[1:]
+    return " ".join(lines)
 
-    k_tag, K = required("K")
-    d_tag, dist = find("dist")
-    r_tag, R = required("R")
-    t_tag, t = required("t")
-    w_tag, width = find("width")
-    h_tag, height = find("height")
-    s_tag, dims = find("size")
-    size_field = "image_width/image_height"
-    if (width is None or height is None) and dims is not None:
-        arr = _numbers(dims, source, s_tag).reshape(-1)
-        if arr.size != 2:
-            raise CalibrationError(source, s_tag, f"expected 2 values (width height), got {arr.size}")
-        (width, height), size_field = arr.tolist(), s_tag
-    elif width is not None and height is not None:
-        size_field = f"{w_tag}/{h_tag}"
-    width, height = _size_or_fallback(width, height, size, source, size_field)
-    fields = {"K": (source, k_tag), "dist": (source, d_tag or XML_TAGS["dist"][0]), "R": (source, r_tag),
-              "t": (source, t_tag), "size": (source, size_field)}
-    return _build(name, K, dist, R, t, width, height, scale, fields)
+
+def _projection_matrix(value, source: str, field: str) -> np.ndarray:
+    arr = _numbers(value, source, field)
+    if arr.size != 12 or (arr.ndim == 2 and arr.shape != (3, 4)):
+        raise CalibrationError(source, field, f"expected a 3x4 projection matrix (12 numbers), got "
+                               + (f"shape {arr.shape}" if arr.size == 12 else f"{arr.size} numbers"))
+    return arr.reshape(3, 4)
+
+
+def _projection_camera(name: str, P: np.ndarray, width, height, scale: float, where: tuple, size_where: tuple,
+                       size) -> Camera:
+    K, R, t = decompose_projection(P, *where)
+    fields = {"K": where, "dist": where, "R": where, "t": where, "size": size_where}
+    return _build(name, K, None, R, t, width, height, scale, fields, size)
+
+
+def decompose_projection(P, source: str = "<memory>", field: str = "P"):
+    """(3, 4) projection matrix -> K (3, 3), R (3, 3), t (3,) with P = s K [R | t] for some s != 0.
+
+    RQ decomposition of P[:, :3] with signs fixed so that K's diagonal is positive and det R = +1
+    (P and -P are the same camera), and K scaled to K[2, 2] = 1. A singular P[:, :3] raises
+    CalibrationError naming ``source`` and ``field``.
+    """
+    P = np.asarray(P, dtype=np.float64).reshape(3, 4)
+    det = np.linalg.det(P[:, :3])
+    if not abs(det) > SINGULAR_P * np.linalg.norm(P[:, :3]) ** 3:
+        raise CalibrationError(source, field, "singular: its left 3x3 block has rank < 3 (not a pinhole camera)")
+    if det < 0:
+        P = -P
+    flip = np.eye(3)[::-1]  # reverses rows: turns numpy's QR into an RQ decomposition
+    Q, U = np.linalg.qr((flip @ P[:, :3]).T)
+    K, R = flip @ U.T @ flip, flip @ Q.T
+    signs = np.sign(np.diag(K))
+    K, R = K * signs, signs[:, None] * R  # K D and D R with D = diag(signs), D D = I
+    t = np.linalg.solve(K, P[:, 3])
+    return np.triu(K / K[2, 2]), R, t
 
 
 def _xml_matrix(tag: str, value: np.ndarray) -> str:
@@ -685,5 +937,135 @@ def _xml_text(cam: Camera) -> str:
             + _xml_matrix("DistortionCoeffs", cam.dist[:, None])
             + _xml_matrix("Rotation", cam.R)
             + _xml_matrix("Translation", cam.t[:, None])
-            + f"<image_width>{cam.width}</image_width>\n<image_height>{cam.height}</image_height>\n"
+            + ("" if cam.size_guessed else
+               f"<image_width>{cam.width}</image_width>\n<image_height>{cam.height}</image_height>\n")
             + "</opencv_storage>\n")
+
+
+# ----------------------------------------------------------------------------- Qualisys .qca.txt
+
+def _qualisys_file(path: Path) -> Path:
+    if not path.is_dir():
+        return path
+    files = sorted(path.glob("*" + QUALISYS_SUFFIX))
+    if len(files) != 1:
+        raise CalibrationError(str(path), "<folder>", f"expected one {QUALISYS_SUFFIX} file, found {len(files)}")
+    return files[0]
+
+
+def _read_qualisys(path: Path, size, warn: Warn) -> Studio:
+    source = str(path)
+    root = _parse_xml(path)
+    if root.tag != "calibration":
+        raise CalibrationError(source, "<root>", f"expected <calibration> (Qualisys), got <{root.tag}>")
+    elems = root.findall("cameras/camera")
+    if not elems:
+        raise CalibrationError(source, "cameras", "no <camera> elements in <cameras>")
+    for i, elem in enumerate(elems):
+        if not elem.get("serial"):
+            raise CalibrationError(source, f"cameras.camera[{i}].serial", "missing")
+    marker_only = [e.get("serial") for e in elems if not _qualisys_video(e)]
+    if len(marker_only) == len(elems):
+        raise CalibrationError(source, "cameras", "only marker cameras (model without 'video'): no images")
+    if marker_only:
+        warn(f"{source}: skipped marker cameras (no video): {', '.join(marker_only)}")
+    cams = [_qualisys_camera(e, source, size) for e in elems if _qualisys_video(e)]
+    return Studio(tuple(sorted(cams, key=lambda c: natural_key(c.name))), source)
+
+
+def _qualisys_video(elem: ET.Element) -> bool:
+    """Pose2Sim's test: a camera films when its model says "video" or "none" (here also: no model)."""
+    model = elem.get("model")
+    return model is None or any(word in model.lower() for word in ("video", "none"))
+
+
+def _qualisys_camera(elem: ET.Element, source: str, size) -> Camera:
+    name = elem.get("serial")
+    fov = elem.find("fov_video")
+    sides = ("left", "top", "right", "bottom")
+    box = None if fov is None else [_attr_number(fov, f"{name}.fov_video", source, side) for side in sides]
+    width, height = (box[2] - box[0] + 1, box[3] - box[1] + 1) if box else (None, None)
+    K, dist = _qualisys_intrinsics(_qualisys_child(elem, "intrinsic", name, source), name, source,
+                                   box[:2] if box else (0.0, 0.0))
+    R, t = _qualisys_pose(_qualisys_child(elem, "transform", name, source), name, source)
+    for _ in range(_qualisys_turns(elem, name, source, fov)):
+        K, dist, R, t, width, height = _turn_clockwise(K, dist, R, t, width, height)
+    where_k, where_rt = (source, f"{name}.intrinsic"), (source, f"{name}.transform")
+    fields = {"K": where_k, "dist": where_k, "R": where_rt, "t": where_rt, "size": (source, f"{name}.fov_video")}
+    return _build(name, K, dist, R, t, width, height, UNIT_SCALE["mm"], fields, size)
+
+
+def _qualisys_intrinsics(intr: ET.Element, name: str, source: str, corner) -> tuple[np.ndarray, np.ndarray]:
+    """K (3, 3) in pixels of the video's field of view (top-left ``corner`` on the sensor), dist (5,)."""
+    def num(*attrs, default=None):
+        return _attr_number(intr, f"{name}.intrinsic", source, *attrs, default=default) / QUALISYS_SUBPIXELS
+
+    fu = num("focalLengthU")
+    if intr.get("focalLengthV") is None and intr.get("pixelAspectRatio") is not None:
+        fv = fu / _attr_number(intr, f"{name}.intrinsic", source, "pixelAspectRatio")
+    else:
+        fv = num("focalLengthV")
+    K = np.array([[fu, num("skew", default=0.0), num("centerPointU") - corner[0]],
+                  [0.0, fv, num("centerPointV") - corner[1]], [0.0, 0.0, 1.0]])
+    dist = np.array([num("radialDistortion1"), num("radialDistortion2"),
+                     num("tangentalDistortion1", "tangentialDistortion1"),  # QTM spells it "tangental"
+                     num("tangentalDistortion2", "tangentialDistortion2"), num("radialDistortion3", default=0.0)])
+    return K, dist
+
+
+def _qualisys_pose(tr: ET.Element, name: str, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera R (3, 3), t (3,) in mm, OpenCV axes."""
+    def num(attr):
+        return _attr_number(tr, f"{name}.transform", source, attr)
+
+    # r11 r12 r13 is the first column of the camera's orientation in the world (Pose2Sim reads it so)
+    R = QUALISYS_TO_OPENCV @ np.array([[num(f"r{i}{j}") for j in (1, 2, 3)] for i in (1, 2, 3)])
+    return R, -R @ np.array([num(axis) for axis in "xyz"])
+
+
+def _qualisys_child(elem: ET.Element, tag: str, name: str, source: str) -> ET.Element:
+    child = elem.find(tag)
+    if child is None:
+        raise CalibrationError(source, f"{name}.{tag}", "missing")
+    return child
+
+
+def _attr_number(elem: ET.Element, where: str, source: str, *attrs: str, default=None) -> float:
+    """The first of ``attrs`` present on ``elem`` as a number; ``default`` (or an error) when none is."""
+    for attr in attrs:
+        if elem.get(attr) is not None:
+            arr = _numbers(elem.get(attr), source, f"{where}.{attr}").reshape(-1)
+            if arr.size != 1:
+                raise CalibrationError(source, f"{where}.{attr}", f"expected one number, got {elem.get(attr)!r}")
+            return float(arr[0])
+    if default is None:
+        raise CalibrationError(source, f"{where}.{attrs[0]}", "missing")
+    return default
+
+
+def _qualisys_turns(elem: ET.Element, name: str, source: str, fov) -> int:
+    """Quarter turns clockwise of the camera's image (its ``viewrotation``)."""
+    text = elem.get("viewrotation", "0")
+    try:
+        degrees = int(float(text))
+    except ValueError:
+        degrees = None
+    if degrees not in QUALISYS_VIEW_ROTATIONS:
+        raise CalibrationError(source, f"{name}.viewrotation",
+                               f"expected one of {QUALISYS_VIEW_ROTATIONS}, got {text!r}")
+    if degrees and fov is None:
+        raise CalibrationError(source, f"{name}.fov_video", "missing (the image size is needed to turn the image "
+                               f"by viewrotation {degrees})")
+    return degrees // 90
+
+
+def _turn_clockwise(K, dist, R, t, width, height):
+    """The same camera with its image turned 90 degrees clockwise: pixel (u, v) -> (height - 1 - v, u).
+
+    The camera frame turns with it (x' = -y, y' = x), so K' = T K Z^T, R' = Z R, t' = Z t, the
+    tangential distortion (p1, p2) -> (p2, -p1), and width and height swap.
+    """
+    T = np.array([[0.0, -1.0, height - 1.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    Z = TURN_CLOCKWISE
+    dist = np.array([dist[0], dist[1], dist[3], -dist[2], dist[4]])
+    return T @ K @ Z.T, dist, Z @ R, Z @ t, height, width

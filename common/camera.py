@@ -33,6 +33,8 @@ class Camera:
 
     K: (3, 3) intrinsics in pixels; dist: (5,) k1 k2 p1 p2 k3; R: (3, 3) world-to-camera
     rotation; t: (3,) world-to-camera translation in metres; width, height in pixels.
+    size_guessed: the calibration file gave no image size and width, height are a guess (twice
+    the principal point); ``common.calibration.with_image_sizes`` replaces it with the images'.
     """
 
     name: str
@@ -42,6 +44,7 @@ class Camera:
     t: np.ndarray
     width: int
     height: int
+    size_guessed: bool = field(default=False, compare=False)
 
     @property
     def center(self) -> np.ndarray:
@@ -89,7 +92,7 @@ class Camera:
         """
         S = np.array([[factor, 0.0, 0.5 * factor - 0.5], [0.0, factor, 0.5 * factor - 0.5], [0, 0, 1]])
         return Camera(self.name, S @ self.K, self.dist.copy(), self.R.copy(), self.t.copy(),
-                      int(round(self.width * factor)), int(round(self.height * factor)))
+                      int(round(self.width * factor)), int(round(self.height * factor)), self.size_guessed)
 
 
 def distort_normalized(x: np.ndarray, y: np.ndarray, dist: np.ndarray):

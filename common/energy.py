@@ -24,6 +24,7 @@ from numba import njit
 
 from common.body import _SEGMENT_PARENTS, PARAM_COUNT, BodyModel, _forward_kinematics, _segment_mask, forward_kinematics
 from common.camera import Studio
+from common.packing import inside_images, padded_shape
 
 ARM_WINDOW = 128   # pixels, windows for upper arm + forearm, thigh + shin
 SMALL_WINDOW = 64  # pixels, windows for head, hands, feet
@@ -283,8 +284,11 @@ def pose_energies(p, rest_offsets, axis_table, parents, offsets, head_top_offset
 class EnergySetup:
     """Everything that stays fixed during one sub-optimization.
 
-    studio: cameras (already scaled for half-resolution work); windows: one per camera, all of
-    the same size; inputs: (K, h, w) bool input silhouette windows; moving: segments that move;
+    studio: cameras (already scaled for half-resolution work); windows: one per camera;
+    inputs: (K, h, w) bool input silhouette windows, h and w the largest window height and
+    width, window k's pixels at [:height, :width] (windows of one size fill it; whole images of
+    cameras of different sizes are padded, as ``packing.pad_masks``): pixels beyond a window
+    are outside it and count for nothing, whatever covers them; moving: segments that move;
     static_params: (35,) pose whose other segments are pre-rendered.
     """
 
@@ -295,6 +299,21 @@ class EnergySetup:
     static_params: np.ndarray
     prerender: bool = True
     volume_points: np.ndarray | None = None  # (n, 3) surface voxel centres, for the volume energy
+
+
+def window_pixels(setup: EnergySetup) -> np.ndarray | None:
+    """(K, h, w) bool: the pixels of ``setup.inputs`` inside each camera's window; None when
+    every window fills the inputs (windows of one size: nothing to leave out, nothing to pay).
+    ValueError when the windows do not fit the inputs."""
+    K, h, w = setup.inputs.shape
+    if len(setup.studio) != K or len(setup.windows) != K:
+        raise ValueError(f"{len(setup.studio)} cameras need as many windows and input windows, got "
+                         f"{len(setup.windows)} and {K}")
+    sizes = [(win.width, win.height) for win in setup.windows]
+    if padded_shape(sizes) != (h, w):
+        raise ValueError(f"input windows are {w}x{h}, the windows' largest width and height "
+                         f"{padded_shape(sizes)[1]}x{padded_shape(sizes)[0]}")
+    return None if len(set(sizes)) == 1 else inside_images(sizes, (h, w))
 
 
 def surface_distances(points: np.ndarray, centres: np.ndarray, axes: np.ndarray, radii: np.ndarray) -> np.ndarray:
@@ -376,6 +395,7 @@ class CpuEnergy:
         K = len(studio)
         h, w = setup.inputs.shape[1:]
         self.width, self.rows = w, h
+        self.inside = window_pixels(setup)
         self.P = np.stack([c.projection_matrix for c in studio])
         self.y0 = np.array([win.y0 for win in windows], dtype=np.float64)
         self.x0 = np.array([win.x0 for win in windows], dtype=np.float64)
@@ -386,7 +406,10 @@ class CpuEnergy:
         else:
             M = np.zeros((K, h, w), dtype=bool)
         self.static_mask = M
-        self.prefix, base = xor_prefix(M, np.ascontiguousarray(setup.inputs, dtype=np.bool_))
+        inputs = np.ascontiguousarray(setup.inputs, dtype=np.bool_)
+        if self.inside is not None:  # beyond a window static and input both set: v = 0, no base
+            M, inputs = M | ~self.inside, inputs | ~self.inside
+        self.prefix, base = xor_prefix(M, inputs)
         self.base = int(base)
         seg = np.asarray(self.moving, dtype=np.int64)
         self.kernel_tables = (*model.kinematic_tables[:2], _SEGMENT_PARENTS, *model.kinematic_tables[2:],
@@ -402,7 +425,8 @@ class CpuEnergy:
 
     def _render(self, params: np.ndarray, segments) -> np.ndarray:
         C, drawable = self._conics(np.atleast_2d(params)[:1], segments)
-        return conic_coverage(C, drawable, self.y0, self.x0, self.rows, self.width)[0]
+        covered = conic_coverage(C, drawable, self.y0, self.x0, self.rows, self.width)[0]
+        return covered if self.inside is None else covered & self.inside
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
         """(B, 35) or (35,) -> (B,) int64 energies (pixels)."""

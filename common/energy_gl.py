@@ -14,7 +14,9 @@ One call evaluates B candidate poses in all K camera windows with one instanced 
 - Tiles: instance i is (pose i // K, camera i % K) and owns one h x w tile of an atlas
   framebuffer. The vertex shader applies the camera (lens distortion included) in the
   camera's window (window pixel (u - x0, v - y0)), moves the result into the instance's tile,
-  and clip distances cut it to the tile and to the near plane.
+  and clip distances cut it to the tile and to the near plane. Windows of different sizes
+  (whole images of cameras of different sizes) share the largest tile; a window's pixels
+  beyond its own size are marked static and input in the bit planes, so they count nothing.
 - XOR and reduction, the paper's stencil trick turned into a count: every vertex is drawn at
   one depth and the depth test is LESS, so only the first fragment of a pixel survives (early
   fragment tests). It reads the paper's bit planes (``common.packing``: camera k in bit k % 8
@@ -30,7 +32,7 @@ import itertools
 import numpy as np
 
 from common.body import PARAM_COUNT, BodyModel, forward_kinematics
-from common.energy import MIN_DEPTH_M, EnergySetup, ellipsoid_world
+from common.energy import MIN_DEPTH_M, EnergySetup, ellipsoid_world, window_pixels
 from common.packing import pack_planes
 from common.render_gl import NEAR_M, gl_context, gl_renderer_name, is_software_renderer
 
@@ -221,11 +223,7 @@ class GlEnergy:
         self.renderer_name = gl_renderer_name()
         self.K = K = len(setup.studio)
         self.h, self.w = h, w = setup.inputs.shape[1:]
-        if setup.inputs.shape[0] != K or len(setup.windows) != K:
-            raise ValueError(f"{K} cameras need {K} windows and input windows, got {len(setup.windows)} "
-                             f"and {setup.inputs.shape[0]}")
-        if any((win.width, win.height) != (w, h) for win in setup.windows):
-            raise ValueError(f"every window must be {w}x{h}, the size of the input windows")
+        self.inside = window_pixels(setup)  # tiles are h x w; a smaller window fills its top-left
         self.moving = tuple(setup.moving) if setup.prerender else tuple(range(SEGMENTS))
         static = tuple(s for s in range(SEGMENTS) if s not in self.moving)
         budget = ATLAS_PIXELS_SOFTWARE if is_software_renderer() else ATLAS_PIXELS_GPU
@@ -266,6 +264,8 @@ class GlEnergy:
         I = np.asarray(setup.inputs, dtype=bool)
         M = self._render(np.asarray(setup.static_params, dtype=np.float64), "static")
         self.static_mask = M
+        if self.inside is not None:  # beyond a window static and input both set: v = 0, no base (as cpu)
+            I, M = I | ~self.inside, M | ~self.inside
         self.base = int(np.count_nonzero(M ^ I))
         planes = pack_planes(I).astype(np.uint32) | (pack_planes(M).astype(np.uint32) << 8)   # (P, h, w)
         self.planes = self._own(ctx.buffer(planes.tobytes()))
@@ -353,7 +353,8 @@ class GlEnergy:
         self._draw(1, part, "cover")
         fbo, cols, size = self._atlas(K, cover=True)
         img = np.frombuffer(fbo.read(components=1, dtype="f1", alignment=1), np.uint8).reshape(size[1], size[0])
-        return np.stack([img[r * h:(r + 1) * h, c * w:(c + 1) * w] for r, c in (divmod(k, cols) for k in range(K))]) > 0
+        tiles = np.stack([img[r * h:(r + 1) * h, c * w:(c + 1) * w] for r, c in (divmod(k, cols) for k in range(K))])
+        return tiles > 0 if self.inside is None else (tiles > 0) & self.inside
 
     # ---------------------------------------------------------------------- interface
 

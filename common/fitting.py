@@ -32,7 +32,7 @@ from common.camera import Camera, Studio, distort_normalized
 from common.energy import (
     ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window, centred_window, cut_window, make_energy,
 )
-from common.packing import downsample_masks
+from common.packing import downsample_masks, inside_images, pad_masks, padded_shape
 from common.powell_cpu import powell_cpu
 from common.retarget import heading_tilt, nearest_turn
 
@@ -164,6 +164,7 @@ def undistort_map(cam: Camera) -> np.ndarray:
 def undistort_masks(studio: Studio, masks: np.ndarray) -> tuple[Studio, np.ndarray]:
     """Silhouettes resampled into ideal pinhole images (same K, no distortion), and that studio.
 
+    masks: (K, H, W) bool, the padded stack (``packing.pad_masks``) -> the same shape.
     Fitting works in undistorted images so that every energy backend projects with plain
     pinhole cameras and agrees; a mask is resampled once per frame (nearest pixel).
     """
@@ -171,13 +172,14 @@ def undistort_masks(studio: Studio, masks: np.ndarray) -> tuple[Studio, np.ndarr
         return studio, masks
     cams, out = [], []
     for cam, mask in zip(studio, masks):
+        mask = mask[:cam.height, :cam.width]
         if cam.has_distortion:
             idx = undistort_map(cam)
             mask = np.where(idx >= 0, mask.reshape(-1)[np.maximum(idx, 0)], False)
             cam = replace(cam, dist=np.zeros_like(cam.dist))
         cams.append(cam)
         out.append(mask)
-    return Studio(tuple(cams), studio.source), np.stack(out)
+    return Studio(tuple(cams), studio.source), pad_masks(out)
 
 
 def spot_grid(studio: Studio, masks: np.ndarray, grid: int):
@@ -195,17 +197,26 @@ def spot_grid(studio: Studio, masks: np.ndarray, grid: int):
 
 
 class FrameData:
-    """One frame's input silhouettes (undistorted) at full and half resolution, and its studio."""
+    """One frame's input silhouettes (undistorted) at full and half resolution, and its studio.
+
+    masks: (K, H, W) bool, camera k's silhouette at [:h_k, :w_k] with (w_k, h_k) its image
+    size and H, W the largest (cameras of one size: the plain stack; of different sizes: the
+    padded stack of ``packing.pad_masks``). Pixels beyond a camera's image are cleared here,
+    once per frame, and no energy counts them.
+    """
 
     def __init__(self, model: BodyModel, studio: Studio, masks: np.ndarray):
         self.model = model
         masks = np.asarray(masks, dtype=bool)
-        if masks.shape[0] != len(studio):
-            raise ValueError(f"{masks.shape[0]} silhouettes for {len(studio)} cameras")
-        for cam, m in zip(studio, masks):
-            if m.shape != (cam.height, cam.width):
-                raise ValueError(f"silhouette of {cam.name} is {m.shape[1]}x{m.shape[0]}, "
-                                 f"calibration says {cam.width}x{cam.height}")
+        if masks.ndim != 3 or masks.shape[0] != len(studio):
+            raise ValueError(f"expected (K, H, W) silhouettes of {len(studio)} cameras, got shape {masks.shape}")
+        sizes = [(c.width, c.height) for c in studio]
+        H, W = padded_shape(sizes)
+        if masks.shape[1:] != (H, W):
+            raise ValueError(f"silhouettes are {masks.shape[2]}x{masks.shape[1]}, the calibration's largest "
+                             f"camera width and height {W}x{H}")
+        if len(set(sizes)) > 1:
+            masks = masks & inside_images(sizes, (H, W))
         self.original_studio = studio
         studio, masks = undistort_masks(studio, masks)
         self.studio = studio
@@ -219,7 +230,10 @@ class FrameData:
 
     @cached_property
     def half_masks(self) -> np.ndarray:
-        return downsample_masks(self.masks, 2)
+        """(K, H // 2, W // 2) bool, camera k's at [:h_k // 2, :w_k // 2] (cleared beyond)."""
+        half = downsample_masks(self.masks, 2)
+        sizes = [(c.width, c.height) for c in self.half_studio]
+        return half if len(set(sizes)) == 1 else half & inside_images(sizes, half.shape[1:])
 
     @cached_property
     def surface_points(self) -> np.ndarray:
@@ -257,7 +271,7 @@ class FrameData:
         for cam, mask in zip(self.studio, self.masks):
             w = centred_window(cam.project(centre), size)
             windows.append(w)
-            cuts.append(cut_window(mask, w))
+            cuts.append(cut_window(mask[:cam.height, :cam.width], w))
         return EnergySetup(self.studio, tuple(windows), np.stack(cuts), tuple(segments), np.asarray(params),
                            prerender=prerender)
 

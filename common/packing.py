@@ -5,6 +5,11 @@ bit (k % 8) of plane k // 8, so one byte per pixel carries eight cameras and the
 of all of them is one pass over the buffer. ``packbits_masks`` is the compact form for disk
 and the wire (one bit per pixel). Windows for the paper's sub-window speed-up are cut from
 either masks or planes; ``downsample_masks`` gives the half-resolution torso images.
+
+A studio whose cameras differ in image size keeps one frame's silhouettes as a padded stack
+(``pad_masks``): (K, H, W) with H, W the largest camera height and width, camera k's pixels
+at [:h_k, :w_k] and False beyond. Everything here works on that stack as on any other;
+``inside_images`` tells which of its pixels belong to each camera (consumers count only those).
 """
 from __future__ import annotations
 
@@ -21,6 +26,40 @@ def plane_count(cameras: int) -> int:
 def packed_length(cameras: int, height: int, width: int) -> int:
     """Bytes of ``packbits_masks`` for (K, H, W) masks: ceil(K * H * W / 8)."""
     return -(-int(cameras) * int(height) * int(width) // 8)
+
+
+def padded_shape(sizes) -> tuple[int, int]:
+    """(H, W) of the padded stack of cameras of ``sizes`` (K, 2) (width, height) pixels: the
+    largest height and the largest width."""
+    sizes = np.asarray(sizes, dtype=np.int64).reshape(-1, 2)
+    if len(sizes) == 0:
+        raise ValueError("no camera sizes")
+    return int(sizes[:, 1].max()), int(sizes[:, 0].max())
+
+
+def inside_images(sizes, shape) -> np.ndarray:
+    """sizes (K, 2) (width, height) pixels, shape (H, W) -> (K, H, W) bool: True on camera k's
+    own pixels [:h_k, :w_k] of a padded stack, False on the padding."""
+    sizes = np.asarray(sizes, dtype=np.int64).reshape(-1, 2)
+    H, W = (int(n) for n in shape)
+    rows = np.arange(H)[None, :, None] < sizes[:, 1, None, None]
+    cols = np.arange(W)[None, None, :] < sizes[:, 0, None, None]
+    return rows & cols
+
+
+def pad_masks(masks) -> np.ndarray:
+    """K masks of shapes (h_k, w_k) -> (K, H, W) bool padded stack (see the module docstring).
+
+    Masks of one size give the plain (K, h, w) stack. Any non-zero value counts as set.
+    """
+    masks = [np.asarray(m) for m in masks]
+    if not masks or any(m.ndim != 2 for m in masks):
+        raise ValueError(f"expected K >= 1 (h, w) masks, got shapes {[m.shape for m in masks]}")
+    H, W = padded_shape([(m.shape[1], m.shape[0]) for m in masks])
+    out = np.zeros((len(masks), H, W), dtype=bool)
+    for k, m in enumerate(masks):
+        out[k, :m.shape[0], :m.shape[1]] = m != 0
+    return out
 
 
 def pack_planes(masks: np.ndarray) -> np.ndarray:
@@ -96,6 +135,10 @@ def downsample_masks(masks: np.ndarray, factor: int = 2) -> np.ndarray:
     least half of them are set: at factor 2, at least 2 of the 4. Ties count as set so that
     thin limbs one source pixel wide survive as often as not. A last row or column that
     does not fill a whole block (odd H or W at factor 2) is dropped.
+
+    On a padded stack camera k's output pixels are [:h_k // factor, :w_k // factor], as
+    downsampling its own image gives; a block that straddles its last odd row or column and
+    the padding may be set, so clear the output beyond (``inside_images``) before counting.
     """
     masks = np.asarray(masks)
     if int(factor) != factor or factor < 1:

@@ -28,7 +28,7 @@ import msgpack
 import numpy as np
 
 from common.camera import Camera, CalibrationError, Studio, make_camera
-from common.packing import packed_length, unpackbits_masks
+from common.packing import inside_images, packed_length, padded_shape, unpackbits_masks
 
 PROTOCOL_VERSION = 2  # 2: hops (HOP_JOB_NAMES) beside the chains
 PARAM_COUNT = 35  # pose parameters of the body model
@@ -249,8 +249,10 @@ class Welcome:
 class Frame:
     """Server -> client, once per frame: the studio, the packed silhouettes, the start pose.
 
-    All K cameras share one image size (H, W), the size of the silhouettes.
-    ``silhouettes`` is ``packing.packbits_masks`` of the (K, H, W) masks, sent as a raw frame.
+    Cameras may differ in image size: the silhouettes are the studio's padded (K, H, W) stack
+    (``packing.pad_masks``; H, W the largest camera height and width, camera k's pixels at
+    [:h_k, :w_k]), and ``silhouettes`` is its ``packing.packbits_masks``, sent as a raw frame.
+    Bits on the padding carry nothing: ``masks`` clears them.
     """
 
     TYPE: ClassVar[str] = "frame"
@@ -274,9 +276,6 @@ class Frame:
         for i, c in enumerate(cams):
             if not isinstance(c, CameraSpec):
                 raise ProtocolError("bad_field", f"frame.cameras[{i}]: expected a CameraSpec")
-            if (c.height, c.width) != (cams[0].height, cams[0].width):
-                raise ProtocolError("bad_field", f"frame.cameras: {c.name!r} is {c.width}x{c.height}, "
-                                                 f"{cams[0].name!r} {cams[0].width}x{cams[0].height}")
         if len({c.name for c in cams}) != len(cams):
             raise ProtocolError("bad_field", "frame.cameras: duplicate camera names")
         _set(self, "cameras", cams)
@@ -294,16 +293,24 @@ class Frame:
         return len(self.cameras)
 
     @property
+    def sizes(self) -> tuple[tuple[int, int], ...]:
+        """(K, 2) (width, height) of each camera's image, pixels."""
+        return tuple((c.width, c.height) for c in self.cameras)
+
+    @property
     def H(self) -> int:
-        return self.cameras[0].height
+        return padded_shape(self.sizes)[0]
 
     @property
     def W(self) -> int:
-        return self.cameras[0].width
+        return padded_shape(self.sizes)[1]
 
     def masks(self) -> np.ndarray:
-        """(K, H, W) bool silhouettes."""
-        return unpackbits_masks(self.silhouettes, self.K, self.H, self.W)
+        """(K, H, W) bool silhouettes, the padded stack (False beyond each camera's image)."""
+        masks = unpackbits_masks(self.silhouettes, self.K, self.H, self.W)
+        if len(set(self.sizes)) > 1:
+            masks &= inside_images(self.sizes, (self.H, self.W))
+        return masks
 
     def studio(self) -> Studio:
         return Studio(tuple(c.to_camera() for c in self.cameras), "<wire>")
@@ -524,7 +531,8 @@ def _decode_frame(header: dict, silhouettes: bytes) -> Frame:
             raise ProtocolError("bad_field", f"frame.cameras[{i}]: expected a map")
         _check_keys(c, set(_CAMERA_KEYS), f"frame.cameras[{i}]")
         specs.append(CameraSpec(**c))
-    if (specs[0].height, specs[0].width) != (H, W):
-        raise ProtocolError("bad_field", f"frame: H x W = {H}x{W} but the cameras are "
-                                         f"{specs[0].height}x{specs[0].width}")
+    largest = padded_shape([(c.width, c.height) for c in specs])
+    if largest != (H, W):
+        raise ProtocolError("bad_field", f"frame: H x W = {H}x{W} but the cameras' largest height "
+                                         f"and width are {largest[0]}x{largest[1]}")
     return Frame(cameras=tuple(specs), silhouettes=silhouettes, **header)

@@ -2,28 +2,56 @@
 
 Layout (see docs/CONTRIBUTING.md)::
 
-    SEQUENCE/calibration.json
+    SEQUENCE/calibration.json                     (or EasyMocap's intri.yml + extri.yml)
     SEQUENCE/sequence.json                        {"frames": [...], "fps": 30.0, "cameras": [...]}
-    SEQUENCE/silhouettes/<camera>/<frame:06d>.png
+    SEQUENCE/silhouettes/<camera>/<frame:06d>.png (or EasyMocap / ZJU-MoCap mask/ or masks/)
     SEQUENCE/images/<camera>/<frame:06d>.png
     SEQUENCE/background/<camera>/<n:06d>.png
     SEQUENCE/truth.jsonl
+
+Frame files may be PNG, JPEG, BMP, PBM/PGM/PPM or TIFF under any name: the frame number is
+the last run of digits in the name (``img_2.jpg`` -> 2, ``000010.png`` -> 10).
+
+Cameras may differ in resolution. Per-frame stacks are then padded: ``silhouettes(frame)``
+is ``(K, Hmax, Wmax)`` bool and ``images(frame)`` ``(K, Hmax, Wmax, 3)`` uint8, with camera
+k's pixels in ``[k, :h_k, :w_k]`` and False / 0 elsewhere (Hmax, Wmax: the largest height
+and width of the studio's cameras, ``Sequence.padded_shape``; the convention of
+``common.packing.pad_masks``).
+
+The world: ``Sequence.user_studio`` is the calibration as the file has it; ``Sequence.studio``
+the same cameras in the z-up fit frame (``common.world``; ``up`` "auto" detects the file's up
+axis), which every fit, voxel and picture uses; ``Sequence.world`` turns points back.
+``silhouettes`` drops the blobs that the other cameras do not support (``clean_masks``; see
+``common.consistency``); ``raw_silhouettes`` reads the files as they are.
 """
 from __future__ import annotations
 
 import json
+import re
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from common.calibration import load_calibration
+from common.calibration import EASYMOCAP_FILES, load_calibration, natural_key
 from common.camera import Studio
-from common.errors import InputFileError
+from common.consistency import supported_masks
+from common.errors import InputFileError, UserError
+from common.packing import pad_masks, padded_shape
+from common.voxels import silhouette_centre
+from common.world import WorldFrame, resolve_world
 
-FRAME_NAME = "{frame:06d}.png"
+FRAME_NAME = "{frame:06d}.png"  # how we write frames
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pbm", ".pgm", ".ppm", ".pnm", ".tif", ".tiff")
+MASK_FOLDERS = ("silhouettes", "mask", "masks")  # ours first, then EasyMocap / ZJU-MoCap's
+IMAGE_FOLDER = "images"
 DEFAULT_FPS = 30.0  # frames per second when sequence.json does not say
+MAX_MASK_THRESHOLD = 65535  # grey levels of 16-bit masks
+CLEANED_FRAMES_KEPT = 64  # frames whose cleaned masks a Sequence keeps (about 0.6 MB each at 8 x 320x240)
+
+_DIGITS = re.compile(r"\d+")
 
 
 @dataclass(frozen=True)
@@ -33,8 +61,48 @@ class TruthFrame:
     joints: dict  # name -> (3,) metres
 
 
-def read_png(path: Path, mode: str) -> np.ndarray:
-    """Read one PNG as an array ('L' -> (H, W) uint8, 'RGB' -> (H, W, 3) uint8)."""
+# --------------------------------------------------------------------------- files
+def frame_number(name: str) -> int | None:
+    """The frame number of a file name: its last run of digits ("img_2.jpg" -> 2), or None."""
+    runs = _DIGITS.findall(Path(name).stem)
+    return int(runs[-1]) if runs else None
+
+
+def frame_files(folder) -> dict[int, Path]:
+    """Frame number -> image file of one camera's folder, in frame order (empty if no folder).
+
+    Every file with an image suffix (``IMAGE_SUFFIXES``, any case) and a digit in its name
+    counts; two files with the same number are refused.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return {}
+    found: dict[int, Path] = {}
+    for path in sorted(folder.iterdir(), key=lambda p: natural_key(p.name)):
+        if path.suffix.lower() not in IMAGE_SUFFIXES or path.name.startswith("."):
+            continue
+        number = frame_number(path.name)
+        if number is None:
+            continue
+        if number in found:
+            raise InputFileError(folder, f"two files for frame {number}: {found[number].name} and {path.name}")
+        found[number] = path
+    return dict(sorted(found.items()))
+
+
+def expected_path(folder: Path, files: dict[int, Path], frame: int) -> Path:
+    """The file frame ``frame`` would have, named like its neighbours (for 'missing' errors)."""
+    if not files:
+        return folder / FRAME_NAME.format(frame=frame)
+    example = next(iter(files.values()))
+    stem = example.stem
+    last = list(_DIGITS.finditer(stem))[-1]
+    number = str(frame).zfill(len(last.group()))
+    return folder / f"{stem[:last.start()]}{number}{stem[last.end():]}{example.suffix}"
+
+
+def read_image(path, mode: str) -> np.ndarray:
+    """Read one image of any PIL format ('L' -> (H, W) uint8, 'RGB' -> (H, W, 3) uint8)."""
     try:
         with Image.open(path) as im:
             return np.asarray(im.convert(mode))
@@ -44,20 +112,96 @@ def read_png(path: Path, mode: str) -> np.ndarray:
         raise InputFileError(path, f"not a readable image ({exc})") from None
 
 
+read_png = read_image  # the older name, kept for callers outside this module
+
+
+def read_mask(path, threshold: int | None = None) -> np.ndarray:
+    """Read one silhouette as (H, W) bool.
+
+    Without a threshold the file must be binary: at most two grey levels (the higher is
+    silhouette; a single level is silhouette when non-zero). Colour images (channels that
+    differ) and grey images with more levels are refused. With a threshold, grey level >
+    threshold is silhouette (colour is converted to grey first).
+    """
+    try:
+        with Image.open(path) as im:
+            if im.mode == "1":
+                return np.asarray(im, dtype=bool)
+            if im.mode in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
+                grey, colour = np.asarray(im), False
+            elif im.mode in ("LA", "La"):
+                grey, colour = np.asarray(im.getchannel(0)), False
+            else:
+                rgb = np.asarray(im.convert("RGB"))
+                colour = not (np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2]))
+                grey = np.asarray(im.convert("L")) if colour else rgb[..., 0]
+    except FileNotFoundError:
+        raise InputFileError(path, "missing") from None
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
+        raise InputFileError(path, f"not a readable image ({exc})") from None
+    if threshold is not None:
+        return grey > threshold
+    hint = "give binary masks, or a mask threshold (mocap fit --mask-threshold N: grey level > N is silhouette)"
+    if colour:
+        raise InputFileError(path, f"a colour image, not a mask (its red, green and blue differ); {hint}")
+    lo, hi = grey.min(), grey.max()
+    if lo == hi:
+        return np.full(grey.shape, bool(hi > 0))
+    if not np.all((grey == lo) | (grey == hi)):
+        raise InputFileError(path, f"a grey image, not a mask (more than two grey levels, {lo}..{hi}); {hint}")
+    return grey > lo
+
+
 def write_mask_png(path: Path, mask: np.ndarray) -> None:
     """(H, W) bool -> 1-bit PNG (compact, lossless)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(np.asarray(mask, dtype=bool)).save(path, optimize=False)
 
 
-class Sequence:
-    """A sequence folder opened for reading."""
+def _pad_images(images: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
+    """K (h_k, w_k, 3) images -> (K, H, W, 3) with image k in [k, :h_k, :w_k], zeros elsewhere."""
+    out = np.zeros((len(images), *shape, 3), dtype=np.uint8)
+    for k, image in enumerate(images):
+        out[k, :image.shape[0], :image.shape[1]] = image
+    return out
 
-    def __init__(self, path, units: str | None = None):
+
+def check_size(shape: tuple, path: Path, cam) -> None:
+    """Refuse an image of array shape (h, w, ...) whose size is not its camera's."""
+    if tuple(shape[:2]) != (cam.height, cam.width):
+        raise InputFileError(path, f"size {shape[1]}x{shape[0]} does not match the "
+                                   f"calibration of {cam.name} ({cam.width}x{cam.height})")
+
+
+# --------------------------------------------------------------------------- sequence
+class Sequence:
+    """A sequence folder opened for reading.
+
+    mask_threshold: None to accept only binary masks, else grey level > threshold is silhouette.
+    """
+
+    def __init__(self, path, units: str | None = None, mask_threshold: int | None = None, up: str = "auto",
+                 clean_masks: bool = True):
         self.path = Path(path)
         if not self.path.is_dir():
             raise InputFileError(self.path, "not a sequence folder (does not exist)")
-        self.studio: Studio = load_calibration(self.path / "calibration.json", units)
+        if mask_threshold is not None and (isinstance(mask_threshold, bool) or not isinstance(mask_threshold, int)
+                                           or not 0 <= mask_threshold < MAX_MASK_THRESHOLD):
+            raise UserError(f"mask threshold: expected a whole grey level 0..{MAX_MASK_THRESHOLD - 1}, "
+                            f"got {mask_threshold!r}")
+        self.mask_threshold = mask_threshold
+        calibration = self.path / "calibration.json"
+        if not calibration.exists() and all((self.path / n).is_file() for n in EASYMOCAP_FILES):
+            self.user_studio: Studio = load_calibration(self.path, units, fmt="easymocap")
+        else:
+            self.user_studio = load_calibration(calibration, units)
+        # fitting runs in the z-up fit frame (common.world); results go back to the user's
+        self.world: WorldFrame = resolve_world(self.user_studio, up)
+        self.studio: Studio = self.world.studio_to_fit(self.user_studio)
+        self.clean_masks = clean_masks
+        self._cleaned: OrderedDict = OrderedDict()  # frame -> (masks, pixels removed per camera)
+        self.mask_folder = next((self.path / f for f in MASK_FOLDERS if (self.path / f).is_dir()), None)
+        self._files: dict[tuple[Path, str], dict[int, Path]] = {}
         meta_path = self.path / "sequence.json"
         meta = {}
         if meta_path.exists():
@@ -72,45 +216,131 @@ class Sequence:
         else:
             self.frames = self._frames_on_disk()
         if not self.frames:
-            raise InputFileError(self.path, "no frames (no silhouettes/ or images/ and no sequence.json)")
+            raise InputFileError(self.path, "no frames (no silhouettes/, mask/ or images/ and no sequence.json)")
 
     def _frames_on_disk(self) -> list[int]:
-        for sub in ("silhouettes", "images"):
-            cam_dir = self.path / sub / self.studio.names[0]
-            if cam_dir.is_dir():
-                return sorted(int(p.stem) for p in cam_dir.glob("*.png") if p.stem.isdigit())
-        return []
+        first = self.studio.names[0]
+        return list(self.mask_files(first) or self.image_files(first))
 
     @property
     def has_silhouettes(self) -> bool:
-        return (self.path / "silhouettes").is_dir()
+        return self.mask_folder is not None
+
+    @property
+    def padded_shape(self) -> tuple[int, int]:
+        """(Hmax, Wmax): the height and width per-frame stacks are padded to."""
+        return padded_shape([(c.width, c.height) for c in self.studio])
+
+    def _camera_files(self, folder: Path, camera: str) -> dict[int, Path]:
+        key = (folder, camera)
+        if key not in self._files:
+            self._files[key] = frame_files(folder / camera)
+        return self._files[key]
+
+    def mask_files(self, camera: str) -> dict[int, Path]:
+        """Frame number -> silhouette file of one camera (empty when there are none)."""
+        return self._camera_files(self.mask_folder, camera) if self.mask_folder is not None else {}
+
+    def image_files(self, camera: str) -> dict[int, Path]:
+        """Frame number -> colour image file of one camera (empty when there are none)."""
+        return self._camera_files(self.path / IMAGE_FOLDER, camera)
+
+    def _path(self, folder: Path | None, camera: str, frame: int) -> Path:
+        if folder is None:
+            folders = "/, ".join(MASK_FOLDERS)
+            raise InputFileError(self.path / MASK_FOLDERS[0],
+                                 f"missing: no silhouettes ({folders}/ folders); make them with mocap segment")
+        files = self._camera_files(folder, camera)
+        if frame not in files:
+            raise InputFileError(expected_path(folder / camera, files, frame),
+                                 f"missing: frame {frame} of camera {camera}")
+        return files[frame]
 
     def silhouette_path(self, camera: str, frame: int) -> Path:
-        return self.path / "silhouettes" / camera / FRAME_NAME.format(frame=frame)
+        """Where ``mocap segment`` writes a silhouette: silhouettes/<camera>/<frame:06d>.png."""
+        return self.path / MASK_FOLDERS[0] / camera / FRAME_NAME.format(frame=frame)
+
+    def mask(self, camera, frame: int) -> np.ndarray:
+        """(h, w) bool silhouette of one camera (a ``Camera``) in one frame, checked against its size."""
+        path = self._path(self.mask_folder, camera.name, frame)
+        mask = read_mask(path, self.mask_threshold)
+        check_size(mask.shape, path, camera)
+        return mask
+
+    def image(self, camera, frame: int) -> np.ndarray:
+        """(h, w, 3) uint8 colour image of one camera (a ``Camera``) in one frame."""
+        path = self._path(self.path / IMAGE_FOLDER, camera.name, frame)
+        image = read_image(path, "RGB")
+        check_size(image.shape, path, camera)
+        return image
 
     def silhouettes(self, frame: int) -> np.ndarray:
-        """(K, H, W) bool masks of one frame, cameras in calibration order."""
-        masks = []
-        for cam in self.studio:
-            path = self.silhouette_path(cam.name, frame)
-            img = read_png(path, "L")
-            if img.shape != (cam.height, cam.width):
-                raise InputFileError(path, f"size {img.shape[1]}x{img.shape[0]} does not match the "
-                                           f"calibration of {cam.name} ({cam.width}x{cam.height})")
-            masks.append(img > 127)
-        return np.stack(masks)
+        """(K, Hmax, Wmax) bool masks of one frame, cameras in calibration order.
+
+        Camera k's mask is in ``[k, :h_k, :w_k]``; the padding is False.
+        """
+        return self.cleaned(frame)[0] if self.clean_masks else self.raw_silhouettes(frame)
+
+    def raw_silhouettes(self, frame: int) -> np.ndarray:
+        """(K, Hmax, Wmax) bool masks of one frame as the files hold them (``silhouettes`` without
+        the multi-view cleaning)."""
+        return pad_masks([self.mask(cam, frame) for cam in self.studio])
+
+    def cleaned(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
+        """(masks (K, Hmax, Wmax) bool, (K,) pixels removed): one frame's masks without the blobs
+        the other cameras do not support (``common.consistency.supported_masks``); the last
+        CLEANED_FRAMES_KEPT frames are kept, since a fit reads each frame several times."""
+        if frame not in self._cleaned:
+            raw = self.raw_silhouettes(frame)
+            self._cleaned[frame] = supported_masks(self.studio, raw, silhouette_centre(self.studio, raw))
+            while len(self._cleaned) > CLEANED_FRAMES_KEPT:
+                self._cleaned.popitem(last=False)
+        self._cleaned.move_to_end(frame)
+        return self._cleaned[frame]
 
     def images(self, frame: int) -> np.ndarray:
-        """(K, H, W, 3) uint8 colour images of one frame."""
-        out = []
+        """(K, Hmax, Wmax, 3) uint8 colour images of one frame; camera k's in ``[k, :h_k, :w_k]``, zero padded."""
+        return _pad_images([self.image(cam, frame) for cam in self.studio], self.padded_shape)
+
+    def check_files(self, frames, masks: bool = True, images: bool = False) -> None:
+        """Raise InputFileError for the first missing or unusable silhouette (with ``masks``) or
+        colour image (with ``images``) of ``frames``: all files are looked for first, then each
+        is read in full and checked (size, binary mask) as ``silhouettes`` / ``images`` would.
+        """
+        frames = list(frames)
+        folders = ([self.mask_folder] if masks else []) + ([self.path / IMAGE_FOLDER] if images else [])
+        for folder in folders:
+            for frame in frames:
+                for cam in self.studio:
+                    self._path(folder, cam.name, frame)
+        for frame in frames:
+            for cam in self.studio:
+                if masks:
+                    self.mask(cam, frame)
+                if images:
+                    self.image(cam, frame)
+
+    def check_masks(self, frames) -> list[str]:
+        """Warnings (one per camera) for cameras whose mask is all on or all off in every frame.
+
+        Cheap: a camera's scan stops at its first mask with both silhouette and background.
+        """
+        frames = list(frames)
+        warnings = []
         for cam in self.studio:
-            path = self.path / "images" / cam.name / FRAME_NAME.format(frame=frame)
-            img = read_png(path, "RGB")
-            if img.shape[:2] != (cam.height, cam.width):
-                raise InputFileError(path, f"size {img.shape[1]}x{img.shape[0]} does not match the "
-                                           f"calibration of {cam.name} ({cam.width}x{cam.height})")
-            out.append(img)
-        return np.stack(out)
+            counts = set()
+            for frame in frames:
+                mask = self.mask(cam, frame)
+                on = bool(mask.any())
+                if on and not mask.all():
+                    break
+                counts.add("on" if on else "off")
+            else:
+                if frames:
+                    state = " or ".join(sorted(counts, reverse=True))
+                    warnings.append(f"{self.mask_folder / cam.name}: camera {cam.name}'s mask is all {state} "
+                                    f"in every frame ({len(frames)} frames); check the masks or the mask threshold")
+        return warnings
 
     def truth(self) -> dict[int, TruthFrame] | None:
         """Ground truth per frame number, or None when the sequence has none."""
@@ -140,5 +370,6 @@ def write_sequence_meta(path, frames, fps: float, cameras: list[str], **extra) -
     Path(path, "sequence.json").write_text(json.dumps(doc, indent=1))
 
 
-def load_sequence(path, units: str | None = None) -> Sequence:
-    return Sequence(path, units)
+def load_sequence(path, units: str | None = None, mask_threshold: int | None = None, up: str = "auto",
+                  clean_masks: bool = True) -> Sequence:
+    return Sequence(path, units, mask_threshold, up, clean_masks)

@@ -2,7 +2,8 @@
 
 Silhouettes are rendered from the smoothly skinned MakeHuman surface by default, a different
 surface from the rigid segments and ellipsoids the fitter uses, so a fit is never the model
-recognising itself. Noise follows Cheung et al.: independent flips of foreground pixels
+recognising itself. Cameras may differ in image size (``synth_studio``): every image is
+written at its camera's size. Noise follows Cheung et al.: independent flips of foreground pixels
 (missed, rate eta) and background pixels (false, rate xi), plus small false blobs.
 """
 from __future__ import annotations
@@ -15,7 +16,7 @@ import numpy as np
 
 from common.body import BodyModel, forward_kinematics, joints_dict, rigid_vertices, skinned_vertices
 from common.calibration import save_calibration
-from common.camera import Studio
+from common.camera import Studio, circle_studio
 from common.motion_import import import_bvh
 from common.sequence import FRAME_NAME, write_mask_png, write_sequence_meta
 
@@ -89,6 +90,15 @@ class ColourWriter:
             img = cs.composite_frame(cam, lab >= 0, cs.clothing_colours(lab), shadow, bg, self.rng, gain,
                                      cs.NOISE_SIGMA, darkening, cs.PSF_SIGMA)
             self._save("images", cam.name, index, img)
+
+
+def synth_studio(cameras: int, sizes, radius_m: float = 3.0, height_m: float = 1.5) -> Studio:
+    """``circle_studio`` of ``cameras`` cameras, camera i of image size sizes[i % len(sizes)]
+    ((n, 2) width, height pixels): one size for a plain studio, several for a mixed one. A
+    camera's pose and field of view do not depend on its size."""
+    sizes = [(int(w), int(h)) for w, h in sizes]
+    studios = {size: circle_studio(cameras, *size, radius=radius_m, height_m=height_m) for size in set(sizes)}
+    return Studio(tuple(studios[sizes[i % len(sizes)]][i] for i in range(cameras)))
 
 
 def clip_frames(total: int, opts: SynthOptions) -> np.ndarray:

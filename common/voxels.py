@@ -27,6 +27,7 @@ import numpy as np
 
 from common.camera import Studio, circle_studio
 from common.errors import InputFileError, UserError
+from common.packing import pad_masks, padded_shape
 
 DEFAULT_EXTENT = np.array([2.4, 2.4, 2.2])  # metres: x, y, z size of the volume of interest
 SAMPLE_RADIUS = 0.45  # sample offsets from the voxel centre, in voxel edges (< 0.5 stays inside)
@@ -69,7 +70,8 @@ MIN_BLOB_FRACTION = 0.002
 def silhouette_centre(studio: Studio, masks: np.ndarray) -> np.ndarray | None:
     """(3,) the point closest (least squares) to the rays through each silhouette's centroid,
     metres; None when fewer than two cameras see a silhouette. The centroid is that of the
-    mask's blobs of MIN_BLOB_FRACTION of the image or more: a camera the actor has left sees
+    mask's blobs of MIN_BLOB_FRACTION of the image or more (masks: (K, H, W) bool, the padded
+    stack of ``packing.pad_masks`` when the cameras differ in size): a camera the actor has left sees
     only noise, whose centroid is the image's middle, and its ray would pull the centre
     (06_02 from source frame 262: three of eight cameras, the centre 1.6 m off)."""
     from scipy import ndimage
@@ -77,6 +79,7 @@ def silhouette_centre(studio: Studio, masks: np.ndarray) -> np.ndarray | None:
     A = np.zeros((3, 3))
     b = np.zeros(3)
     for cam, mask in zip(studio, masks):
+        mask = mask[:cam.height, :cam.width]  # the camera's own image of a padded stack
         labels, _ = ndimage.label(mask)
         big = np.bincount(labels.ravel()) >= MIN_BLOB_FRACTION * mask.size
         big[0] = False  # the background
@@ -184,7 +187,7 @@ class SpotGrid:
         self.block_unseen = block_unseen  # (K, nblocks) bool: some sample outside camera k
         self.live_blocks = live_blocks  # (n,) int32 blocks holding a voxel seen by MIN_VIEWS cameras
         self.bm_to_grid = bm_to_grid  # (M,) int32 block-major voxel -> grid flat index i N^2 + j N + k
-        self.image_shape = image_shape  # (H, W) of every camera
+        self.image_shape = image_shape  # (H, W) of the frames' mask stack: the largest camera height, width
         self.voxel_size = (bounds[1] - bounds[0]) / grid
         H, W = image_shape
         self._pixels = len(studio) * H * W
@@ -212,10 +215,9 @@ class SpotGrid:
         bounds = default_bounds(studio) if bounds is None else np.asarray(bounds, dtype=np.float64)
         if bounds.shape != (2, 3) or not np.all(np.isfinite(bounds)) or np.any(bounds[1] <= bounds[0]):
             raise UserError(f"bounds: expected (2, 3) lower and upper corners with lower < upper, got {bounds!r}")
-        sizes = {(c.height, c.width) for c in studio}
-        if len(sizes) != 1:
-            raise UserError(f"cameras: SPOT needs one image size for all cameras, got {sorted(sizes)}")
-        H, W = sizes.pop()
+        # cameras of different sizes: frames are padded stacks (packing.pad_masks), each
+        # camera's samples inside its own image
+        H, W = padded_shape([(c.width, c.height) for c in studio])
         if block is None:
             block = next(b for b in (4, 2, 1) if grid % b == 0)
         if grid % block:
@@ -253,8 +255,8 @@ class SpotGrid:
                 # Spread the samples along the camera's image axes so that their pixels differ.
                 pts = centres[None] + (offsets @ cam.R[:2])[:, None, :] * voxel  # (Q, n, 3)
                 uv = np.rint(cam.project(pts)).astype(np.int64)
-                inside = ((cam.depth(pts) > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < W)
-                          & (uv[..., 1] >= 0) & (uv[..., 1] < H))
+                inside = ((cam.depth(pts) > 0) & (uv[..., 0] >= 0) & (uv[..., 0] < cam.width)
+                          & (uv[..., 1] >= 0) & (uv[..., 1] < cam.height))
                 lut[k, :, sl] = np.where(inside, k * H * W + uv[..., 1] * W + uv[..., 0], unseen_index)
                 views[sl] += inside.all(axis=0)
                 tiles = np.where(inside[..., None], uv // TILE, 0).reshape(q, -1, B3, 2)
@@ -292,7 +294,11 @@ class SpotGrid:
         return buf
 
     def reconstruct(self, masks, surface: bool = True) -> VoxelResult:
-        """(K, H, W) bool silhouettes -> VoxelResult (occupied and, if asked, surface voxels)."""
+        """(K, H, W) bool silhouettes -> VoxelResult (occupied and, if asked, surface voxels).
+
+        Cameras of different sizes: the padded stack (``packing.pad_masks``); no sample falls
+        on the padding, so the voxels are those of the cameras' own images.
+        """
         masks = self._checked(masks)
         buf = self._buffer(masks)
         sat = self._tile_sat(masks)
@@ -370,7 +376,8 @@ class SpotGrid:
         return out.reshape(K, N, N, N)
 
     def sample_pixels(self) -> np.ndarray:
-        """(K, Q, N, N, N) int64 pixel index y * W + x of each sample in its camera, -1 if unseen."""
+        """(K, Q, N, N, N) int64 pixel index y * W + x of each sample in its camera, -1 if unseen
+        (W: the mask stack's width, ``image_shape[1]``)."""
         K, N = len(self.studio), self.grid
         H, W = self.image_shape
         lut = self.lut.reshape(K, self.q, -1).astype(np.int64)
@@ -447,7 +454,8 @@ def render_ellipsoids(studio: Studio, centres, axes, radii) -> np.ndarray:
     """Exact silhouettes of solid ellipsoids by ray casting (lens distortion ignored).
 
     centres (E, 3), axes (E, 3, 3) unit axes as columns, radii (E, 3), metres ->
-    (K, H, W) bool, True where a pixel's ray meets an ellipsoid in front of the camera.
+    (K, H, W) bool, True where a pixel's ray meets an ellipsoid in front of the camera (the
+    padded stack of ``packing.pad_masks`` when the cameras differ in size).
     """
     centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
     axes = np.asarray(axes, dtype=np.float64).reshape(-1, 3, 3)
@@ -470,7 +478,7 @@ def render_ellipsoids(studio: Studio, centres, axes, radii) -> np.ndarray:
             far = (-b + np.sqrt(np.maximum(disc, 0.0))) / (2.0 * a)  # the larger root
             mask |= (disc >= 0.0) & (far > 0.0)
         out.append(mask.reshape(cam.height, cam.width))
-    return np.stack(out)
+    return pad_masks(out)
 
 
 def corrupt(masks, eta: float, xi: float, rng: np.random.Generator) -> np.ndarray:

@@ -403,10 +403,11 @@ def overlay_strip(result: ResultData, painter: ModelPainter, frame: int, cameras
     masks = painter.silhouettes(result.motion.params[i], cams)
     pics, xor = [], {}
     for c, cam, model_mask in zip(cameras, cams, masks):
-        xor[cam.name] = int(np.count_nonzero(sil[c] ^ model_mask))
-        pic = overlay_image(sil[c], model_mask)
+        own = sil[c, :cam.height, :cam.width]  # cameras of different sizes: a padded stack
+        xor[cam.name] = int(np.count_nonzero(own ^ model_mask))
+        pic = overlay_image(own, model_mask)
         if crop:
-            x0, y0, x1, y1 = crop_box([sil[c], model_mask], CROP_ASPECT)
+            x0, y0, x1, y1 = crop_box([own, model_mask], CROP_ASPECT)
             pic = pic[y0:y1, x0:x1]
         if height:
             pic = fit_height(pic, height)

@@ -31,9 +31,10 @@ from common import voxels
 from common.body import (JOINT_NAMES, LIMB_CHAINS, MIRROR_SIGNS, P, BodyModel, forward_kinematics, joints_dict,
                          clip_to_limits, rest_params, swap_sides)
 from common.errors import InputFileError, UserError
+from common.postures import SEARCH_POSTURES, posture_params
 from common.fitting import (ARM_CHAINS, HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult,
                             arm_twist_alternative, fit_frame, full_energy, hop_fit, limb_alternatives,
-                            lowest_energy, midway, rotated_about_pelvis, solve_job, spot_grid, tilted_ahead)
+                            lowest_energy, midway, powell, rotated_about_pelvis, solve_job, spot_grid, tilted_ahead)
 from common.sequence import Sequence
 
 POSES_FILE = "poses.jsonl"
@@ -210,7 +211,70 @@ def voxel_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:
                 standing = rest_params(model, position=(c[0], c[1], model.joint_rest[0, 2]), heading=c[3] + turn)
                 standing[P["root_tilt_x"]] = tilt
                 starts.append(standing)
-    return starts + list(head_down_starts(model, init.shells))
+    postures = posture_starts(model, data, voxels.silhouette_centre(data.studio, data.masks), starts[0][3])
+    return starts + list(head_down_starts(model, init.shells)) + postures
+
+
+POSTURE_HEADINGS = 8        # headings (evenly spread) at which each of SEARCH_POSTURES is tried
+POSTURE_SCREENED = 12       # of those, the lowest by energy as placed get their root fitted ...
+POSTURE_STARTS_KEPT = 3     # ... and the lowest this many after it start the search
+POSTURE_ROOT_EVALS = 200    # evaluations of the root's Powell fit per screened posture
+
+
+def posture_starts(model: BodyModel, data: FrameData, centre: np.ndarray | None, heading: float) -> list:
+    """Seated, crouching, kneeling and lying starts (``common.postures.SEARCH_POSTURES``) at the
+    actor's place, screened cheaply on the half-resolution whole-image energy: every posture at
+    POSTURE_HEADINGS headings from ``heading``, the POSTURE_SCREENED lowest with their root
+    (position and heading) fitted by Powell, the POSTURE_STARTS_KEPT lowest of those kept.
+    Why: every other start is upright or head down, and the search's local fits do not fold a
+    standing body onto a chair (a seated take fitted from them ends standing, 71% XOR)."""
+    if centre is None:
+        return []
+    energy = data.whole_image_energy(half=True)
+    headings = heading + np.arange(POSTURE_HEADINGS) * (2.0 * np.pi / POSTURE_HEADINGS)
+    placed = np.array([posture_params(model, name, centre[0], centre[1], h)
+                       for name in SEARCH_POSTURES for h in headings])
+    order = np.argsort(energy(placed), kind="stable")[:POSTURE_SCREENED]
+    root = [P["root_x"], P["root_y"], P["root_z"], P["root_heading"]]
+    steps = np.array([0.1, 0.1, 0.05, 0.3])
+    options = FitOptions()
+    fitted = [powell(energy, placed[i], root, steps, options, POSTURE_ROOT_EVALS)[:2] for i in order]
+    fitted.sort(key=lambda f: f[1])
+    return [params for params, _ in fitted[:POSTURE_STARTS_KEPT]]
+
+
+# Actor sizes the first frame is tried at when the actor's height is not given, over the body
+# model's own (1.66 m): adults of about 1.5 to 2.15 m, in the calibration's units (a rig
+# calibrated with a mis-measured board scales everyone).
+ACTOR_SCALES = (0.9, 1.0, 1.1, 1.2, 1.3)
+
+
+def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions) -> float:
+    """The actor's size over ``model``'s, chosen by the silhouettes of the first frame: the
+    first frame searched once at the model's size (every start, one way of re-detecting limbs),
+    then its best pose fitted again at each of ACTOR_SCALES (the pelvis height scaled along),
+    and the size whose fit explains the masks best (lowest XOR energy) kept.
+    Why: real subjects are not the body model's size, and a body too small for its silhouettes
+    folds into them wrongly (the seated take, fitted at 1.66 m, stood)."""
+    frame = seq.frames[0]
+    data = frame_data(model, seq, frame)
+    solver = LocalSolver(model, options)
+    wide = first_frame_options(options, FIRST_FRAME_REDETECT_TURNS[0])
+    found = fit_from_starts(model, data, frame, voxel_starts(model, data), [wide], solver)
+    best_scale, best_energy = 1.0, found.energy
+    for scale in ACTOR_SCALES:
+        if scale == 1.0:
+            continue
+        actor = model.scaled(scale)
+        start = np.array(found.params)
+        start[P["root_z"]] *= scale
+        actor_data = frame_data(actor, seq, frame)
+        actor_solver = LocalSolver(actor, options)
+        actor_solver.begin_frame(frame, actor_data, start, wide)
+        fit = fit_frame(actor, actor_data, start, wide, actor_solver.solve)
+        if fit.energy < best_energy:
+            best_scale, best_energy = scale, fit.energy
+    return best_scale
 
 
 REFIT_GAIN = 0.005   # a start's fit is fitted again from its result while the energy falls this much
@@ -396,6 +460,56 @@ def _rewrite_complete(path: Path, records: list[dict]) -> None:
     os.replace(tmp, path)
 
 
+def frame_data(model: BodyModel, seq: Sequence, frame: int) -> FrameData:
+    """One frame's FrameData: the sequence's silhouettes in its fit-frame studio."""
+    return FrameData(model, seq.studio, seq.silhouettes(frame))
+
+
+def user_joints(model: BodyModel, seq: Sequence, params: np.ndarray) -> dict:
+    """{joint: [x, y, z]} of ``params`` (fit frame), in the user's world frame (``seq.world``)."""
+    return joints_dict(seq.world.points_to_user(forward_kinematics(model, params).joints[0]))
+
+
+def model_scale(model: BodyModel) -> float:
+    """The actor's size over the body model's own (its height over the default body's)."""
+    from common.body import load_body_model
+
+    return float(model.height / load_body_model().height)
+
+
+QUALITY_FLAG_SHARE = 0.3  # a frame whose XOR is above this share of a camera's silhouette is flagged
+
+
+def frame_quality(model: BodyModel, seq: Sequence, record: dict) -> dict:
+    """How well the fitted body explains one frame's masks, per camera: the XOR (model xor
+    silhouette) as a share of the silhouette's area (undistorted images, the fit's own), the
+    whole frame's share, and whether (and which cameras) it is above QUALITY_FLAG_SHARE."""
+    data = frame_data(model, seq, record["frame"])
+    rendered = data.whole_image_energy().render(np.asarray(record["params"]))
+    sizes = [(c.height, c.width) for c in data.studio]
+    xor = [int(np.count_nonzero(r[:h, :w] ^ m[:h, :w])) for r, m, (h, w) in zip(rendered, data.masks, sizes)]
+    area = [int(np.count_nonzero(m[:h, :w])) for m, (h, w) in zip(data.masks, sizes)]
+    share = [x / a if a else (0.0 if x == 0 else 1.0) for x, a in zip(xor, area)]
+    flagged = [c.name for c, v in zip(data.studio, share) if v > QUALITY_FLAG_SHARE]
+    return {"xor_share": [round(v, 4) for v in share], "xor_pixels": xor, "silhouette_pixels": area,
+            "xor_share_total": round(sum(xor) / max(sum(area), 1), 4), "flagged_cameras": flagged}
+
+
+def quality_summary(records: list[dict], cameras: list[str]) -> dict:
+    """Fit quality over the records: the mean and worst XOR share, per camera too, and the
+    frames flagged (``frame_quality``) with the cameras that disagree."""
+    q = [r["fit_quality"] for r in records if "fit_quality" in r]
+    if not q:
+        return {}
+    total = np.array([v["xor_share_total"] for v in q])
+    per_camera = np.array([v["xor_share"] for v in q])
+    return {"mean_xor_share": float(total.mean()), "max_xor_share": float(total.max()),
+            "per_camera_mean_xor_share": {c: float(v) for c, v in zip(cameras, per_camera.mean(axis=0))},
+            "flag_share": QUALITY_FLAG_SHARE,
+            "frames_flagged": [{"frame": r["frame"], "cameras": r["fit_quality"]["flagged_cameras"]}
+                               for r in records if r.get("fit_quality", {}).get("flagged_cameras")]}
+
+
 def joint_errors_mm(joints: np.ndarray, truth_frame) -> np.ndarray:
     """(17,) distances of fitted joints (17, 3) metres, in JOINT_NAMES order, from a TruthFrame's, mm."""
     true = np.array([truth_frame.joints[n] for n in JOINT_NAMES])
@@ -480,7 +594,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
                 if again.energy < r["energy"]:
                     r.setdefault("first_pass", {"params": r["params"], "joints": r["joints"], "energy": r["energy"]})
                     r["params"] = [float(v) for v in again.params]
-                    r["joints"] = joints_dict(forward_kinematics(model, again.params).joints[0])
+                    r["joints"] = user_joints(model, seq, again.params)
                     r["energy"] = int(again.energy)
                     replaced += 1
         beyond, neighbour = neighbour, np.asarray(r["params"], dtype=np.float64)
@@ -499,7 +613,7 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
     record's; from each nearly straight arm's lower twist towards the neighbour's, around the
     best so far (``arm_twist_fits``); with ``hops``, basin hopping from the best of all these
     and the record (its time and hop count added to ``stats``)."""
-    data = FrameData(model, seq.studio, seq.silhouettes(record["frame"]))
+    data = frame_data(model, seq, record["frame"])
     fits = []
 
     def best_so_far() -> np.ndarray:  # the record's pose on a tie
@@ -550,7 +664,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     settle_index = min(SETTLE_FRAMES, len(frames) - 1) if init != "truth" and not options.refine_passes else -1
     for n, frame in enumerate(frames[len(done):], start=len(done)):
         t0 = time.perf_counter()
-        data = FrameData(model, seq.studio, seq.silhouettes(frame))
+        data = frame_data(model, seq, frame)
         if x is None and init == "truth":
             x = initial_starts(model, seq, data, init)[0]
         if x is None:
@@ -578,10 +692,10 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         energies.append(result.energy)
         x_before, x = x, result.params
         seconds = time.perf_counter() - t0
-        joints = forward_kinematics(model, x).joints[0]
         chains = [c for c in result.chains if c.chain not in HOP_JOBS]  # a search's hops: not chain solves
         record = {
-            "frame": int(frame), "params": [float(v) for v in x], "joints": joints_dict(joints),
+            "frame": int(frame), "params": [float(v) for v in x], "joints": user_joints(model, seq, x),
+            "actor_scale": model_scale(model),
             "energy": int(result.energy), "seconds": seconds, "iterations": result.iterations,
             "evaluations": result.evaluations, "recovered": recovered,
             "limbs_redetected": limbs_redetected,
@@ -618,8 +732,12 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                        "hops_run": stats.hops_run - hops_before,
                        "hop_seconds": stats.hop_seconds - hop_seconds_before,
                        "frames_replaced": replaced, "seconds": time.perf_counter() - t0})
+    records = [r | {"fit_quality": frame_quality(model, seq, r)} for r in records]
+    _rewrite_complete(poses_path, records)
     summary = {
         "sequence": str(seq.path.resolve()),
+        "world_up": seq.world.up,
+        "actor_scale": model_scale(model),
         "frames": len(records),
         "frames_fitted_this_run": len(stats.seconds),
         "mode": solver.mode,
@@ -641,6 +759,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "chain_evaluations_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_evaluations.items()},
         "options": options.to_wire(),
         "timing": solver.timing(),
+        "fit_quality": quality_summary(records, seq.studio.names),
         **accuracy(records, truth),
         # the same before refinement: each frame as tracking left it
         **{f"tracking_{k}": v for k, v in accuracy([r.get("first_pass", r) | {"frame": r["frame"]} for r in records],

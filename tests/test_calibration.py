@@ -2,20 +2,24 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from common.calibration import (
-    FORMATS, detect_format, load_calibration, matrix_to_rodrigues, natural_key, output_format,
-    rodrigues_to_matrix, save_calibration,
+    FORMATS, WRITE_FORMATS, decompose_projection, detect_format, load_calibration, matrix_to_rodrigues, natural_key,
+    output_format, rodrigues_to_matrix, save_calibration, with_image_sizes,
 )
 from common.camera import Camera, CalibrationError, Studio, circle_studio
 from server.cli import main
 
 DATA = Path(__file__).parent / "data" / "calib"
+NEW = Path(__file__).parent / "data" / "calibration"  # layouts met in labs: guessed sizes, P, Qualisys
+REAL_UU = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "uu_seated_4cam"  # not in the repo
 TOL = 1e-9
 
 # (fixture, detected format, load options, camera names in order)
@@ -175,7 +179,7 @@ def test_fixture_round_trip_through_json(tmp_path, name, fmt, options, names):
     assert_same(load_calibration(out), original)  # written in metres: no --units needed
 
 
-@pytest.mark.parametrize("fmt", FORMATS)
+@pytest.mark.parametrize("fmt", WRITE_FORMATS)
 @pytest.mark.parametrize("seed, count", [(1, 4), (2, 8), (3, 12)])
 def test_random_rig_round_trip(tmp_path, fmt, seed, count):
     studio = random_studio(seed, count)
@@ -247,10 +251,15 @@ def test_sizes_fall_back_to_size_option(tmp_path):
     text = (folder / "intri.yml").read_bytes().decode()
     lines = [line for line in text.split("\r\n") if not line.startswith(("H_", "W_"))]
     (folder / "intri.yml").write_bytes("\r\n".join(lines).encode())
-    with pytest.raises(CalibrationError, match=r"intri\.yml: H_01/W_01: missing .*--size WxH"):
-        load_calibration(folder)
-    studio = load_calibration(folder, size=(1280, 720))
-    assert all((c.width, c.height) == (1280, 720) for c in studio)
+    warnings = []
+    studio = load_calibration(folder, warn=warnings.append)
+    assert [(c.width, c.height) for c in studio][0] == (1916, 1070)  # 2 x (958.129311, 535.047041), rounded
+    assert all(c.size_guessed for c in studio)
+    assert len(warnings) == 1 and "no image size for 01, 02, 03, 04" in warnings[0]
+    warnings.clear()
+    studio = load_calibration(folder, size=(1280, 720), warn=warnings.append)
+    assert all((c.width, c.height) == (1280, 720) and not c.size_guessed for c in studio)
+    assert warnings == []
 
 
 def test_json_units(tmp_path):
@@ -286,7 +295,7 @@ def test_cli_convert_to_json_and_show(tmp_path, capsys, name, fmt, options, name
     assert [line.split()[0] for line in lines[2:]] == names
 
 
-@pytest.mark.parametrize("fmt", [f for f in FORMATS if f != "json"])
+@pytest.mark.parametrize("fmt", [f for f in WRITE_FORMATS if f != "json"])
 def test_cli_convert_from_json(tmp_path, capsys, fmt):
     out = tmp_path / OUT_NAME[fmt]
     rc, stdout, err = cli(capsys, "calib", "convert", DATA / "json" / "calibration.json", out, "--format", fmt)
@@ -301,11 +310,13 @@ def test_cli_toml_defaults_to_pose2sim_and_size_option(tmp_path, capsys):
     assert detect_format(tmp_path / "c.toml") == "pose2sim"
     folder = copy_fixture(tmp_path, "opencv_xml_subfolders")
     edit(folder / "left" / "calibration.xml", "<image_width>640</image_width>\n<image_height>480</image_height>\n", "")
-    rc, _, err = cli(capsys, "calib", "show", folder)
-    assert rc == 2
-    assert "left" in err and "calibration.xml: image_width/image_height: missing" in err and "--size" in err
-    rc, stdout, err = cli(capsys, "calib", "show", folder, "--size", "640x480")
+    rc, stdout, err = cli(capsys, "calib", "show", folder)
     assert rc == 0, err
+    assert err.count("\n") == 1 and "no image size for left;" in err and "--size" in err
+    assert "left    627x488*" in stdout and "right   640x480 " in stdout  # 2 x (313.27, 243.81)
+    assert stdout.splitlines()[-1].startswith("* size guessed as twice the principal point: left")
+    rc, stdout, err = cli(capsys, "calib", "show", folder, "--size", "640x480")
+    assert rc == 0 and err == "" and "*" not in stdout
     rc, _, err = cli(capsys, "calib", "show", folder, "--size", "640by480")
     assert rc == 2 and "--size: expected WIDTHxHEIGHT" in err
 
@@ -357,6 +368,30 @@ BAD = [
     ("json/calibration.json", "", '"width": 320', '"width": "wide"',
      ["calibration.json: cam1.size: not integers"]),
     ("json/calibration.json", "", '"format"', '{"format"', ["calibration.json: <file>: not valid JSON"]),
+    ("json/calibration.json", "", '"width": 320', '"size_guessed": "yes", "width": 320',
+     ["calibration.json: cameras[0].size_guessed: expected true or false"]),
+    ("../calibration/qualisys/Calib.qca.txt", "", "<intrinsic ", "<intrinsics ",
+     ["Calib.qca.txt: 21876.intrinsic: missing"]),
+    ("../calibration/qualisys/Calib.qca.txt", "", 'focalLengthU="1', 'focalLengthU="f1',
+     ["Calib.qca.txt: 21876.intrinsic.focalLengthU: not numeric"]),
+    ("../calibration/qualisys/Calib.qca.txt", "", 'centerPointV="', 'centerPointW="',
+     ["Calib.qca.txt: 21876.intrinsic.centerPointV: missing"]),
+    ("../calibration/qualisys/Calib.qca.txt", "", 'viewrotation="90"', 'viewrotation="45"',
+     ["Calib.qca.txt: 21878.viewrotation: expected one of (0, 90, 180, 270), got '45'"]),
+    ("../calibration/qualisys/Calib.qca.txt", "", ' r23="', ' r23x="',
+     ["Calib.qca.txt: 21876.transform.r23: missing"]),
+    ("../calibration/qualisys/Calib.qca.txt", "", 'model="Miqus Video"', 'model="Miqus M5"',
+     ["Calib.qca.txt: cameras: only marker cameras"]),
+    ("../calibration/projection", "cam0.txt", " -2.6928117659925137", "",
+     ["cam0.txt: P: expected a 3x4 projection matrix (12 numbers), got 11 numbers"]),
+    ("../calibration/projection", "cam2.xml", "<cols>4</cols>", "<cols>3</cols>",
+     ["cam2.xml: P: data has 12 values, expected rows x cols = 3 x 3"]),
+    ("../calibration/projection", "cam3.xml", "0.6021884868512882 -1.9467116692959197 0.382073167044072",
+     "-984.6160922250725 -1668.6248083965163 244.33579032468407", ["cam3.xml: ProjectionMatrix: singular"]),
+    ("../calibration/uu_layout", "cam2/config.xml", "Translation", "Position",
+     ["cam2/config.xml: Translation: missing"]),
+    ("../calibration/uu_layout", "cam1/config.xml", "<data>\n    4.", "<data>\n    -4.",
+     ["cam1/config.xml: CameraMatrix: expected [[fx"]),
 ]
 
 
@@ -385,8 +420,14 @@ def test_missing_and_empty_inputs(tmp_path, capsys):
     (tmp_path / "a").mkdir()
     (tmp_path / "a" / "x.xml").write_text("<opencv_storage/>")
     (tmp_path / "a" / "y.xml").write_text("<opencv_storage/>")
+    rc, _, err = cli(capsys, "calib", "show", tmp_path)  # files without camera fields are no calibration
+    assert rc == 2 and f"{tmp_path}: <folder>: no calibration found" in err
+    shutil.copy(DATA / "opencv_xml" / "cam1.xml", tmp_path / "a" / "x.xml")
+    shutil.copy(DATA / "opencv_xml" / "cam2.xml", tmp_path / "a" / "y.xml")
     rc, _, err = cli(capsys, "calib", "show", tmp_path)
-    assert rc == 2 and "a: <folder>: expected one .xml file per camera folder, found x.xml, y.xml" in err
+    assert rc == 2 and err.count("\n") == 1
+    assert "a: <folder>: more than one file holds a camera (K, R, t or P): x.xml, y.xml; keep one" in err
+    shutil.rmtree(tmp_path / "a")
     folder = copy_fixture(tmp_path, "easymocap")
     (folder / "extri.yml").unlink()
     with pytest.raises(CalibrationError, match=r"extri\.yml: <file>: does not exist"):
@@ -403,3 +444,357 @@ def test_bad_camera_names_for_format(tmp_path):
         save_calibration(studio, tmp_path / "xml", "opencv-xml")
     save_calibration(studio, tmp_path / "c.toml")  # TOML quotes any name
     assert load_calibration(tmp_path / "c.toml").names == ["left/front"]
+
+
+
+# ----------------------------------------------------------------------------- image sizes: optional, guessed
+
+def guess(cam: Camera) -> tuple[int, int]:
+    """Twice the principal point, rounded half up: what a reader without a size puts in."""
+    return int(np.floor(2 * cam.K[0, 2] + 0.5)), int(np.floor(2 * cam.K[1, 2] + 0.5))
+
+
+def drop_lines(path: Path, pattern: str) -> None:
+    """Remove every line matching ``pattern`` (line endings kept)."""
+    text = path.read_bytes().decode()
+    kept = "".join(line for line in text.splitlines(keepends=True) if not re.search(pattern, line))
+    assert kept != text, f"{pattern!r} not in {path}"
+    path.write_bytes(kept.encode())
+
+
+SIZELESS = [
+    # (fixture, file inside it or "", line pattern holding the size, load options)
+    ("easymocap", "intri.yml", r"^[HW]_", {}),
+    ("pose2sim/Calib.toml", "", r"^size = ", {}),
+    ("anipose/calibration.toml", "", r"^size = ", {"units": "mm"}),
+    ("opencv_xml", "cam1.xml", r"image_(width|height)", {}),
+    ("../calibration/qualisys/Calib.qca.txt", "", r"<fov_video ", {}),
+]
+
+
+@pytest.mark.parametrize("fixture, inner, pattern, options", SIZELESS, ids=[f[0] for f in SIZELESS])
+def test_size_optional_in_every_format(tmp_path, fixture, inner, pattern, options):
+    path = copy_fixture(tmp_path, fixture)
+    before = load_calibration(path, warn=lambda line: None, **options)
+    drop_lines(path / inner if inner else path, pattern)
+    if "qualisys" in fixture:  # turning an image needs its size
+        edit(path, 'viewrotation="90"', 'viewrotation="0"')
+    warnings = []
+    studio = load_calibration(path, warn=warnings.append, **options)
+    guessed = [c.name for c in studio if c.size_guessed]
+    size_lines = [line for line in warnings if "no image size" in line]
+    assert guessed and len(size_lines) == 1
+    assert f"no image size for {', '.join(guessed)}; guessed as twice the principal point" in size_lines[0]
+    for cam in studio:
+        assert (cam.width, cam.height) == (guess(cam) if cam.size_guessed else (before.camera(cam.name).width,
+                                                                                 before.camera(cam.name).height))
+    if "qualisys" not in fixture:  # (the Qualisys principal point moves with fov_video's left/top)
+        assert_same(Studio(tuple(Camera(c.name, c.K, c.dist, c.R, c.t, 1, 1) for c in studio)),
+                    Studio(tuple(Camera(c.name, c.K, c.dist, c.R, c.t, 1, 1) for c in before)), tol=0)
+    warnings.clear()
+    sized = load_calibration(path, size=(1280, 720), warn=warnings.append, **options)
+    assert not any(c.size_guessed for c in sized) and not any("no image size" in line for line in warnings)
+    assert all((c.width, c.height) == (1280, 720) for c in sized if c.name in guessed)
+
+
+def test_easymocap_as_write_intri_writes_it(tmp_path, capsys):
+    folder = NEW / "easymocap_write_intri"
+    intri = (folder / "intri.yml").read_bytes()
+    assert intri.startswith(b'%YAML:1.0\r\n---\r\nnames:\r\n  - "1"\r\n') and b"H_" not in intri and b"W_" not in intri
+    assert b"dist_1: !!opencv-matrix\r\n  rows: 1\r\n  cols: 5\r\n  dt: d\r\n  data: [-0.170000, " in intri
+    warnings = []
+    studio = load_calibration(folder, warn=warnings.append)
+    assert studio.names == ["1", "2", "3"]
+    assert [(c.width, c.height) for c in studio] == [(1921, 1083), (1929, 1077), (1937, 1071)]  # 2 x (960.3, 541.7) ...
+    assert all(c.size_guessed for c in studio)
+    assert warnings == [f"{folder}: no image size for 1, 2, 3; guessed as twice the principal point "
+                        "(pass --size WxH, or take the size from the images)"]
+    rc, stdout, err = cli(capsys, "calib", "show", folder)
+    assert rc == 0 and err.count("\n") == 1 and err.startswith("warning: ") and "1, 2, 3" in err
+    assert "1921x1083*" in stdout and "* size guessed as twice the principal point: 1, 2, 3" in stdout
+    rc, stdout, err = cli(capsys, "calib", "show", folder, "--size", "1920x1080")
+    assert rc == 0 and err == "" and "1920x1080 " in stdout and "*" not in stdout
+    # written back to EasyMocap without the guessed H_/W_, read back the same
+    save_calibration(studio, tmp_path / "em", "easymocap")
+    assert b"H_1" not in (tmp_path / "em" / "intri.yml").read_bytes()
+    back = load_calibration(tmp_path / "em", warn=lambda line: None)
+    assert_same(back, studio) and all(c.size_guessed for c in back)
+
+
+def test_size_guessed_in_json_and_xml(tmp_path):
+    studio = load_calibration(NEW / "uu_layout", units="mm", warn=lambda line: None)
+    half = with_image_sizes(studio, {"cam2": (644, 486)}, "cam2/video.avi")
+    save_calibration(half, tmp_path / "c.json")
+    doc = json.loads((tmp_path / "c.json").read_text())
+    assert [c.get("size_guessed") for c in doc["cameras"]] == [True, None, True]  # written only when true
+    back = load_calibration(tmp_path / "c.json")
+    assert [c.size_guessed for c in back] == [True, False, True]
+    assert_same(back, half, tol=0)
+    save_calibration(back, tmp_path / "xml", "opencv-xml")
+    assert "image_width" not in (tmp_path / "xml" / "cam1.xml").read_text()
+    assert "<image_width>644</image_width>" in (tmp_path / "xml" / "cam2.xml").read_text()
+    again = load_calibration(tmp_path / "xml", warn=lambda line: None)
+    assert [c.size_guessed for c in again] == [True, False, True]
+    assert_same(again, half)
+    assert back.scaled(0.5)[0].size_guessed and not back.scaled(0.5)[1].size_guessed
+
+
+def test_with_image_sizes():
+    studio = load_calibration(NEW / "uu_layout", units="mm", warn=lambda line: None)
+    fixed = with_image_sizes(studio, {"cam1": (644, 486), "cam3": (644, 486)}, "videos")
+    assert [(c.width, c.height, c.size_guessed) for c in fixed] == [(644, 486, False), (657, 453, True),
+                                                                     (644, 486, False)]
+    assert fixed.source == studio.source
+    assert_same(Studio(tuple(Camera(c.name, c.K, c.dist, c.R, c.t, 1, 1) for c in fixed)),
+                Studio(tuple(Camera(c.name, c.K, c.dist, c.R, c.t, 1, 1) for c in studio)), tol=0)
+    assert with_image_sizes(fixed, {"cam1": (644, 486)}, "videos")[0].width == 644  # agrees: kept
+    known = load_calibration(DATA / "opencv_xml")  # 1280x720 from the files
+    with pytest.raises(CalibrationError) as info:
+        with_image_sizes(known, {"cam1": (1280, 720), "cam2": (640, 360)}, "videos/cam2.mp4")
+    assert str(info.value) == (f"{DATA / 'opencv_xml'}: cam2.size: the calibration says 1280x720 "
+                               "but the images (videos/cam2.mp4) are 640x360")
+    with pytest.raises(CalibrationError, match=r"cameras: no camera 'cam7' for the images of videos \(cameras: cam1"):
+        with_image_sizes(known, {"cam7": (640, 360)}, "videos")
+
+
+# ----------------------------------------------------------------------------- folders with other files
+
+def test_folder_skips_files_without_camera_fields(tmp_path, capsys):
+    folder = NEW / "uu_layout"
+    assert detect_format(folder) == "opencv-xml"
+    warnings = []
+    studio = load_calibration(folder, units="mm", warn=warnings.append)
+    assert studio.names == ["cam1", "cam2", "cam3"]
+    assert warnings[0] == (f"{folder}: skipped (no camera fields): checkerboard.xml, cam1/intrinsics.xml, "
+                           "cam2/intrinsics.xml, cam3/intrinsics.xml")
+    assert len(warnings) == 2 and "no image size for cam1, cam2, cam3" in warnings[1]
+    cam1 = studio.camera("cam1")
+    assert cam1.K[0, 0] == pytest.approx(491.7564, abs=1e-9)  # config.xml's, not intrinsics.xml's 393.4
+    assert cam1.dist[0] == pytest.approx(-0.3587, abs=1e-12)
+    assert (cam1.width, cam1.height) == (663, 449)  # 2 x (331.690674, 224.39888)
+    np.testing.assert_allclose([c.center for c in studio], [[3.4, 4.4, -1.8], [0.3, 4.6, -1.7], [-3.5, 0.1, -2.1]],
+                               atol=1e-9)  # millimetres, world z down as in the lab's files
+    out = tmp_path / "out.json"
+    rc, stdout, err = cli(capsys, "calib", "convert", folder, out, "--units", "mm")
+    assert rc == 0, err
+    assert err.count("\n") == 2 and "skipped (no camera fields): checkerboard.xml" in err
+    assert_same(load_calibration(out), studio, tol=0)
+    rc, _, err = cli(capsys, "calib", "convert", folder, tmp_path / "again.json")
+    assert rc == 2 and err.count("\n") == 1 and "pass --units mm" in err
+
+
+def test_folder_camera_choice(tmp_path):
+    folder = copy_fixture(tmp_path, "../calibration/uu_layout")
+    shutil.copy(folder / "cam2" / "config.xml", folder / "cam2" / "config_old.xml")
+    with pytest.raises(CalibrationError) as info:
+        load_calibration(folder, units="mm")
+    assert str(info.value) == (f"{folder / 'cam2'}: <folder>: more than one file holds a camera (K, R, t or P): "
+                               "config.xml, config_old.xml; keep one")
+    (folder / "cam2" / "config_old.xml").unlink()
+    for sub in ("cam1", "cam2", "cam3"):  # one camera per file at the top: the board is still skipped
+        shutil.move(folder / sub / "config.xml", folder / f"{sub}.xml")
+    warnings = []
+    studio = load_calibration(folder, units="mm", warn=warnings.append)
+    assert_same(studio, load_calibration(NEW / "uu_layout", units="mm", warn=lambda line: None), tol=0)
+    assert warnings[0] == f"{folder}: skipped (no camera fields): checkerboard.xml"
+    (folder / "cam4.xml").write_text((folder / "cam1" / "intrinsics.xml").read_text())  # at the top: a camera
+    with pytest.raises(CalibrationError, match=r"cam4\.xml: Rotation: missing"):
+        load_calibration(folder, units="mm")
+
+
+@pytest.mark.skipif(not REAL_UU.is_dir(), reason="needs the shared real recordings")
+def test_real_uu_folder(tmp_path, capsys):
+    out = tmp_path / "calibration.json"
+    rc, stdout, err = cli(capsys, "calib", "convert", REAL_UU, out, "--units", "mm")
+    assert rc == 0, err
+    assert err.count("\n") == 2
+    assert "skipped (no camera fields): checkerboard.xml, cam1/intrinsics.xml, cam2/intrinsics.xml" in err
+    assert "no image size for cam1, cam2, cam3, cam4" in err
+    studio = load_calibration(out)
+    assert studio.names == ["cam1", "cam2", "cam3", "cam4"]
+    for cam in studio:
+        assert cam.size_guessed and (cam.width, cam.height) == guess(cam)
+        assert -2.2 < cam.center[2] < -1.6  # the board's world z points down
+        assert cam.dist[0] < -0.3  # strong barrel distortion
+    real = with_image_sizes(studio, {name: (644, 486) for name in studio.names}, str(REAL_UU / "*/video.avi"))
+    assert all((c.width, c.height) == (644, 486) and not c.size_guessed for c in real)
+
+
+# ----------------------------------------------------------------------------- Qualisys
+
+def qualisys_reference(path: Path) -> dict:
+    """serial -> function projecting (N, 3) world points (m) to pixels, straight from the raw attributes."""
+    out = {}
+    for elem in ET.parse(path).getroot().iter("camera"):
+        if "Video" in elem.get("model"):
+            out[elem.get("serial")] = _qualisys_projector(elem)
+    return out
+
+
+def _qualisys_projector(elem):
+    a = {k: float(v) for k, v in elem.find("intrinsic").attrib.items()}
+    tr = {k: float(v) for k, v in elem.find("transform").attrib.items()}
+    fov = {k: float(v) for k, v in elem.find("fov_video").attrib.items()}
+    M = np.array([[tr[f"r{i}{j}"] for j in "123"] for i in "123"])  # Pose2Sim's reading of r11..r33
+    pos = np.array([tr["x"], tr["y"], tr["z"]])
+
+    def project(X):
+        q = (X * 1000.0 - pos) @ M.T  # Qualisys camera frame: x right, y up, z backwards
+        x, y = q[:, 0] / -q[:, 2], q[:, 1] / q[:, 2]
+        k1, k2, k3 = a["radialDistortion1"] / 64, a["radialDistortion2"] / 64, a["radialDistortion3"] / 64
+        p1, p2 = a["tangentalDistortion1"] / 64, a["tangentalDistortion2"] / 64
+        r2 = x * x + y * y
+        radial = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        u = a["focalLengthU"] / 64 * xd + a["centerPointU"] / 64 - fov["left"]
+        v = a["focalLengthV"] / 64 * yd + a["centerPointV"] / 64 - fov["top"]
+        if elem.get("viewrotation") == "90":  # the image turned clockwise
+            u, v = (fov["bottom"] - fov["top"]) - v, u
+        return np.stack([u, v], axis=-1)
+    return project
+
+
+def test_qualisys_projects_as_the_raw_numbers(capsys):
+    path = NEW / "qualisys" / "Calib.qca.txt"
+    assert detect_format(path) == detect_format(path.parent) == "qualisys"
+    warnings = []
+    studio = load_calibration(path, warn=warnings.append)
+    assert studio.names == ["21876", "21877", "21878"]  # 21880 is a marker camera (Miqus M3)
+    assert warnings == [f"{path}: skipped marker cameras (no video): 21880"]
+    assert [(c.width, c.height) for c in studio] == [(1920, 1088), (1280, 1024), (1088, 1920)]
+    assert not any(c.size_guessed for c in studio)
+    points = np.random.default_rng(3).uniform([-0.5, -0.5, 0.2], [0.5, 0.5, 1.8], (50, 3))
+    for serial, project in qualisys_reference(path).items():
+        cam = studio.camera(serial)
+        assert np.all(cam.depth(points) > 0)
+        np.testing.assert_allclose(cam.project(points), project(points), rtol=0, atol=1e-7, err_msg=serial)
+        uv = cam.project(points)
+        assert np.all((uv > 0) & (uv < [cam.width, cam.height]))  # the actor is in view
+    np.testing.assert_allclose(studio.camera("21876").center, [3.1, -2.0, 1.9], atol=1e-12)
+    assert studio.camera("21876").dist[2] == pytest.approx(0.000642 / 64, abs=1e-15)  # "tangental", 1/64
+    rc, stdout, err = cli(capsys, "calib", "show", path)
+    assert rc == 0 and err.count("\n") == 1 and "3 cameras (qualisys;" in stdout
+    rc, _, err = cli(capsys, "calib", "show", path, "--units", "m")
+    assert rc == 2 and "units: Qualisys files are in millimetres" in err
+
+
+@pytest.mark.parametrize("degrees", [90, 180, 270])
+def test_qualisys_viewrotation_turns_the_image(tmp_path, degrees):
+    path = copy_fixture(tmp_path, "../calibration/qualisys/Calib.qca.txt")
+    edit(path, 'viewrotation="90"', 'viewrotation="0"')
+    upright = load_calibration(path, warn=lambda line: None).camera("21878")
+    edit(path, 'serial="21878" viewrotation="0"', f'serial="21878" viewrotation="{degrees}"')
+    turned = load_calibration(path, warn=lambda line: None).camera("21878")
+    points = np.random.default_rng(4).uniform([-0.5, -0.5, 0.2], [0.5, 0.5, 1.8], (30, 3))
+    u, v = upright.project(points).T
+    w, h = upright.width, upright.height
+    expected = {90: (h - 1 - v, u, h, w), 180: (w - 1 - u, h - 1 - v, w, h), 270: (v, w - 1 - u, h, w)}[degrees]
+    np.testing.assert_allclose(turned.project(points), np.stack(expected[:2], axis=-1), rtol=0, atol=1e-8)
+    assert (turned.width, turned.height) == expected[2:]
+    np.testing.assert_allclose(turned.center, upright.center, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------- projection matrices
+
+def random_camera_P(rng, skew: float = 0.0):
+    K = np.array([[rng.uniform(300, 3000), 0.0, rng.uniform(200, 1000)], [0.0, 0.0, rng.uniform(200, 700)],
+                  [0.0, 0.0, 1.0]])
+    K[1, 1] = K[0, 0] * rng.uniform(0.9, 1.1)
+    K[0, 1] = skew * K[0, 0]
+    R = rodrigues_to_matrix(rng.normal(size=3))
+    t = rng.normal(0.0, 3.0, 3)
+    scale = rng.uniform(0.01, 100.0) * rng.choice([-1.0, 1.0])  # P is defined up to any non-zero factor
+    return scale * K @ np.hstack([R, t[:, None]]), K, R, t
+
+
+def relative_error(P, Q) -> float:
+    """|P - s Q| / |P| for the best factor s."""
+    s = np.sum(P * Q) / np.sum(Q * Q)
+    return float(np.linalg.norm(P - s * Q) / np.linalg.norm(P))
+
+
+def test_projection_round_trip(tmp_path):
+    rng = np.random.default_rng(11)
+    for i in range(200):
+        P, K, R, t = random_camera_P(rng, skew=rng.normal(0.0, 0.002) if i % 2 else 0.0)
+        K2, R2, t2 = decompose_projection(P)
+        assert K2[0, 0] > 0 and K2[1, 1] > 0 and K2[2, 2] == 1.0 and np.all(K2[[1, 2, 2], [0, 0, 1]] == 0)
+        assert np.linalg.det(R2) == pytest.approx(1.0, abs=1e-12)
+        np.testing.assert_allclose(K2, K, rtol=1e-9, atol=1e-9 * K[0, 0])
+        np.testing.assert_allclose(R2, R, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(t2, t, rtol=0, atol=1e-9 * max(1.0, np.abs(t).max()))
+        assert relative_error(P, K2 @ np.hstack([R2, t2[:, None]])) < 1e-9
+    # through a file: P -> K, R, t -> P
+    P = random_camera_P(rng)[0]
+    (tmp_path / "cam0.txt").write_text("\n".join(" ".join(repr(float(x)) for x in row) for row in P))
+    assert detect_format(tmp_path / "cam0.txt") == "projection"
+    cam = load_calibration(tmp_path / "cam0.txt", units="m", size=(1920, 1080))[0]
+    assert cam.name == "cam0" and relative_error(P, cam.projection_matrix) < 1e-9
+
+
+def test_projection_folder():
+    folder = NEW / "projection"
+    assert detect_format(folder) == "projection"
+    assert detect_format(folder / "cam2.xml") == detect_format(folder / "cam1.txt") == "projection"
+    warnings = []
+    studio = load_calibration(folder, warn=warnings.append)
+    assert studio.names == ["cam0", "cam1", "cam2", "cam3"]  # .txt, CONTOUR .txt, <P>, <ProjectionMatrix>
+    assert warnings[0] == f"{folder}: skipped (no camera fields): README.txt"
+    assert len(warnings) == 2 and "no image size for cam0, cam1, cam3;" in warnings[1]
+    assert (studio.camera("cam2").width, studio.camera("cam2").height) == (1280, 720)
+    for i, cam in enumerate(studio):
+        a = 2 * np.pi * i / 4 + 0.3
+        np.testing.assert_allclose(cam.center, [3.2 * np.cos(a), 3.2 * np.sin(a), 1.6], atol=1e-9)
+        assert cam.depth(np.array([0.0, 0.0, 1.0])) > 0
+        assert not cam.has_distortion and abs(cam.K[0, 1]) < 1e-9 * cam.K[0, 0]
+        if i < 2:  # the .txt files: the matrix read back
+            rows = [line for line in (folder / f"{cam.name}.txt").read_text().splitlines() if line[0] not in "#C"]
+            P = np.array([[float(x) for x in row.split()] for row in rows])
+            assert relative_error(P, cam.projection_matrix) < 1e-12
+
+
+def test_projection_skew_warning(tmp_path):
+    rng = np.random.default_rng(5)
+    for name, skew in (("a", 0.0), ("b", 0.05), ("c", 0.005), ("d", -0.03)):
+        P = random_camera_P(rng, skew)[0]
+        (tmp_path / f"{name}.txt").write_text(" ".join(repr(float(x)) for x in P.reshape(-1)))
+    warnings = []
+    studio = load_calibration(tmp_path, size=(640, 480), warn=warnings.append)
+    assert warnings == [f"{tmp_path}: the projection matrices of b, d decompose with a skew above 1% of fx "
+                        "(kept as it is; a poor or mis-assembled P?)"]
+    assert studio.camera("b").K[0, 1] == pytest.approx(0.05 * studio.camera("b").K[0, 0], rel=1e-9)
+
+
+def test_projection_errors(tmp_path, capsys):
+    cases = {
+        "eleven.txt": ("1 0 0 0\n0 1 0 0\n0 0 1", "P: expected a 3x4 projection matrix (12 numbers), got 11 numbers"),
+        "singular.txt": ("1 0 0 0\n0 1 0 0\n1 1 0 1\n", "P: singular: its left 3x3 block has rank < 3"),
+        "zero.txt": ("0 0 0 0 0 0 0 0 0 0 0 0", "P: singular"),
+        "words.txt": ("P = [1 0 0 0; 0 1 0 0; 0 0 1 0]", "P: not numeric"),
+        "shape.xml": ('<opencv_storage><P type_id="opencv-matrix"><rows>4</rows><cols>3</cols><dt>d</dt>'
+                      "<data>1 0 0 0 1 0 0 0 1 0 0 1</data></P></opencv_storage>",
+                      "P: expected a 3x4 projection matrix (12 numbers), got shape (4, 3)"),
+    }
+    for name, (text, problem) in cases.items():
+        path = tmp_path / name
+        path.write_text(text)
+        with pytest.raises(CalibrationError, match=re.escape(f"{path}: {problem}")):
+            load_calibration(path, size=(640, 480))
+        rc, stdout, err = cli(capsys, "calib", "show", path, "--size", "640x480")
+        assert rc == 2 and stdout == "" and err.count("\n") == 1
+        assert err.startswith(f"mocap calib: error: {path}: {problem}") and "Traceback" not in err
+
+
+def test_cli_refuses_read_only_output_formats(tmp_path, capsys):
+    for fmt in ("projection", "qualisys"):
+        assert fmt in FORMATS and fmt not in WRITE_FORMATS
+        with pytest.raises(CalibrationError, match=f"cannot write format '{fmt}'"):
+            output_format(tmp_path / "out", fmt)
+        with pytest.raises(SystemExit):
+            main(["calib", "convert", str(NEW / "projection"), str(tmp_path / "out"), "--format", fmt])
+    capsys.readouterr()
+    rc, stdout, err = cli(capsys, "calib", "convert", NEW / "qualisys" / "Calib.qca.txt", tmp_path / "q.json")
+    assert rc == 0, err
+    assert_same(load_calibration(tmp_path / "q.json"), load_calibration(NEW / "qualisys", warn=lambda line: None),
+                tol=0)

@@ -145,9 +145,6 @@ def test_bad_input_is_refused(studio5, sphere_masks):
         SpotGrid.build(studio5, grid=16, epsilon=1.5)
     with pytest.raises(UserError, match="bounds"):
         SpotGrid.build(studio5, grid=16, bounds=[[0, 0, 0], [1, -1, 1]])
-    small = Studio((circle_studio(5, 320, 240)[0], circle_studio(5, 160, 120)[1]))
-    with pytest.raises(UserError, match="image size"):
-        SpotGrid.build(small, grid=16)
 
 
 def test_voxel_files_round_trip(tmp_path, studio5, sphere_masks):

@@ -3,19 +3,25 @@
     mocap calib convert IN OUT [--format FMT] [--from FMT] [--units m|cm|mm] [--size WxH]
     mocap calib show FILE [--from FMT] [--units m|cm|mm] [--size WxH]
 
-The input format is detected (see ``common.calibration.detect_format``). The output format is
-``--format``, else from OUT's name: .json -> json, .toml -> pose2sim (``--format anipose`` for
-aniposelib), .xml -> opencv-xml (one camera); easymocap and opencv-xml write a folder OUT.
+The input format is detected (see ``common.calibration.detect_format``); projection (3x4 P
+files) and qualisys (.qca.txt) are read only. The output format is ``--format``, else from OUT's
+name: .json -> json, .toml -> pose2sim (``--format anipose`` for aniposelib), .xml -> opencv-xml
+(one camera); easymocap and opencv-xml write a folder OUT. Cameras without an image size in the
+file or ``--size`` get twice their principal point; ``show`` marks them with ``*``.
 """
 from __future__ import annotations
 
 import re
+import sys
 
 import numpy as np
 
-from common.calibration import FORMATS, UNIT_SCALE, detect_format, load_calibration, output_format, save_calibration
+from common.calibration import (
+    FORMATS, UNIT_SCALE, WRITE_FORMATS, detect_format, load_calibration, output_format, save_calibration,
+)
 from common.camera import Studio
 from common.errors import UserError
+from common.world import UP_CHOICES, cameras_below_floor, detect_up, resolve_world
 
 
 def register(subparsers) -> None:
@@ -27,7 +33,7 @@ def register(subparsers) -> None:
     convert = sub.add_parser("convert", help="convert a calibration to another format")
     convert.add_argument("input", metavar="IN", help="calibration file or folder")
     convert.add_argument("output", metavar="OUT", help="file or folder to write")
-    convert.add_argument("--format", choices=FORMATS,
+    convert.add_argument("--format", choices=WRITE_FORMATS,
                          help="output format (default: from OUT's extension; .toml means pose2sim)")
     _input_options(convert)
     convert.set_defaults(func=run_convert)
@@ -43,6 +49,9 @@ def _input_options(parser) -> None:
     parser.add_argument("--units", choices=sorted(UNIT_SCALE),
                         help="units of translations in files that do not say (default: metres, checked)")
     parser.add_argument("--size", metavar="WxH", help="image size for cameras whose file gives none")
+    parser.add_argument("--up", choices=UP_CHOICES, default="auto",
+                        help="the world's up axis (default auto: found from the cameras); printed, and a warning "
+                             "when cameras would stand below the floor; files keep their own frame")
 
 
 def _parse_size(text: str | None) -> tuple[int, int] | None:
@@ -63,6 +72,7 @@ def run_convert(args) -> int:
     studio = _load(args)
     save_calibration(studio, args.output, fmt)
     print(f"wrote {len(studio)} cameras to {args.output} ({fmt})")
+    print(world_line(studio, args.up))
     return 0
 
 
@@ -71,15 +81,32 @@ def run_show(args) -> int:
     fmt = args.input_format or detect_format(args.input)
     print(f"{args.input}: {len(studio)} cameras ({fmt}; positions in metres)")
     print(studio_table(studio))
+    guessed = [c.name for c in studio if c.size_guessed]
+    if guessed:
+        print(f"* size guessed as twice the principal point: {', '.join(guessed)} (pass --size WxH)")
+    print(world_line(studio, args.up))
     return 0
 
 
+def world_line(studio: Studio, up: str) -> str:
+    """'up axis: -z (found from the cameras)'; a warning on stderr naming cameras below the floor."""
+    world = resolve_world(studio, up)
+    below = cameras_below_floor(studio, world)
+    if below:
+        print(f"warning: with up {world.up} cameras {', '.join(below)} stand below the floor (z = 0); "
+              f"is the up axis right? (auto finds {detect_up(studio)})", file=sys.stderr)
+    how = "found from the cameras" if up == "auto" else "as given"
+    return f"up axis: {world.up} ({how}); fitting turns it to +z and writes results in this frame"
+
+
 def studio_table(studio: Studio) -> str:
-    """One line per camera: name, image size, focal lengths (px), centre position (m), distortion."""
+    """One line per camera: name, image size (``*``: guessed), focal lengths (px), centre position (m),
+    distortion."""
     rows = [("camera", "size", "fx", "fy", "x", "y", "z", "distortion")]
     for c in studio:
         x, y, z = c.center
-        rows.append((c.name, f"{c.width}x{c.height}", f"{c.K[0, 0]:.1f}", f"{c.K[1, 1]:.1f}",
+        size = f"{c.width}x{c.height}" + ("*" if c.size_guessed else "")
+        rows.append((c.name, size, f"{c.K[0, 0]:.1f}", f"{c.K[1, 1]:.1f}",
                      f"{x:.3f}", f"{y:.3f}", f"{z:.3f}", "yes" if c.has_distortion else "no"))
     widths = np.max([[len(cell) for cell in row] for row in rows], axis=0)
     left = {0, 1, 7}  # text columns; numbers right-aligned

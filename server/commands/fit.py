@@ -10,9 +10,10 @@ from common.errors import UserError
 from common.export import write_motion_bvh
 from common.fitting import ENERGY_BACKENDS, FitOptions
 from common.sequence import load_sequence
+from common.world import UP_CHOICES
 from server.cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.progress import Progress
-from server.session import LocalSolver, load_records, refinement_note, run_fit, tracking_error_note
+from server.session import POSES_FILE, LocalSolver, choose_actor_scale, load_records, read_done_frames, refinement_note, run_fit, tracking_error_note
 
 INIT_CHOICES = ("auto", "truth", "standing")
 
@@ -58,6 +59,11 @@ def add_fit_arguments(p) -> None:
                    help="first-frame start: auto (from the voxels; the truth then only scores), truth, or "
                         "standing (default: the truth's first pose if the sequence has one, else auto)")
     p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
+    add_world_arguments(p)
+    p.add_argument("--actor-height", default="auto", metavar="M|auto",
+                   help="the actor's height in the calibration's units (metres): the body model is scaled to it; "
+                        "auto (default): the model's own size when starting from the truth, else chosen by the "
+                        "first frame's silhouettes among 0.9-1.3 times the model's 1.66 m")
     p.add_argument("--resume", action="store_true", help="continue a result folder after a crash")
     p.add_argument("--quiet", action="store_true", help="no progress bar, no table")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -130,10 +136,44 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def add_world_arguments(p) -> None:
+    """--up and --mask-threshold: how a sequence's world and masks are read (fit, voxels, live, server)."""
+    p.add_argument("--up", choices=UP_CHOICES, default="auto",
+                   help="the calibration world's up axis (default auto: from the cameras, which stand above "
+                        "the floor); fitting runs z up, results are written in the calibration's frame")
+    p.add_argument("--mask-threshold", type=int, default=None, metavar="0-255",
+                   help="accept grey or colour images as silhouettes: pixels brighter than this are foreground")
+
+
+def actor_model(model, seq, options, args, init: str):
+    """The body model at the actor's size (``--actor-height``; auto: see ``choose_actor_scale``)."""
+    if args.actor_height != "auto":
+        try:
+            height = float(args.actor_height)
+        except ValueError:
+            raise UserError(f"--actor-height: expected metres or auto, got {args.actor_height!r}") from None
+        if not 0.5 <= height <= 3.0:
+            raise UserError(f"--actor-height: expected 0.5 to 3 metres, got {height}")
+        return model.scaled(height / model.height)
+    if args.resume:  # the size the run being continued chose
+        done = read_done_frames(args.out / POSES_FILE)
+        scale = float(done[0].get("actor_scale", 1.0)) if done else 1.0
+        return model.scaled(scale) if scale != 1.0 else model
+    if init == "truth":
+        return model
+    scale = choose_actor_scale(model, seq, options)
+    return model.scaled(scale) if scale != 1.0 else model
+
+
 def run(args) -> int:
-    model = load_body_model()
-    seq = load_sequence(args.sequence, args.units)
+    base = load_body_model()
+    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold)
     options = options_from_args(args)
+    init = args.init or ("truth" if seq.truth() else "auto")
+    model = actor_model(base, seq, options, args, init)
+    if args.clients and model is not base:
+        raise UserError("--clients: limb clients fit the body model at its own size; pass --actor-height "
+                        f"{base.height:.2f} (or fit single-process) for this sequence")
     total = min(len(seq.frames), args.frames or len(seq.frames))
     bar = Progress("fit", total, enabled=None if not args.quiet else False)
     if args.clients < 0:

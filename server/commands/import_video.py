@@ -1,27 +1,40 @@
 """``mocap import-video``: per-camera videos (or image folders) -> a sequence folder.
 
     mocap import-video --calibration calib.json --video cam1=a.mp4 cam2=b.mp4 \\
-        --background cam1=a_empty.mp4 cam2=b_empty.mp4 --out SEQUENCE [--start N --stop N --step N]
+        --background cam1=a_empty.mp4 cam2=b_empty.mp4 --out SEQUENCE \\
+        [--start N --stop N --step N] [--offset cam2=3]
 
-Writes ``calibration.json``, ``sequence.json``, ``images/<camera>/<frame:06d>.png`` (frame =
-index in the source) and ``background/<camera>/<n:06d>.png``. A source is a video file (read
-with imageio + imageio-ffmpeg when installed), a folder of images (sorted by name, numbers
-in natural order) or a single image.
+Writes ``calibration.json``, ``sequence.json``, ``images/<camera>/<frame:06d>.png`` and
+``background/<camera>/<n:06d>.png``. A source is a video file (read with imageio +
+imageio-ffmpeg when installed), a folder of images (ordered by the frame number in their
+names, see ``common.sequence.frame_files``) or a single image.
+
+Frame numbers are source frame indices of the cameras without an offset; ``--offset cam2=3``
+says cam2's frame i + 3 was taken at the same time as the others' frame i. Videos are
+decoded in order, never by seeking (seeking gives grey, half-decoded frames in AVI and MP4),
+and their frames are counted by decoding them (container headers can be wrong: imageio's
+``count_frames`` says 426 for 214-frame AVIs). Recordings that differ in length by at most
+``MAX_TRIM_FRAMES`` frames and ``MAX_TRIM_FRACTION`` of the longest are cut to their common
+range with one warning; larger differences are an error. Every source is opened, sized and
+counted before the output folder is made.
 """
 from __future__ import annotations
 
-import re
+import sys
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from common.calibration import load_calibration, save_calibration
+from common.calibration import load_calibration, save_calibration, with_image_sizes
 from common.errors import InputFileError, UserError
-from common.sequence import DEFAULT_FPS, FRAME_NAME, read_png, write_sequence_meta
+from common.sequence import (DEFAULT_FPS, FRAME_NAME, IMAGE_SUFFIXES, check_size, frame_files, read_image,
+                             write_sequence_meta)
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 PNG_COMPRESS_LEVEL = 1  # fast; frames are large and many
+MAX_TRIM_FRAMES = 10  # recordings may differ in length by at most this many frames ...
+MAX_TRIM_FRACTION = 0.05  # ... and this fraction of the longest, and are then cut to the common range
+HOLD_BYTES = 1 << 30  # decoded frames kept in memory from counting to writing; beyond, a video is decoded twice
 
 
 def register(subparsers) -> None:
@@ -29,106 +42,213 @@ def register(subparsers) -> None:
         "import-video", help="per-camera videos or image folders -> a sequence folder",
         description="Import synchronised per-camera recordings into a sequence folder: calibration.json, "
                     "sequence.json, images/<camera>/ and background/<camera>/. Each PATH is a video "
-                    "file, a folder of images or one image; cameras are matched to calibration names.")
+                    "file, a folder of images or one image; cameras are matched to calibration names. "
+                    f"Recordings that differ in length by up to {MAX_TRIM_FRAMES} frames and "
+                    f"{MAX_TRIM_FRACTION:.0%} are cut to the common range.")
     parser.add_argument("--calibration", required=True, metavar="FILE", help="studio calibration")
     parser.add_argument("--video", required=True, nargs="+", action="extend", metavar="CAMERA=PATH",
                         help="recording of the actor, one per calibrated camera")
     parser.add_argument("--background", nargs="+", action="extend", default=[], metavar="CAMERA=PATH",
                         help="empty-studio recording per camera (all frames are kept)")
     parser.add_argument("--out", required=True, metavar="SEQUENCE", help="sequence folder to create")
-    parser.add_argument("--start", type=int, default=0, help="first source frame (default 0)")
-    parser.add_argument("--stop", type=int, default=None, help="source frame to stop before (default: all)")
+    parser.add_argument("--start", type=int, default=0, help="first frame (default 0)")
+    parser.add_argument("--stop", type=int, default=None, help="frame to stop before (default: all)")
     parser.add_argument("--step", type=int, default=1, help="keep every STEP-th frame (default 1)")
+    parser.add_argument("--offset", nargs="+", action="extend", default=[], metavar="CAMERA=FRAMES",
+                        help="CAMERA's frame i + FRAMES is synchronous with the other cameras' frame i "
+                             "(FRAMES may be negative; default 0)")
     parser.add_argument("--fps", type=float, default=None,
                         help="frame rate of the sources (default: from the video, else 30)")
     parser.set_defaults(func=run)
 
 
 # --------------------------------------------------------------------------- sources
-def _natural_key(path: Path):
-    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+def _short(exc: Exception) -> str:
+    """One line for an imageio / ffmpeg error: its first line and ffmpeg's last word on it."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    if not lines:
+        return type(exc).__name__
+    return lines[0] if len(lines) == 1 else f"{lines[0]}: {lines[-1]}"
 
 
 class FrameSource:
-    """Frames of one camera: a folder of images, one image, or a video file."""
+    """Frames of one camera: a folder of images, one image, or a video file.
+
+    ``count`` is known at once for images and after ``scan`` for a video.
+    """
 
     def __init__(self, camera: str, path: Path, option: str):
         self.camera = camera
         self.path = path
-        self.option = option
+        self.what = f"{option} {camera}"
         self.fps = None
+        self.held: dict[int, np.ndarray] = {}  # source index -> frame, from scan() until written
         if path.is_dir():
-            self.files = sorted((p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=_natural_key)
+            self.files = list(frame_files(path).values())
             if not self.files:
-                raise InputFileError(path, f"{option} {camera}: no images ({', '.join(IMAGE_SUFFIXES)}) in this folder")
+                raise InputFileError(path, f"{self.what}: no numbered images ({', '.join(IMAGE_SUFFIXES)}) "
+                                           "in this folder")
             self.count = len(self.files)
         elif path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES:
             self.files = [path]
             self.count = 1
         elif path.is_file():
             self.files = None
-            self._open_video()
+            self.count = None
+            try:
+                import imageio.v2  # noqa: F401
+            except ImportError:
+                raise InputFileError(path, f"{self.what}: reading video needs the imageio and imageio-ffmpeg "
+                                           "packages (pip install imageio imageio-ffmpeg); or give a folder "
+                                           "of images") from None
         else:
-            raise InputFileError(path, f"{option} {camera}: does not exist")
-
-    def _open_video(self) -> None:
-        try:
-            import imageio.v2 as imageio
-        except ImportError:
-            raise InputFileError(self.path, f"{self.option} {self.camera}: reading video needs the imageio and "
-                                            "imageio-ffmpeg packages (pip install imageio imageio-ffmpeg); "
-                                            "or give a folder of images") from None
-        try:
-            reader = imageio.get_reader(self.path, "ffmpeg")
-            self.count = int(reader.count_frames())
-            self.fps = reader.get_meta_data().get("fps")
-            reader.close()
-        except Exception as exc:  # imageio raises many kinds for unreadable files
-            raise InputFileError(self.path, f"{self.option} {self.camera}: not a readable video ({exc})") from None
+            raise InputFileError(path, f"{self.what}: does not exist")
 
     def where(self, index: int) -> Path:
         """The file holding frame ``index`` (the video itself for a video)."""
         return self.files[index] if self.files is not None else self.path
 
-    def frames(self, indices: range):
-        """Yield (index, (H, W, 3) uint8) for the source frames in ``indices``."""
-        if self.files is not None:
-            for i in indices:
-                yield i, read_png(self.files[i], "RGB")
-            return
-        import imageio.v2 as imageio
-        wanted = set(indices)
-        last = max(wanted) if wanted else -1
-        reader = imageio.get_reader(self.path, "ffmpeg")
+    def _read_file(self, index: int) -> np.ndarray:
         try:
-            for i, frame in enumerate(reader):
-                if i > last:
+            return read_image(self.files[index], "RGB")
+        except InputFileError as exc:
+            raise InputFileError(exc.path, f"{self.what}: {exc.problem}") from None
+
+    def _decode(self):
+        """Yield the video's (H, W, 3) uint8 frames in order."""
+        import imageio.v2 as imageio
+        try:
+            reader = imageio.get_reader(self.path, "ffmpeg")
+            self.fps = reader.get_meta_data().get("fps")
+        except Exception as exc:  # imageio and ffmpeg raise many kinds for unreadable files
+            raise InputFileError(self.path, f"{self.what}: not a readable video ({_short(exc)})") from None
+        frames = iter(reader)
+        n = 0
+        try:
+            while True:
+                try:
+                    frame = next(frames)
+                except StopIteration:
                     break
-                if i in wanted:
-                    yield i, np.ascontiguousarray(np.asarray(frame)[..., :3], dtype=np.uint8)
+                except Exception as exc:
+                    raise InputFileError(self.path, f"{self.what}: unreadable after frame {n} "
+                                                    f"({_short(exc)}); truncated?") from None
+                yield np.ascontiguousarray(np.asarray(frame)[..., :3], dtype=np.uint8)
+                n += 1
         finally:
             reader.close()
+        if n == 0:
+            raise InputFileError(self.path, f"{self.what}: a video without frames (truncated?)")
+
+    def first(self) -> np.ndarray:
+        """(H, W, 3) uint8: the first frame."""
+        if self.files is not None:
+            return self._read_file(0)
+        decoded = self._decode()
+        try:
+            return next(decoded)
+        finally:
+            decoded.close()
+
+    def scan(self, keep, hold_bytes: int, camera) -> int:
+        """Count the frames (decoding a video to its end), check their size against ``camera``
+        and hold those with ``keep(index)`` in memory while they fit in ``hold_bytes``; the
+        rest are read again by ``frames``. Returns the bytes held."""
+        used = 0
+        if self.files is not None:
+            for i in range(self.count):
+                if keep(i) and used < hold_bytes:
+                    frame = self._read_file(i)
+                    check_size(frame.shape, self.where(i), camera)
+                    self.held[i] = frame
+                    used += frame.nbytes
+            return used
+        count = 0
+        for i, frame in enumerate(self._decode()):
+            if i == 0:
+                check_size(frame.shape, self.path, camera)
+            if keep(i) and used < hold_bytes:
+                self.held[i] = frame
+                used += frame.nbytes
+            count = i + 1
+        self.count = count
+        return used
+
+    def frames(self, indices):
+        """Yield (index, (H, W, 3) uint8) for the increasing source indices ``indices``; frames
+        held by ``scan`` are handed over (and forgotten), others read in order."""
+        indices = list(indices)
+        rest = set(indices) - self.held.keys()
+        decoded = None
+        if rest and self.files is None:
+            decoded = ((i, f) for i, f in enumerate(self._decode()) if i in rest)
+        for i in indices:
+            if i in self.held:
+                yield i, self.held.pop(i)
+            elif decoded is None:
+                yield i, self._read_file(i)
+            else:
+                j, frame = next(decoded, (None, None))
+                if j != i:
+                    raise InputFileError(self.path, f"{self.what}: frame {i} is missing when decoded again "
+                                                    "(did the file change?)")
+                yield i, frame
 
 
-def _pairs(values: list[str], option: str, names: list[str], calibration: Path) -> dict[str, Path]:
+# --------------------------------------------------------------------------- options
+def _pairs(values: list[str], option: str, names: list[str], calibration: Path, what: str = "PATH") -> dict[str, str]:
     out = {}
     for value in values:
-        camera, sep, path = value.partition("=")
-        if not sep or not camera or not path:
-            raise UserError(f"{option}: expected CAMERA=PATH, got {value!r}")
+        camera, sep, text = value.partition("=")
+        if not sep or not camera or not text:
+            raise UserError(f"{option}: expected CAMERA={what}, got {value!r}")
         if camera not in names:
             raise UserError(f"{option} {camera}: no camera of that name in {calibration} "
                             f"(cameras: {', '.join(names)})")
         if camera in out:
             raise UserError(f"{option} {camera}: given twice")
-        out[camera] = Path(path)
+        out[camera] = text
     return out
 
 
-def _check_size(image: np.ndarray, camera, path, index: int) -> None:
-    if image.shape[:2] != (camera.height, camera.width):
-        raise InputFileError(path, f"camera {camera.name}, frame {index}: size {image.shape[1]}x{image.shape[0]} "
-                                   f"does not match the calibration ({camera.width}x{camera.height})")
+def _offsets(values: list[str], names: list[str], calibration: Path) -> dict[str, int]:
+    """Frame offset per camera (0 for those not given)."""
+    out = dict.fromkeys(names, 0)
+    for camera, text in _pairs(values, "--offset", names, calibration, "FRAMES").items():
+        try:
+            out[camera] = int(text)
+        except ValueError:
+            raise UserError(f"--offset {camera}: expected a whole number of frames, got {text!r}") from None
+    return out
+
+
+def _first_frame(offsets: dict[str, int]) -> int:
+    """The first frame number every camera has (camera c's frame number i is its source frame i + offset_c)."""
+    return max(0, *(-o for o in offsets.values()))
+
+
+def _common_range(counts: dict[str, int], offsets: dict[str, int]) -> tuple[int, int, str | None]:
+    """[lo, hi) frame numbers every camera has, and the warning when lengths were cut."""
+    lo = _first_frame(offsets)
+    lengths = {n: counts[n] - offsets[n] - lo for n in counts}
+    shortest, longest = min(lengths.values()), max(lengths.values())
+
+    def listing():
+        return ", ".join(f"{n} {counts[n]}" + (f" (offset {offsets[n]:+d})" if offsets[n] else "") for n in counts)
+
+    if shortest <= 0:
+        raise UserError(f"--offset: the recordings have no frames in common ({listing()} frames)")
+    difference = longest - shortest
+    if difference > MAX_TRIM_FRAMES or difference > MAX_TRIM_FRACTION * longest:
+        raise UserError(f"--video: frame counts differ between cameras: {listing()} (more than "
+                        f"{MAX_TRIM_FRAMES} frames or {MAX_TRIM_FRACTION:.0%} apart; a truncated file? "
+                        "a late start is --offset)")
+    hi = lo + shortest
+    warning = None
+    if difference:
+        warning = (f"recordings differ in length ({listing()} frames); using the {shortest} frames "
+                   f"{lo}..{hi - 1} all cameras have")
+    return lo, hi, warning
 
 
 def _write_rgb(path: Path, image: np.ndarray) -> None:
@@ -140,57 +260,75 @@ def run(args) -> int:
     calibration = Path(args.calibration)
     studio = load_calibration(calibration)
     names = studio.names
-    videos = _pairs(args.video, "--video", names, calibration)
+    videos = {n: Path(p) for n, p in _pairs(args.video, "--video", names, calibration).items()}
     missing = [n for n in names if n not in videos]
     if missing:
         raise UserError(f"--video: no recording for camera(s) {', '.join(missing)} of {calibration}")
-    backgrounds = _pairs(args.background, "--background", names, calibration)
+    backgrounds = {n: Path(p) for n, p in _pairs(args.background, "--background", names, calibration).items()}
     missing = [n for n in names if n not in backgrounds]
     if backgrounds and missing:
         raise UserError(f"--background: no empty-studio recording for camera(s) {', '.join(missing)}")
+    offsets = _offsets(args.offset, names, calibration)
     if args.step < 1 or args.start < 0 or (args.stop is not None and args.stop < 0):
         raise UserError("--start and --stop must be >= 0 and --step >= 1")
-
-    sources = {n: FrameSource(n, videos[n], "--video") for n in names}
-    counts = {n: s.count for n, s in sources.items()}
-    if len(set(counts.values())) > 1:
-        raise UserError("--video: frame counts differ between cameras: "
-                        + ", ".join(f"{n} {c}" for n, c in counts.items()))
-    count = counts[names[0]]
-    indices = range(args.start, min(count, args.stop) if args.stop is not None else count, args.step)
-    if len(indices) == 0:
-        raise UserError(f"--start {args.start} --stop {args.stop} --step {args.step}: no frames selected "
-                        f"(the recordings have {count})")
-    bg_sources = {n: FrameSource(n, p, "--background") for n, p in backgrounds.items()}
-    # Check the first frame of every source before writing anything.
-    for n in names:
-        cam = studio.camera(n)
-        for src, first in ((sources[n], indices[0]), (bg_sources.get(n), 0)):
-            if src is not None:
-                _, image = next(src.frames(range(first, first + 1)))
-                _check_size(image, cam, src.where(first), first)
-
     out = Path(args.out)
     for sub in ("images", "background", "silhouettes"):
         if (out / sub).exists():
             raise InputFileError(out / sub, "already exists; import into a new sequence folder")
+
+    # Every source is opened, sized and counted before anything is written.
+    sources = {n: FrameSource(n, videos[n], "--video") for n in names}
+    bg_sources = {n: FrameSource(n, p, "--background") for n, p in backgrounds.items()}
+    firsts = {n: s.first() for n, s in sources.items()}
+    # A calibration without image sizes gets the videos'; one with sizes must agree with them.
+    studio = with_image_sizes(studio, {n: (f.shape[1], f.shape[0]) for n, f in firsts.items()}, "--video")
+    for n, image in firsts.items():
+        check_size(image.shape, sources[n].where(0), studio.camera(n))
+    for n, src in bg_sources.items():
+        check_size(src.first().shape, src.where(0), studio.camera(n))
+
+    begin = max(args.start, _first_frame(offsets))
+    begin += -(begin - args.start) % args.step  # stay on the --start + k --step grid
+
+    def keeper(offset):
+        return lambda j: j - offset >= begin and (j - offset - begin) % args.step == 0 and (
+            args.stop is None or j - offset < args.stop)
+
+    hold = HOLD_BYTES
+    for n in names:
+        hold -= sources[n].scan(keeper(offsets[n]), hold, studio.camera(n))
+    for n, src in bg_sources.items():
+        hold -= src.scan(lambda j: True, hold, studio.camera(n))
+    counts = {n: sources[n].count for n in names}
+    lo, hi, warning = _common_range(counts, offsets)
+    frames = range(begin, hi if args.stop is None else min(hi, args.stop), args.step)
+    if len(frames) == 0:
+        raise UserError(f"--start {args.start} --stop {args.stop} --step {args.step}: no frames selected "
+                        f"(the recordings have frames {lo}..{hi - 1} in common)")
+    if warning:
+        print(f"mocap import-video: warning: {warning}", file=sys.stderr)
+
     out.mkdir(parents=True, exist_ok=True)
     for n in names:
         cam = studio.camera(n)
         folder = out / "images" / n
         folder.mkdir(parents=True)
-        for i, image in sources[n].frames(indices):
-            _check_size(image, cam, sources[n].where(i), i)
-            _write_rgb(folder / FRAME_NAME.format(frame=i), image)
+        for j, image in sources[n].frames(i + offsets[n] for i in frames):
+            check_size(image.shape, sources[n].where(j), cam)
+            _write_rgb(folder / FRAME_NAME.format(frame=j - offsets[n]), image)
+        sources[n].held.clear()  # frames past the common range
         if n in bg_sources:
             folder = out / "background" / n
             folder.mkdir(parents=True)
-            for i, image in bg_sources[n].frames(range(bg_sources[n].count)):
-                _check_size(image, cam, bg_sources[n].where(i), i)
-                _write_rgb(folder / FRAME_NAME.format(frame=i), image)
+            for j, image in bg_sources[n].frames(range(bg_sources[n].count)):
+                check_size(image.shape, bg_sources[n].where(j), cam)
+                _write_rgb(folder / FRAME_NAME.format(frame=j), image)
     fps = args.fps or sources[names[0]].fps or DEFAULT_FPS
     save_calibration(studio, out / "calibration.json")
-    write_sequence_meta(out, list(indices), float(fps), names, source={n: str(p) for n, p in videos.items()})
-    print(f"imported {len(indices)} frames x {len(names)} cameras"
+    extra = {"source": {n: str(p) for n, p in videos.items()}}
+    if any(offsets.values()):
+        extra["offsets"] = offsets
+    write_sequence_meta(out, list(frames), float(fps), names, **extra)
+    print(f"imported {len(frames)} frames ({frames[0]}..{frames[-1]}) x {len(names)} cameras"
           + (" and empty-studio frames" if bg_sources else "") + f" -> {out}")
     return 0

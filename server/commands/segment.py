@@ -1,7 +1,8 @@
 """``mocap segment``: colour images + empty-studio frames -> binary silhouettes.
 
-Reads ``images/<camera>/<frame:06d>.png`` and ``background/<camera>/*.png`` (one or many
-empty frames per camera) of a sequence folder and writes ``silhouettes/<camera>/<frame:06d>.png``.
+Reads the colour images (``images/<camera>/``) and the empty-studio frames
+(``background/<camera>/``, one or many per camera) of a sequence folder, in any format
+``common.sequence`` reads, and writes ``silhouettes/<camera>/<frame:06d>.png``.
 """
 from __future__ import annotations
 
@@ -10,10 +11,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from common.errors import InputFileError
 from common.segmentation import METHODS, load_params, make_segmenter, params_dict
-from common.sequence import FRAME_NAME, load_sequence, read_png, write_mask_png, write_sequence_meta
+from common.sequence import (IMAGE_SUFFIXES, check_size, frame_files, load_sequence, read_image, write_mask_png,
+                             write_sequence_meta)
 
 
 def register(subparsers) -> None:
@@ -30,16 +33,10 @@ def register(subparsers) -> None:
     parser.set_defaults(func=run)
 
 
-def _pngs(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.iterdir() if p.suffix.lower() == ".png")
-
-
 def _read_rgb(path: Path, camera) -> np.ndarray:
-    img = read_png(path, "RGB")
-    if img.shape[:2] != (camera.height, camera.width):
-        raise InputFileError(path, f"size {img.shape[1]}x{img.shape[0]} does not match the calibration "
-                                   f"of {camera.name} ({camera.width}x{camera.height})")
-    return img
+    image = read_image(path, "RGB")
+    check_size(image.shape, path, camera)
+    return image
 
 
 def run(args) -> int:
@@ -53,25 +50,25 @@ def run(args) -> int:
         if not bg_dir.is_dir():
             raise InputFileError(bg_dir, f"missing: empty-studio frames of camera {cam.name} are needed "
                                          "(background/<camera>/<n:06d>.png)")
-        files = _pngs(bg_dir)
+        files = list(frame_files(bg_dir).values())
         if not files:
-            raise InputFileError(bg_dir, "no .png empty-studio frames")
+            raise InputFileError(bg_dir, f"no numbered empty-studio images ({', '.join(IMAGE_SUFFIXES)})")
         background_files[cam.name] = files
-        img_dir = root / "images" / cam.name
-        if not img_dir.is_dir():
-            raise InputFileError(img_dir, f"missing: colour images of camera {cam.name} "
-                                          "(images/<camera>/<frame:06d>.png)")
-        for frame in seq.frames:
-            path = img_dir / FRAME_NAME.format(frame=frame)
-            if not path.is_file():
-                raise InputFileError(path, f"missing: frame {frame} of camera {cam.name}")
+        for path in files:  # the size from the header; the pixels are read once, below
+            try:
+                with Image.open(path) as im:
+                    width, height = im.size
+            except (UnidentifiedImageError, OSError, ValueError) as exc:
+                raise InputFileError(path, f"not a readable image ({exc})") from None
+            check_size((height, width), path, cam)
+    seq.check_files(seq.frames, masks=False, images=True)
 
     seconds = 0.0
     for cam in seq.studio:
         backgrounds = np.stack([_read_rgb(p, cam) for p in background_files[cam.name]])
         segmenter = make_segmenter(args.method, params).fit(backgrounds)
         for frame in seq.frames:
-            image = _read_rgb(root / "images" / cam.name / FRAME_NAME.format(frame=frame), cam)
+            image = seq.image(cam, frame)
             t0 = time.perf_counter()
             mask = segmenter.segment(image)
             seconds += time.perf_counter() - t0
