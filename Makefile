@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 DEMO_DIR ?= demo
 DEMO_CLIP ?= common/data/clips/cmu_12_01_walk.bvh
 
-.PHONY: venv demo test test-all bench cluster cluster-test clean
+.PHONY: venv demo test test-all real-test bench cluster cluster-test clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -24,6 +24,10 @@ test: $(STAMP)
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q tests
+
+# The real seated take of ../shared, end to end with the project's commands (skips without it).
+real-test: $(STAMP)
+	$(PY) -m pytest -q -s tests/test_real_take.py
 
 bench: $(STAMP)
 	$(PY) -m server.cli bench all --out bench

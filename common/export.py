@@ -30,6 +30,7 @@ from common.body import (
 )
 from common.bvh import BvhMotion, bvh_global_transforms, end_site_positions, write_bvh
 from common.errors import UserError
+from common.world import world_frame
 from common.retarget import nearest_turn
 
 FORMATS = ("bvh", "c3d", "trc", "json", "csv")
@@ -94,7 +95,9 @@ class FittedMotion:
             raise UserError(f"{source}: not a poses record ({exc!r})") from None
         if params.shape != (len(records), PARAM_COUNT) or joints.shape != (len(records), len(JOINT_NAMES), 3):
             raise UserError(f"{source}: expected {PARAM_COUNT} params and {len(JOINT_NAMES)} joints per frame")
-        model = actor_from_joints(base or load_body_model(), params, joints, source)
+        # joints are in the user's world; the body's parameters in the z-up fit frame (common.world)
+        fit_joints = world_frame(str(records[0].get("world_up", "+z"))).points_to_fit(joints)
+        model = actor_from_joints(base or load_body_model(), params, fit_joints, source)
         return cls(frames, float(fps), params, joints, model)
 
 

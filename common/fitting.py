@@ -876,12 +876,13 @@ def tilted_ahead(params: np.ndarray, params_before: np.ndarray | None) -> tuple:
     return (ahead,)
 
 
-def lowest_energy(results: list) -> FrameResult:
-    """The FrameResult of lowest energy (the first on a tie), now carrying the chain solves and
-    evaluations of every one of ``results``, in order: what was spent to choose it."""
+def lowest_energy(results: list, score: Callable | None = None) -> FrameResult:
+    """The FrameResult of lowest energy (or lowest ``score(result)``; the first on a tie), now
+    carrying the chain solves and evaluations of every one of ``results``, in order: what was
+    spent to choose it."""
     chains = [c for r in results for c in r.chains]
     evaluations = sum(r.evaluations for r in results)
-    best = min(results, key=lambda r: r.energy)
+    best = min(results, key=score or (lambda r: r.energy))
     best.chains, best.evaluations = chains, evaluations
     return best
 

@@ -129,7 +129,8 @@ def load_result(result_dir, sequence_dir=None, fps: float | None = None) -> Resu
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise InputFileError(summary_path, f"not valid JSON ({exc})") from None
     seq_path = _sequence_path(result_dir, summary, sequence_dir)
-    sequence = load_sequence(seq_path) if seq_path is not None else None
+    up = records[0].get("world_up", "+z")  # the frame the fit ran in
+    sequence = load_sequence(seq_path, up=up) if seq_path is not None else None
     if fps is None:
         if sequence is None:
             raise UserError(f"{result_dir}: the sequence {summary.get('sequence', '(not recorded)')!r} is not "

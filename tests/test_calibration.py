@@ -292,7 +292,8 @@ def test_cli_convert_to_json_and_show(tmp_path, capsys, name, fmt, options, name
     lines = stdout.splitlines()
     assert f"{len(names)} cameras ({fmt};" in lines[0]
     assert lines[1].split()[:4] == ["camera", "size", "fx", "fy"]
-    assert [line.split()[0] for line in lines[2:]] == names
+    assert [line.split()[0] for line in lines[2:-1]] == names
+    assert lines[-1].startswith("up axis: +z (found from the cameras)")
 
 
 @pytest.mark.parametrize("fmt", [f for f in WRITE_FORMATS if f != "json"])
@@ -314,7 +315,7 @@ def test_cli_toml_defaults_to_pose2sim_and_size_option(tmp_path, capsys):
     assert rc == 0, err
     assert err.count("\n") == 1 and "no image size for left;" in err and "--size" in err
     assert "left    627x488*" in stdout and "right   640x480 " in stdout  # 2 x (313.27, 243.81)
-    assert stdout.splitlines()[-1].startswith("* size guessed as twice the principal point: left")
+    assert stdout.splitlines()[-2].startswith("* size guessed as twice the principal point: left")
     rc, stdout, err = cli(capsys, "calib", "show", folder, "--size", "640x480")
     assert rc == 0 and err == "" and "*" not in stdout
     rc, _, err = cli(capsys, "calib", "show", folder, "--size", "640by480")

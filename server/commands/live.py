@@ -26,6 +26,7 @@ import numpy as np
 from common.ellipsoid_fit import SHELL_NAMES, fit_ellipsoids
 from common.errors import InputFileError, UserError
 from common.sequence import load_sequence, read_png
+from server.commands.fit import add_world_arguments
 from common.voxels import SpotGrid, surface_voxels
 
 QUEUE_DEPTH = 2  # frames waiting between two stages (bounded: a slow stage back-pressures)
@@ -63,6 +64,7 @@ def register(subparsers) -> None:
                    help="feed frames at this many per second, like live cameras (default 0: as fast as possible)")
     p.add_argument("--method", default="cheung", help="background subtraction method when segmenting images")
     p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
+    add_world_arguments(p)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
 
@@ -74,7 +76,7 @@ def run(args) -> int:
         raise UserError(f"--repeat: expected a positive count, got {args.repeat}")
     if not args.rate >= 0.0:
         raise UserError(f"--rate: expected frames per second >= 0, got {args.rate}")
-    seq = load_sequence(args.sequence, args.units)
+    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold)
     frames = (seq.frames[:args.frames] if args.frames else seq.frames) * args.repeat
     acquire, segment = _sources(seq, args.method)
     grid = SpotGrid.build(seq.studio, grid=args.grid, q=args.q)

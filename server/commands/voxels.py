@@ -17,6 +17,7 @@ from PIL import Image, ImageDraw
 
 from common.errors import InputFileError, UserError
 from common.sequence import FRAME_NAME, load_sequence
+from server.commands.fit import add_world_arguments
 from common.voxels import SpotGrid, save_voxels
 
 PICTURE_SIZE = 240  # pixels per view
@@ -47,6 +48,7 @@ def register(subparsers) -> None:
     p.add_argument("--pictures", type=int, default=1, metavar="EVERY",
                    help="a picture every EVERY frames (0: none; default 1)")
     p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
+    add_world_arguments(p)
     p.add_argument("--quiet", action="store_true", help="print nothing")
     p.set_defaults(func=run)
 
@@ -56,7 +58,7 @@ def run(args) -> int:
         raise UserError(f"--frames: expected a positive count, got {args.frames}")
     if args.pictures < 0:
         raise UserError(f"--pictures: expected 0 or more, got {args.pictures}")
-    seq = load_sequence(args.sequence, args.units)
+    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold)
     if not seq.has_silhouettes:
         raise InputFileError(seq.path / "silhouettes", "missing: make silhouettes first (mocap segment)")
     bounds = None if args.bounds is None else np.array(args.bounds).reshape(2, 3)

@@ -1,0 +1,67 @@
+"""Posture figures of a fitted result without truth: hip and knee bend, feet above the floor,
+frame-to-frame jitter and the XOR share (the real-take check of the README's table).
+
+    python tools/posture_report.py RESULT [--json]
+
+Angles in degrees from the joint positions (180 minus the angle at the joint: 0 is straight);
+heights along the fit's up axis, metres; jitter: the mean over joints of the distance a joint
+moves from one fitted frame to the next, millimetres.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from common.body import JOINT_NAMES  # noqa: E402
+from common.world import world_frame  # noqa: E402
+
+
+def bend_deg(a: np.ndarray, joint: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(F, 3) x 3 -> (F,) 180 minus the angle a-joint-b, degrees (0: straight)."""
+    u, v = a - joint, b - joint
+    cos = np.sum(u * v, axis=-1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
+    return 180.0 - np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def posture_figures(records: list[dict]) -> dict:
+    up = str(records[0].get("world_up", "+z"))
+    J = world_frame(up).points_to_fit(np.array([[r["joints"][n] for n in JOINT_NAMES] for r in records]))
+    j = {n: J[:, i] for i, n in enumerate(JOINT_NAMES)}
+    trunk_top = j["neck"]
+    out = {"frames": len(records), "world_up": up}
+    for side in ("l", "r"):
+        out[f"{side}_hip_bend_deg"] = bend_deg(trunk_top, j[f"{side}_hip"], j[f"{side}_knee"]).tolist()
+        out[f"{side}_knee_bend_deg"] = bend_deg(j[f"{side}_hip"], j[f"{side}_knee"], j[f"{side}_ankle"]).tolist()
+        out[f"{side}_ankle_height_m"] = j[f"{side}_ankle"][:, 2].tolist()
+    out["jitter_mm"] = (np.linalg.norm(np.diff(J, axis=0), axis=-1).mean(axis=1) * 1000.0).tolist()
+    out["xor_share"] = [r.get("fit_quality", {}).get("xor_share_total") for r in records]
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("result", type=Path)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    records = [json.loads(line) for line in (args.result / "poses.jsonl").read_text().splitlines() if line.strip()]
+    fig = posture_figures(records)
+    if args.json:
+        print(json.dumps(fig, indent=1))
+        return 0
+    for key, values in fig.items():
+        if isinstance(values, list) and values and values[0] is not None:
+            v = np.array(values, dtype=float)
+            print(f"{key:22s} min {v.min():8.3f}  median {np.median(v):8.3f}  max {v.max():8.3f}")
+        else:
+            print(f"{key:22s} {values}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
