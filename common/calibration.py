@@ -53,7 +53,6 @@ from __future__ import annotations
 
 import json
 import re
-import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -63,6 +62,7 @@ import numpy as np
 import yaml
 
 from common.camera import Camera, CalibrationError, Studio, make_camera
+from common.errors import print_warning
 
 try:
     import tomllib
@@ -162,11 +162,6 @@ def _numeric(value) -> bool:
 
 
 # ----------------------------------------------------------------------------- public API
-
-def print_warning(line: str) -> None:
-    """The default ``warn``: one line on stderr."""
-    print(f"warning: {line}", file=sys.stderr)
-
 
 def load_calibration(path, units: str | None = None, fmt: str | None = None,
                      size: tuple[int, int] | None = None, warn: Warn = print_warning) -> Studio:
@@ -743,17 +738,19 @@ def _sub_folder_cameras(folder: Path) -> tuple[list[tuple[str, Path, str]], list
 def _file_kind(path: Path) -> str:
     """What a calibration file holds, read leniently (errors come when it is read as a camera).
 
-    "camera": OpenCV XML with K, R and t; "projection": OpenCV XML with P, or a .txt of numbers;
+    "camera": OpenCV XML with K, R and t; "projection": OpenCV XML with P, or a .txt of 12 numbers
+    (a .txt of 9, a 3x3 K beside it, holds no camera; of another count it is "broken");
     "qualisys": a Qualisys <calibration>; "broken": OpenCV XML with some of K, R, t, or not
     valid XML; "foreign": XML of another kind; "none": no camera fields at all.
     """
     if _is_projection_text(path):
         try:
-            text = _projection_text(path)
-            _numbers(text, str(path), "P")
+            values = _numbers(_projection_text(path), str(path), "P")
         except CalibrationError:
             return "none"
-        return "projection" if text.strip() else "none"
+        if values.size in (0, 9):  # empty, or a 3x3 intrinsic matrix: no camera here
+            return "none"
+        return "projection" if values.size == 12 else "broken"
     try:
         root = _parse_xml(path)
     except CalibrationError:

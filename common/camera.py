@@ -12,6 +12,7 @@ from functools import cached_property
 import numpy as np
 
 from common.errors import UserError
+from common.packing import padded_shape
 
 ORTHONORMAL_TOLERANCE = 1e-6  # max |R^T R - I| entry accepted for a rotation
 DIST_COEFFS = 5  # k1 k2 p1 p2 k3
@@ -181,6 +182,17 @@ class Studio:
     @property
     def names(self) -> list[str]:
         return [c.name for c in self.cameras]
+
+    @property
+    def sizes(self) -> list[tuple[int, int]]:
+        """(K, 2) (width, height) of each camera's image, pixels."""
+        return [(c.width, c.height) for c in self.cameras]
+
+    @property
+    def padded_shape(self) -> tuple[int, int]:
+        """(H, W) of the cameras' padded per-frame stacks (``packing.pad_stack``): the largest
+        image height and the largest width."""
+        return padded_shape(self.sizes)
 
     def camera(self, name: str) -> Camera:
         for c in self.cameras:

@@ -287,7 +287,7 @@ class EnergySetup:
     studio: cameras (already scaled for half-resolution work); windows: one per camera;
     inputs: (K, h, w) bool input silhouette windows, h and w the largest window height and
     width, window k's pixels at [:height, :width] (windows of one size fill it; whole images of
-    cameras of different sizes are padded, as ``packing.pad_masks``): pixels beyond a window
+    cameras of different sizes are padded, as ``packing.pad_stack``): pixels beyond a window
     are outside it and count for nothing, whatever covers them; moving: segments that move;
     static_params: (35,) pose whose other segments are pre-rendered.
     """
@@ -310,9 +310,10 @@ def window_pixels(setup: EnergySetup) -> np.ndarray | None:
         raise ValueError(f"{len(setup.studio)} cameras need as many windows and input windows, got "
                          f"{len(setup.windows)} and {K}")
     sizes = [(win.width, win.height) for win in setup.windows]
-    if padded_shape(sizes) != (h, w):
+    largest = padded_shape(sizes)
+    if largest != (h, w):
         raise ValueError(f"input windows are {w}x{h}, the windows' largest width and height "
-                         f"{padded_shape(sizes)[1]}x{padded_shape(sizes)[0]}")
+                         f"{largest[1]}x{largest[0]}")
     return None if len(set(sizes)) == 1 else inside_images(sizes, (h, w))
 
 

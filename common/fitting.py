@@ -32,7 +32,7 @@ from common.camera import Camera, Studio, distort_normalized
 from common.energy import (
     ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window, centred_window, cut_window, make_energy,
 )
-from common.packing import downsample_masks, inside_images, pad_masks, padded_shape
+from common.packing import clear_padding, downsample_masks, pad_stack
 from common.powell_cpu import powell_cpu
 from common.retarget import heading_tilt, nearest_turn
 
@@ -164,7 +164,7 @@ def undistort_map(cam: Camera) -> np.ndarray:
 def undistort_masks(studio: Studio, masks: np.ndarray) -> tuple[Studio, np.ndarray]:
     """Silhouettes resampled into ideal pinhole images (same K, no distortion), and that studio.
 
-    masks: (K, H, W) bool, the padded stack (``packing.pad_masks``) -> the same shape.
+    masks: (K, H, W) bool, the padded stack (``packing.pad_stack``) -> the same shape.
     Fitting works in undistorted images so that every energy backend projects with plain
     pinhole cameras and agrees; a mask is resampled once per frame (nearest pixel).
     """
@@ -179,7 +179,7 @@ def undistort_masks(studio: Studio, masks: np.ndarray) -> tuple[Studio, np.ndarr
             cam = replace(cam, dist=np.zeros_like(cam.dist))
         cams.append(cam)
         out.append(mask)
-    return Studio(tuple(cams), studio.source), pad_masks(out)
+    return Studio(tuple(cams), studio.source), pad_stack(out)
 
 
 def spot_grid(studio: Studio, masks: np.ndarray, grid: int):
@@ -201,7 +201,7 @@ class FrameData:
 
     masks: (K, H, W) bool, camera k's silhouette at [:h_k, :w_k] with (w_k, h_k) its image
     size and H, W the largest (cameras of one size: the plain stack; of different sizes: the
-    padded stack of ``packing.pad_masks``). Pixels beyond a camera's image are cleared here,
+    padded stack of ``packing.pad_stack``). Pixels beyond a camera's image are cleared here,
     once per frame, and no energy counts them.
     """
 
@@ -210,13 +210,11 @@ class FrameData:
         masks = np.asarray(masks, dtype=bool)
         if masks.ndim != 3 or masks.shape[0] != len(studio):
             raise ValueError(f"expected (K, H, W) silhouettes of {len(studio)} cameras, got shape {masks.shape}")
-        sizes = [(c.width, c.height) for c in studio]
-        H, W = padded_shape(sizes)
+        H, W = studio.padded_shape
         if masks.shape[1:] != (H, W):
             raise ValueError(f"silhouettes are {masks.shape[2]}x{masks.shape[1]}, the calibration's largest "
                              f"camera width and height {W}x{H}")
-        if len(set(sizes)) > 1:
-            masks = masks & inside_images(sizes, (H, W))
+        masks = clear_padding(masks, studio.sizes)
         self.original_studio = studio
         studio, masks = undistort_masks(studio, masks)
         self.studio = studio
@@ -231,9 +229,7 @@ class FrameData:
     @cached_property
     def half_masks(self) -> np.ndarray:
         """(K, H // 2, W // 2) bool, camera k's at [:h_k // 2, :w_k // 2] (cleared beyond)."""
-        half = downsample_masks(self.masks, 2)
-        sizes = [(c.width, c.height) for c in self.half_studio]
-        return half if len(set(sizes)) == 1 else half & inside_images(sizes, half.shape[1:])
+        return clear_padding(downsample_masks(self.masks, 2), self.half_studio.sizes)
 
     @cached_property
     def surface_points(self) -> np.ndarray:

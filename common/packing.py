@@ -7,9 +7,10 @@ and the wire (one bit per pixel). Windows for the paper's sub-window speed-up ar
 either masks or planes; ``downsample_masks`` gives the half-resolution torso images.
 
 A studio whose cameras differ in image size keeps one frame's silhouettes as a padded stack
-(``pad_masks``): (K, H, W) with H, W the largest camera height and width, camera k's pixels
+(``pad_stack``): (K, H, W) with H, W the largest camera height and width, camera k's pixels
 at [:h_k, :w_k] and False beyond. Everything here works on that stack as on any other;
-``inside_images`` tells which of its pixels belong to each camera (consumers count only those).
+``inside_images`` tells which of its pixels belong to each camera (consumers count only those)
+and ``clear_padding`` clears the others.
 """
 from __future__ import annotations
 
@@ -47,19 +48,35 @@ def inside_images(sizes, shape) -> np.ndarray:
     return rows & cols
 
 
-def pad_masks(masks) -> np.ndarray:
-    """K masks of shapes (h_k, w_k) -> (K, H, W) bool padded stack (see the module docstring).
+def clear_padding(masks: np.ndarray, sizes) -> np.ndarray:
+    """(K, H, W) bool padded stack of cameras of ``sizes`` (K, 2) (width, height) pixels -> the
+    same with every pixel beyond camera k's [:h_k, :w_k] False. Cameras of one size have no
+    padding: ``masks`` itself comes back."""
+    masks = np.asarray(masks)
+    sizes = np.asarray(sizes, dtype=np.int64).reshape(-1, 2)
+    if np.all(sizes == sizes[0]):
+        return masks
+    return masks & inside_images(sizes, masks.shape[-2:])
 
-    Masks of one size give the plain (K, h, w) stack. Any non-zero value counts as set.
+
+def pad_stack(arrays, dtype=bool) -> np.ndarray:
+    """K arrays of shapes (h_k, w_k, ...) -> (K, H, W, ...) ``dtype`` padded stack (see the module
+    docstring): array k at [k, :h_k, :w_k], zero (False) beyond. The trailing dimensions (an
+    image's colour channels) must agree. Arrays of one size give the plain stack.
+
+    With dtype bool any non-zero value counts as set.
     """
-    masks = [np.asarray(m) for m in masks]
-    if not masks or any(m.ndim != 2 for m in masks):
-        raise ValueError(f"expected K >= 1 (h, w) masks, got shapes {[m.shape for m in masks]}")
-    H, W = padded_shape([(m.shape[1], m.shape[0]) for m in masks])
-    out = np.zeros((len(masks), H, W), dtype=bool)
-    for k, m in enumerate(masks):
-        out[k, :m.shape[0], :m.shape[1]] = m != 0
+    arrays = [np.asarray(a) for a in arrays]
+    if not arrays or any(a.ndim < 2 or a.shape[2:] != arrays[0].shape[2:] for a in arrays):
+        raise ValueError(f"expected K >= 1 (h, w, ...) arrays with the same trailing dimensions, got shapes "
+                         f"{[a.shape for a in arrays]}")
+    H, W = padded_shape([(a.shape[1], a.shape[0]) for a in arrays])
+    out = np.zeros((len(arrays), H, W) + arrays[0].shape[2:], dtype=dtype)
+    for k, a in enumerate(arrays):
+        out[k, :a.shape[0], :a.shape[1]] = a
     return out
+
+
 
 
 def pack_planes(masks: np.ndarray) -> np.ndarray:

@@ -28,9 +28,9 @@ import msgpack
 import numpy as np
 
 from common.camera import Camera, CalibrationError, Studio, make_camera
-from common.packing import inside_images, packed_length, padded_shape, unpackbits_masks
+from common.packing import clear_padding, packed_length, padded_shape, unpackbits_masks
 
-PROTOCOL_VERSION = 2  # 2: hops (HOP_JOB_NAMES) beside the chains
+PROTOCOL_VERSION = 3  # 2: hops (HOP_JOB_NAMES) beside the chains; 3: cameras of different sizes
 PARAM_COUNT = 35  # pose parameters of the body model
 CHAIN_NAMES = ("torso", "head", "left_arm", "right_arm", "left_leg", "right_leg")
 # the hops of a refinement's round (common.fitting.HOP_JOBS): sent and answered as chains are;
@@ -250,7 +250,7 @@ class Frame:
     """Server -> client, once per frame: the studio, the packed silhouettes, the start pose.
 
     Cameras may differ in image size: the silhouettes are the studio's padded (K, H, W) stack
-    (``packing.pad_masks``; H, W the largest camera height and width, camera k's pixels at
+    (``packing.pad_stack``; H, W the largest camera height and width, camera k's pixels at
     [:h_k, :w_k]), and ``silhouettes`` is its ``packing.packbits_masks``, sent as a raw frame.
     Bits on the padding carry nothing: ``masks`` clears them.
     """
@@ -307,10 +307,7 @@ class Frame:
 
     def masks(self) -> np.ndarray:
         """(K, H, W) bool silhouettes, the padded stack (False beyond each camera's image)."""
-        masks = unpackbits_masks(self.silhouettes, self.K, self.H, self.W)
-        if len(set(self.sizes)) > 1:
-            masks &= inside_images(self.sizes, (self.H, self.W))
-        return masks
+        return clear_padding(unpackbits_masks(self.silhouettes, self.K, self.H, self.W), self.sizes)
 
     def studio(self) -> Studio:
         return Studio(tuple(c.to_camera() for c in self.cameras), "<wire>")

@@ -16,7 +16,7 @@ Cameras may differ in resolution. Per-frame stacks are then padded: ``silhouette
 is ``(K, Hmax, Wmax)`` bool and ``images(frame)`` ``(K, Hmax, Wmax, 3)`` uint8, with camera
 k's pixels in ``[k, :h_k, :w_k]`` and False / 0 elsewhere (Hmax, Wmax: the largest height
 and width of the studio's cameras, ``Sequence.padded_shape``; the convention of
-``common.packing.pad_masks``).
+``common.packing.pad_stack``).
 
 The world: ``Sequence.user_studio`` is the calibration as the file has it; ``Sequence.studio``
 the same cameras in the z-up fit frame (``common.world``; ``up`` "auto" detects the file's up
@@ -35,11 +35,11 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from common.calibration import EASYMOCAP_FILES, load_calibration, natural_key
+from common.calibration import EASYMOCAP_FILES, load_calibration, natural_key, with_image_sizes
 from common.camera import Studio
 from common.consistency import supported_masks
 from common.errors import InputFileError, UserError
-from common.packing import pad_masks, padded_shape
+from common.packing import pad_stack
 from common.voxels import silhouette_centre
 from common.world import WorldFrame, resolve_world
 
@@ -112,7 +112,15 @@ def read_image(path, mode: str) -> np.ndarray:
         raise InputFileError(path, f"not a readable image ({exc})") from None
 
 
-read_png = read_image  # the older name, kept for callers outside this module
+def image_size(path) -> tuple[int, int]:
+    """(width, height) of an image file from its header (the pixels are not decoded)."""
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except FileNotFoundError:
+        raise InputFileError(path, "missing") from None
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
+        raise InputFileError(path, f"not a readable image ({exc})") from None
 
 
 def read_mask(path, threshold: int | None = None) -> np.ndarray:
@@ -158,14 +166,6 @@ def write_mask_png(path: Path, mask: np.ndarray) -> None:
     Image.fromarray(np.asarray(mask, dtype=bool)).save(path, optimize=False)
 
 
-def _pad_images(images: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
-    """K (h_k, w_k, 3) images -> (K, H, W, 3) with image k in [k, :h_k, :w_k], zeros elsewhere."""
-    out = np.zeros((len(images), *shape, 3), dtype=np.uint8)
-    for k, image in enumerate(images):
-        out[k, :image.shape[0], :image.shape[1]] = image
-    return out
-
-
 def check_size(shape: tuple, path: Path, cam) -> None:
     """Refuse an image of array shape (h, w, ...) whose size is not its camera's."""
     if tuple(shape[:2]) != (cam.height, cam.width):
@@ -195,13 +195,15 @@ class Sequence:
             self.user_studio: Studio = load_calibration(self.path, units, fmt="easymocap")
         else:
             self.user_studio = load_calibration(calibration, units)
+        self.mask_folder = next((self.path / f for f in MASK_FOLDERS if (self.path / f).is_dir()), None)
+        self._files: dict[tuple[Path, str], dict[int, Path]] = {}
+        if any(c.size_guessed for c in self.user_studio):  # EasyMocap's write_intri writes no sizes
+            self.user_studio = with_image_sizes(self.user_studio, self._first_image_sizes(), str(self.path))
         # fitting runs in the z-up fit frame (common.world); results go back to the user's
         self.world: WorldFrame = resolve_world(self.user_studio, up)
         self.studio: Studio = self.world.studio_to_fit(self.user_studio)
         self.clean_masks = clean_masks
         self._cleaned: OrderedDict = OrderedDict()  # frame -> (masks, pixels removed per camera)
-        self.mask_folder = next((self.path / f for f in MASK_FOLDERS if (self.path / f).is_dir()), None)
-        self._files: dict[tuple[Path, str], dict[int, Path]] = {}
         meta_path = self.path / "sequence.json"
         meta = {}
         if meta_path.exists():
@@ -218,6 +220,16 @@ class Sequence:
         if not self.frames:
             raise InputFileError(self.path, "no frames (no silhouettes/, mask/ or images/ and no sequence.json)")
 
+    def _first_image_sizes(self) -> dict[str, tuple[int, int]]:
+        """Camera -> (width, height) of its first mask (else colour image), for cameras whose
+        calibration gave no size; cameras without files are left out."""
+        sizes = {}
+        for cam in self.user_studio:
+            files = self.mask_files(cam.name) or self.image_files(cam.name)
+            if cam.size_guessed and files:
+                sizes[cam.name] = image_size(next(iter(files.values())))
+        return sizes
+
     def _frames_on_disk(self) -> list[int]:
         first = self.studio.names[0]
         return list(self.mask_files(first) or self.image_files(first))
@@ -229,7 +241,7 @@ class Sequence:
     @property
     def padded_shape(self) -> tuple[int, int]:
         """(Hmax, Wmax): the height and width per-frame stacks are padded to."""
-        return padded_shape([(c.width, c.height) for c in self.studio])
+        return self.studio.padded_shape
 
     def _camera_files(self, folder: Path, camera: str) -> dict[int, Path]:
         key = (folder, camera)
@@ -284,7 +296,7 @@ class Sequence:
     def raw_silhouettes(self, frame: int) -> np.ndarray:
         """(K, Hmax, Wmax) bool masks of one frame as the files hold them (``silhouettes`` without
         the multi-view cleaning)."""
-        return pad_masks([self.mask(cam, frame) for cam in self.studio])
+        return pad_stack([self.mask(cam, frame) for cam in self.studio])
 
     def cleaned(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """(masks (K, Hmax, Wmax) bool, (K,) pixels removed): one frame's masks without the blobs
@@ -300,12 +312,13 @@ class Sequence:
 
     def images(self, frame: int) -> np.ndarray:
         """(K, Hmax, Wmax, 3) uint8 colour images of one frame; camera k's in ``[k, :h_k, :w_k]``, zero padded."""
-        return _pad_images([self.image(cam, frame) for cam in self.studio], self.padded_shape)
+        return pad_stack([self.image(cam, frame) for cam in self.studio], dtype=np.uint8)
 
     def check_files(self, frames, masks: bool = True, images: bool = False) -> None:
         """Raise InputFileError for the first missing or unusable silhouette (with ``masks``) or
         colour image (with ``images``) of ``frames``: all files are looked for first, then each
-        is read in full and checked (size, binary mask) as ``silhouettes`` / ``images`` would.
+        is checked as ``silhouettes`` would read it (read in full: size, binary mask) or, for
+        colour images, from its header (size, readable).
         """
         frames = list(frames)
         folders = ([self.mask_folder] if masks else []) + ([self.path / IMAGE_FOLDER] if images else [])
@@ -318,7 +331,9 @@ class Sequence:
                 if masks:
                     self.mask(cam, frame)
                 if images:
-                    self.image(cam, frame)
+                    path = self._path(self.path / IMAGE_FOLDER, cam.name, frame)
+                    width, height = image_size(path)
+                    check_size((height, width), path, cam)
 
     def check_masks(self, frames) -> list[str]:
         """Warnings (one per camera) for cameras whose mask is all on or all off in every frame.

@@ -171,13 +171,6 @@ def synth_studio(cameras: int, sizes, radius_m: float = 3.0, height_m: float = 1
     return Studio(tuple(cams))
 
 
-def user_studio(studio: Studio, up: str) -> Studio:
-    """The z-up ``studio`` as cameras of the world whose up axis is ``up``: the inverse of
-    ``WorldFrame.studio_to_fit`` (x_cam = R x_fit + t = (R W) x_user + t)."""
-    W = world_frame(up).rotation
-    return Studio(tuple(replace(c, R=c.R @ W) for c in studio), studio.source)
-
-
 # --------------------------------------------------------------------------- motion
 def clip_frames(total: int, opts: SynthOptions) -> np.ndarray:
     idx = opts.start + opts.step * np.arange(opts.frames)
@@ -347,12 +340,14 @@ def synthesize(model: BodyModel, studio: Studio, clip_path, out_dir, opts: Synth
     world = world_frame(opts.up)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    save_calibration(user_studio(studio, opts.up), out / "calibration.json")
+    save_calibration(world.studio_to_user(studio), out / "calibration.json")
     pose = forward_kinematics(model, params)
     surface = skinned_vertices if opts.surface == "skinned" else rigid_vertices
+    # a box is placed from every frame's surface, which the frames then render: skin each once
+    surfaces = [surface(model, pose, i) for i in range(len(params))] if opts.prop == "box" else None
 
     def surface_of(i: int) -> np.ndarray:
-        return surface(model, pose, i)
+        return surface(model, pose, i) if surfaces is None else surfaces[i]
 
     triangles, labels = model.triangles, model.triangle_segment
     prop_verts = np.zeros((0, 3))

@@ -27,7 +27,7 @@ import numpy as np
 
 from common.camera import Studio, circle_studio
 from common.errors import InputFileError, UserError
-from common.packing import pad_masks, padded_shape
+from common.packing import pad_stack
 
 DEFAULT_EXTENT = np.array([2.4, 2.4, 2.2])  # metres: x, y, z size of the volume of interest
 SAMPLE_RADIUS = 0.45  # sample offsets from the voxel centre, in voxel edges (< 0.5 stays inside)
@@ -71,8 +71,8 @@ def silhouette_centre(studio: Studio, masks: np.ndarray) -> np.ndarray | None:
     """(3,) the point closest (least squares) to the rays through each silhouette's centroid,
     metres; None when fewer than two cameras see a silhouette. The centroid is that of the
     mask's blobs of MIN_BLOB_FRACTION of the image or more (masks: (K, H, W) bool, the padded
-    stack of ``packing.pad_masks`` when the cameras differ in size): a camera the actor has left sees
-    only noise, whose centroid is the image's middle, and its ray would pull the centre
+    stack of ``packing.pad_stack`` when the cameras differ in size): a camera the actor has left
+    sees only noise, whose centroid is the image's middle, and its ray would pull the centre
     (06_02 from source frame 262: three of eight cameras, the centre 1.6 m off)."""
     from scipy import ndimage
 
@@ -215,9 +215,9 @@ class SpotGrid:
         bounds = default_bounds(studio) if bounds is None else np.asarray(bounds, dtype=np.float64)
         if bounds.shape != (2, 3) or not np.all(np.isfinite(bounds)) or np.any(bounds[1] <= bounds[0]):
             raise UserError(f"bounds: expected (2, 3) lower and upper corners with lower < upper, got {bounds!r}")
-        # cameras of different sizes: frames are padded stacks (packing.pad_masks), each
+        # cameras of different sizes: frames are padded stacks (packing.pad_stack), each
         # camera's samples inside its own image
-        H, W = padded_shape([(c.width, c.height) for c in studio])
+        H, W = studio.padded_shape
         if block is None:
             block = next(b for b in (4, 2, 1) if grid % b == 0)
         if grid % block:
@@ -296,7 +296,7 @@ class SpotGrid:
     def reconstruct(self, masks, surface: bool = True) -> VoxelResult:
         """(K, H, W) bool silhouettes -> VoxelResult (occupied and, if asked, surface voxels).
 
-        Cameras of different sizes: the padded stack (``packing.pad_masks``); no sample falls
+        Cameras of different sizes: the padded stack (``packing.pad_stack``); no sample falls
         on the padding, so the voxels are those of the cameras' own images.
         """
         masks = self._checked(masks)
@@ -455,7 +455,7 @@ def render_ellipsoids(studio: Studio, centres, axes, radii) -> np.ndarray:
 
     centres (E, 3), axes (E, 3, 3) unit axes as columns, radii (E, 3), metres ->
     (K, H, W) bool, True where a pixel's ray meets an ellipsoid in front of the camera (the
-    padded stack of ``packing.pad_masks`` when the cameras differ in size).
+    padded stack of ``packing.pad_stack`` when the cameras differ in size).
     """
     centres = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
     axes = np.asarray(axes, dtype=np.float64).reshape(-1, 3, 3)
@@ -478,7 +478,7 @@ def render_ellipsoids(studio: Studio, centres, axes, radii) -> np.ndarray:
             far = (-b + np.sqrt(np.maximum(disc, 0.0))) / (2.0 * a)  # the larger root
             mask |= (disc >= 0.0) & (far > 0.0)
         out.append(mask.reshape(cam.height, cam.width))
-    return pad_masks(out)
+    return pad_stack(out)
 
 
 def corrupt(masks, eta: float, xi: float, rng: np.random.Generator) -> np.ndarray:

@@ -53,6 +53,13 @@ class WorldFrame:
             return studio
         return Studio(tuple(replace(c, R=c.R @ self.rotation.T) for c in studio), studio.source)
 
+    def studio_to_user(self, studio: Studio) -> Studio:
+        """Fit-frame cameras re-expressed in the user's world, the inverse of ``studio_to_fit``:
+        x_cam = R x_fit + t = (R W) x_user + t."""
+        if self.is_identity:
+            return studio
+        return Studio(tuple(replace(c, R=c.R @ self.rotation) for c in studio), studio.source)
+
     def points_to_user(self, points: np.ndarray) -> np.ndarray:
         """(..., 3) fit-frame points -> the user's frame."""
         return np.asarray(points, dtype=np.float64) @ self.rotation

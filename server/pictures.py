@@ -130,7 +130,8 @@ def load_result(result_dir, sequence_dir=None, fps: float | None = None) -> Resu
             raise InputFileError(summary_path, f"not valid JSON ({exc})") from None
     seq_path = _sequence_path(result_dir, summary, sequence_dir)
     up = records[0].get("world_up", "+z")  # the frame the fit ran in
-    sequence = load_sequence(seq_path, up=up) if seq_path is not None else None
+    cleaned = bool(summary.get("masks_cleaned", True))
+    sequence = load_sequence(seq_path, up=up, clean_masks=cleaned) if seq_path is not None else None
     if fps is None:
         if sequence is None:
             raise UserError(f"{result_dir}: the sequence {summary.get('sequence', '(not recorded)')!r} is not "

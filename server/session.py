@@ -29,12 +29,12 @@ import numpy as np
 
 from common import voxels
 from common.body import (JOINT_NAMES, LIMB_CHAINS, MIRROR_SIGNS, P, BodyModel, forward_kinematics, joints_dict,
-                         clip_to_limits, rest_params, swap_sides)
-from common.errors import InputFileError, UserError
-from common.postures import SEARCH_POSTURES, posture_params
+                         clip_to_limits, load_body_model, rest_params, swap_sides)
+from common.errors import InputFileError, UserError, print_warning
 from common.fitting import (ARM_CHAINS, HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult,
                             arm_twist_alternative, fit_frame, full_energy, hop_fit, limb_alternatives,
                             lowest_energy, midway, powell, rotated_about_pelvis, solve_job, spot_grid, tilted_ahead)
+from common.postures import SEARCH_POSTURES, posture_params
 from common.sequence import Sequence
 
 POSES_FILE = "poses.jsonl"
@@ -492,8 +492,6 @@ def user_joints(model: BodyModel, seq: Sequence, params: np.ndarray) -> dict:
 
 def model_scale(model: BodyModel) -> float:
     """The actor's size over the body model's own (its height over the default body's)."""
-    from common.body import load_body_model
-
     return float(model.height / load_body_model().height)
 
 
@@ -660,9 +658,12 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
 def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions, solver: Solver,
             init: str | None = None, resume: bool = False, max_frames: int | None = None, progress=None) -> dict:
     """Fit the sequence's frames in order; returns the summary (also written to summary.json)."""
+    frames = seq.frames[:max_frames] if max_frames else list(seq.frames)
+    seq.check_files(frames)  # every mask there and readable before anything is written
+    for warning in seq.check_masks(frames):
+        print_warning(warning)
     out_dir.mkdir(parents=True, exist_ok=True)
     poses_path = out_dir / POSES_FILE
-    frames = seq.frames[:max_frames] if max_frames else list(seq.frames)
     done = read_done_frames(poses_path) if resume else []
     if resume:
         expected = frames[:len(done)]
@@ -757,6 +758,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     summary = {
         "sequence": str(seq.path.resolve()),
         "world_up": seq.world.up,
+        "masks_cleaned": seq.clean_masks,
         "actor_scale": model_scale(model),
         "frames": len(records),
         "frames_fitted_this_run": len(stats.seconds),

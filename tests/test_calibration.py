@@ -799,3 +799,14 @@ def test_cli_refuses_read_only_output_formats(tmp_path, capsys):
     assert rc == 0, err
     assert_same(load_calibration(tmp_path / "q.json"), load_calibration(NEW / "qualisys", warn=lambda line: None),
                 tol=0)
+
+
+def test_a_3x3_intrinsics_text_beside_a_projection_is_skipped(tmp_path, capsys):
+    """A camera folder holding P.txt and the K.txt it came from: K (9 numbers) is no camera."""
+    for cam in ("a", "b"):
+        (tmp_path / cam).mkdir()
+        (tmp_path / cam / "P.txt").write_text((NEW / "projection" / "cam1.txt").read_text())
+        (tmp_path / cam / "K.txt").write_text("800 0 320\n0 800 240\n0 0 1\n")
+    studio = load_calibration(tmp_path)
+    assert studio.names == ["a", "b"]
+    assert "skipped (no camera fields): a/K.txt, b/K.txt" in capsys.readouterr().err

@@ -18,8 +18,8 @@ from common.errors import UserError
 from common.export import FittedMotion
 from common.fitting import FitOptions, FrameData, fit_frame
 from common.motion_import import import_bvh
-from common.packing import (downsample_masks, inside_images, pack_planes, packbits_masks, pad_masks, padded_shape,
-                            unpack_planes, unpackbits_masks)
+from common.packing import (clear_padding, downsample_masks, inside_images, pack_planes, packbits_masks, pad_stack,
+                            padded_shape, unpack_planes, unpackbits_masks)
 from common.protocol import CameraSpec, Frame, ProtocolError, decode, encode
 from common.synth import synth_studio
 from common.voxels import SpotGrid, actor_bounds, silhouette_centre
@@ -79,7 +79,7 @@ def shifted(params: np.ndarray, dx: float, dy: float) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def masks(model, studio, pose) -> np.ndarray:
-    return pad_masks(own_images(model, studio, pose))
+    return pad_stack(own_images(model, studio, pose))
 
 
 @pytest.fixture(scope="module")
@@ -100,15 +100,26 @@ def candidates(model, studio, pose) -> np.ndarray:
 
 # --------------------------------------------------------------------------- packing and wire
 
-def test_padded_stack_helpers():
+def test_padded_stack_helpers(studio):
+    assert studio.sizes == list(SIZES) and studio.padded_shape == PADDED
     a, b = np.ones((2, 3), bool), np.ones((4, 1), bool)
-    stack = pad_masks([a, b])
+    stack = pad_stack([a, b])
     assert stack.shape == (2, 4, 3) and padded_shape([(3, 2), (1, 4)]) == (4, 3)
     np.testing.assert_array_equal(stack, inside_images([(3, 2), (1, 4)], (4, 3)))
     assert stack.sum() == 6 + 4
-    np.testing.assert_array_equal(pad_masks([a, a]), np.ones((2, 2, 3), bool))  # one size: the plain stack
+    np.testing.assert_array_equal(pad_stack([a, a]), np.ones((2, 2, 3), bool))  # one size: the plain stack
     with pytest.raises(ValueError):
-        pad_masks([np.ones(3, bool)])
+        pad_stack([np.ones(3, bool)])
+    # images keep their channels; zeros beyond
+    images = pad_stack([np.full((2, 3, 3), 7, np.uint8), np.full((4, 1, 3), 9, np.uint8)], dtype=np.uint8)
+    assert images.shape == (2, 4, 3, 3) and images.dtype == np.uint8
+    assert (images[0, :2] == 7).all() and (images[1, :, :1] == 9).all() and images.sum() == 7 * 18 + 9 * 12
+    with pytest.raises(ValueError):
+        pad_stack([np.ones((2, 3, 3)), np.ones((2, 3))])
+    # clear_padding clears beyond each camera; one size: the input itself
+    full = np.ones((2, 4, 3), bool)
+    np.testing.assert_array_equal(clear_padding(full, [(3, 2), (1, 4)]), stack)
+    assert clear_padding(full, [(3, 4), (3, 4)]) is full
 
 
 def test_packing_round_trips_the_padded_stack(masks):
@@ -180,7 +191,7 @@ def test_whole_image_energy_is_the_sum_of_the_cameras_alone(model, studio, masks
     if not half:
         assert mixed[0] == 0  # the pose that drew the silhouettes
     rendered = frame.whole_image_energy(half).render(candidates[2])
-    sizes = [(c.width, c.height) for c in (frame.half_studio if half else frame.studio)]
+    sizes = (frame.half_studio if half else frame.studio).sizes
     assert not (rendered & ~inside_images(sizes, rendered.shape[1:])).any()
 
 
@@ -239,7 +250,7 @@ def test_a_short_fit_recovers_the_pose_as_a_same_size_studio_does(model, pose):
     errors = {}
     for name, sizes in (("same", SIZES[:1]), ("mixed", SIZES)):
         studio = synth_studio(3, sizes)
-        frame = FrameData(model, studio, pad_masks(own_images(model, studio, pose)))
+        frame = FrameData(model, studio, pad_stack(own_images(model, studio, pose)))
         result = fit_frame(model, frame, start, options)
         errors[name] = np.linalg.norm(forward_kinematics(model, result.params).joints[0] - truth, axis=1).mean()
     start_error = np.linalg.norm(forward_kinematics(model, start).joints[0] - truth, axis=1).mean()

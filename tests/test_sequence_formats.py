@@ -113,12 +113,17 @@ def test_image_formats(tmp_path, suffix):
     assert error < (8.0 if suffix in (".jpg", ".jpeg") else 1e-9)
 
 
-@pytest.mark.parametrize("masks_folder", ["mask", "masks"])
-def test_easymocap_layout(tmp_path, masks_folder):
-    """EasyMocap / ZJU-MoCap: images/<cam>/000000.jpg, mask(s)/<cam>/000000.png (0/1), intri.yml + extri.yml."""
+@pytest.mark.parametrize("masks_folder,sizes_written", [("mask", True), ("masks", True), ("mask", False)])
+def test_easymocap_layout(tmp_path, masks_folder, sizes_written):
+    """EasyMocap / ZJU-MoCap: images/<cam>/000000.jpg, mask(s)/<cam>/000000.png (0/1), intri.yml + extri.yml,
+    with image sizes or, as EasyMocap's write_intri writes it, without (then the images' sizes)."""
     root = tmp_path / "easymocap"
     studio = _studio(((W, H), (W, H), (W, H)))
     save_calibration(studio, root, fmt="easymocap")
+    if not sizes_written:
+        intri = root / "intri.yml"
+        intri.write_text("".join(line for line in intri.read_text().splitlines(keepends=True)
+                                 if not line.startswith(("H_", "W_"))))
     for k, cam in enumerate(studio):
         for f in range(3):
             _save(root / "images" / cam.name / f"{f:06d}.jpg", _image(W, H, k, f))

@@ -10,7 +10,7 @@ import shutil
 import numpy as np
 import pytest
 
-from common.sequence import read_png
+from common.sequence import read_image
 from server.cli import main as mocap
 
 imageio = pytest.importorskip("imageio.v3")
@@ -49,8 +49,8 @@ def test_videos_to_poses(tmp_path):
     # segmentation quality against the exact masks
     for cam in cams[:2]:
         for f in range(FRAMES):
-            truth = read_png(seq / "silhouettes_true" / cam / f"{f:06d}.png", "L") > 127
-            seg = read_png(imported / "silhouettes" / cam / f"{f:06d}.png", "L") > 127
+            truth = read_image(seq / "silhouettes_true" / cam / f"{f:06d}.png", "L") > 127
+            seg = read_image(imported / "silhouettes" / cam / f"{f:06d}.png", "L") > 127
             eta = np.count_nonzero(truth & ~seg) / truth.sum()
             xi = np.count_nonzero(seg & ~truth) / (~truth).sum()
             assert eta < 0.08 and xi < 0.02, (cam, f, eta, xi)

@@ -13,8 +13,7 @@ from common.world import UP_CHOICES, cameras_below_floor, detect_up, resolve_wor
 
 def user_studio(studio: Studio, up: str) -> Studio:
     """Our z-up studio re-expressed in a world whose up axis is ``up``."""
-    return world_frame(up).studio_to_fit(studio) if up == "+z" else Studio(
-        tuple(type(c)(c.name, c.K, c.dist, c.R @ world_frame(up).rotation, c.t, c.width, c.height) for c in studio))
+    return world_frame(up).studio_to_user(studio)
 
 
 @pytest.mark.parametrize("up", [u for u in UP_CHOICES if u != "auto"])
@@ -27,6 +26,10 @@ def test_detect_up_finds_each_axis_and_the_fit_frame_is_ours(up):
     point = np.array([[0.3, -0.2, 1.1]])
     for a, b in zip(ours, back):
         np.testing.assert_allclose(a.project(point), b.project(point), atol=1e-9)
+    # studio_to_user and studio_to_fit undo each other
+    for a, b in zip(theirs, world.studio_to_user(back)):
+        np.testing.assert_allclose(b.R, a.R, atol=1e-12)
+        np.testing.assert_array_equal(b.t, a.t)
     # points go to the user's frame and back; the user's frame projects with the user's cameras
     user_point = world.points_to_user(point)
     np.testing.assert_allclose(world.points_to_fit(user_point), point, atol=1e-12)
@@ -77,3 +80,15 @@ def test_blobs_one_camera_sees_alone_are_dropped_and_the_actor_kept():
     assert not cleaned[0, 2:10, 2:12].any() and not cleaned[3, 100:118, 140:158].any()
     np.testing.assert_array_equal(cleaned, masks)
     assert removed[0] == 80 and removed[3] == 18 * 18 and removed[1] == 0
+
+
+def test_a_sequence_cleans_its_masks_unless_asked_not_to(small_sequence):
+    from common.sequence import load_sequence
+
+    cleaned, raw = load_sequence(small_sequence), load_sequence(small_sequence, clean_masks=False)
+    frame = cleaned.frames[0]
+    np.testing.assert_array_equal(raw.silhouettes(frame), raw.raw_silhouettes(frame))
+    masks, removed = cleaned.cleaned(frame)
+    np.testing.assert_array_equal(cleaned.silhouettes(frame), masks)
+    assert not np.any(masks & ~raw.silhouettes(frame))  # cleaning only removes
+    np.testing.assert_array_equal(removed, (raw.silhouettes(frame) & ~masks).sum(axis=(1, 2)))

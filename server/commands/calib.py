@@ -12,7 +12,6 @@ file or ``--size`` get twice their principal point; ``show`` marks them with ``*
 from __future__ import annotations
 
 import re
-import sys
 
 import numpy as np
 
@@ -20,7 +19,7 @@ from common.calibration import (
     FORMATS, UNIT_SCALE, WRITE_FORMATS, detect_format, load_calibration, output_format, save_calibration,
 )
 from common.camera import Studio
-from common.errors import UserError
+from common.errors import UserError, print_warning
 from common.world import UP_CHOICES, cameras_below_floor, detect_up, resolve_world
 
 
@@ -93,8 +92,8 @@ def world_line(studio: Studio, up: str) -> str:
     world = resolve_world(studio, up)
     below = cameras_below_floor(studio, world)
     if below:
-        print(f"warning: with up {world.up} cameras {', '.join(below)} stand below the floor (z = 0); "
-              f"is the up axis right? (auto finds {detect_up(studio)})", file=sys.stderr)
+        print_warning(f"with up {world.up} cameras {', '.join(below)} stand below the floor (z = 0); "
+                      f"is the up axis right? (auto finds {detect_up(studio)})")
     how = "found from the cameras" if up == "auto" else "as given"
     return f"up axis: {world.up} ({how}); fitting turns it to +z and writes results in this frame"
 

@@ -13,7 +13,8 @@ from common.sequence import load_sequence
 from common.world import UP_CHOICES
 from server.cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.progress import Progress
-from server.session import POSES_FILE, LocalSolver, choose_actor_scale, load_records, read_done_frames, refinement_note, run_fit, tracking_error_note
+from server.session import (POSES_FILE, LocalSolver, choose_actor_scale, load_records, read_done_frames,
+                            refinement_note, run_fit, tracking_error_note)
 
 INIT_CHOICES = ("auto", "truth", "standing")
 
@@ -143,6 +144,8 @@ def add_world_arguments(p) -> None:
                         "the floor); fitting runs z up, results are written in the calibration's frame")
     p.add_argument("--mask-threshold", type=int, default=None, metavar="0-255",
                    help="accept grey or colour images as silhouettes: pixels brighter than this are foreground")
+    p.add_argument("--no-clean-masks", dest="clean_masks", action="store_false",
+                   help="fit the masks as they are (default: blobs the other cameras do not support are dropped)")
 
 
 def actor_model(model, seq, options, args, init: str):
@@ -167,7 +170,8 @@ def actor_model(model, seq, options, args, init: str):
 
 def run(args) -> int:
     base = load_body_model()
-    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold)
+    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
+                        clean_masks=args.clean_masks)
     options = options_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
     model = actor_model(base, seq, options, args, init)

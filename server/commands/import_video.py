@@ -20,16 +20,15 @@ counted before the output folder is made.
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
 from common.calibration import load_calibration, save_calibration, with_image_sizes
-from common.errors import InputFileError, UserError
-from common.sequence import (DEFAULT_FPS, FRAME_NAME, IMAGE_SUFFIXES, check_size, frame_files, read_image,
-                             write_sequence_meta)
+from common.errors import InputFileError, UserError, print_warning
+from common.sequence import (DEFAULT_FPS, FRAME_NAME, IMAGE_SUFFIXES, check_size, frame_files, image_size,
+                             read_image, write_sequence_meta)
 
 PNG_COMPRESS_LEVEL = 1  # fast; frames are large and many
 MAX_TRIM_FRAMES = 10  # recordings may differ in length by at most this many frames ...
@@ -157,11 +156,16 @@ class FrameSource:
         used = 0
         if self.files is not None:
             for i in range(self.count):
-                if keep(i) and used < hold_bytes:
+                if not keep(i):
+                    continue
+                if used < hold_bytes:
                     frame = self._read_file(i)
                     check_size(frame.shape, self.where(i), camera)
                     self.held[i] = frame
                     used += frame.nbytes
+                else:  # read again when written: its header is checked now
+                    width, height = image_size(self.where(i))
+                    check_size((height, width), self.where(i), camera)
             return used
         count = 0
         for i, frame in enumerate(self._decode()):
@@ -282,8 +286,6 @@ def run(args) -> int:
     firsts = {n: s.first() for n, s in sources.items()}
     # A calibration without image sizes gets the videos'; one with sizes must agree with them.
     studio = with_image_sizes(studio, {n: (f.shape[1], f.shape[0]) for n, f in firsts.items()}, "--video")
-    for n, image in firsts.items():
-        check_size(image.shape, sources[n].where(0), studio.camera(n))
     for n, src in bg_sources.items():
         check_size(src.first().shape, src.where(0), studio.camera(n))
 
@@ -306,7 +308,7 @@ def run(args) -> int:
         raise UserError(f"--start {args.start} --stop {args.stop} --step {args.step}: no frames selected "
                         f"(the recordings have frames {lo}..{hi - 1} in common)")
     if warning:
-        print(f"mocap import-video: warning: {warning}", file=sys.stderr)
+        print_warning(warning)
 
     out.mkdir(parents=True, exist_ok=True)
     for n in names:

@@ -25,7 +25,7 @@ import numpy as np
 
 from common.ellipsoid_fit import SHELL_NAMES, fit_ellipsoids
 from common.errors import InputFileError, UserError
-from common.sequence import load_sequence, read_png
+from common.sequence import load_sequence, read_image
 from server.commands.fit import add_world_arguments
 from common.voxels import SpotGrid, surface_voxels
 
@@ -76,7 +76,8 @@ def run(args) -> int:
         raise UserError(f"--repeat: expected a positive count, got {args.repeat}")
     if not args.rate >= 0.0:
         raise UserError(f"--rate: expected frames per second >= 0, got {args.rate}")
-    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold)
+    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
+                        clean_masks=args.clean_masks)
     frames = (seq.frames[:args.frames] if args.frames else seq.frames) * args.repeat
     acquire, segment = _sources(seq, args.method)
     grid = SpotGrid.build(seq.studio, grid=args.grid, q=args.q)
@@ -116,7 +117,7 @@ def _sources(seq, method: str):
         files = sorted(folder.glob("*.png")) if folder.is_dir() else []
         if not files:
             raise InputFileError(folder, f"missing: empty-studio frames of camera {cam.name} are needed to segment")
-        backgrounds = np.stack([read_png(f, "RGB") for f in files])
+        backgrounds = np.stack([read_image(f, "RGB") for f in files])
         segmenters.append(segmentation.make_segmenter(method).fit(backgrounds))
 
     def acquire(item):

@@ -11,12 +11,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from common.errors import InputFileError
 from common.segmentation import METHODS, load_params, make_segmenter, params_dict
-from common.sequence import (IMAGE_SUFFIXES, check_size, frame_files, load_sequence, read_image, write_mask_png,
-                             write_sequence_meta)
+from common.sequence import (IMAGE_SUFFIXES, check_size, frame_files, image_size, load_sequence, read_image,
+                             write_mask_png, write_sequence_meta)
 
 
 def register(subparsers) -> None:
@@ -55,11 +54,7 @@ def run(args) -> int:
             raise InputFileError(bg_dir, f"no numbered empty-studio images ({', '.join(IMAGE_SUFFIXES)})")
         background_files[cam.name] = files
         for path in files:  # the size from the header; the pixels are read once, below
-            try:
-                with Image.open(path) as im:
-                    width, height = im.size
-            except (UnidentifiedImageError, OSError, ValueError) as exc:
-                raise InputFileError(path, f"not a readable image ({exc})") from None
+            width, height = image_size(path)
             check_size((height, width), path, cam)
     seq.check_files(seq.frames, masks=False, images=True)
 

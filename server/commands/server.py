@@ -29,7 +29,8 @@ def register(sub) -> None:
 def run(args) -> int:
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="mocap server: %(message)s")
     model = load_body_model()
-    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold)
+    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
+                        clean_masks=args.clean_masks)
     options = options_from_args(args)
     total = min(len(seq.frames), args.frames or len(seq.frames))
     bar = Progress("fit", total, enabled=None if not args.quiet else False)

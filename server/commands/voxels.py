@@ -58,7 +58,8 @@ def run(args) -> int:
         raise UserError(f"--frames: expected a positive count, got {args.frames}")
     if args.pictures < 0:
         raise UserError(f"--pictures: expected 0 or more, got {args.pictures}")
-    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold)
+    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
+                        clean_masks=args.clean_masks)
     if not seq.has_silhouettes:
         raise InputFileError(seq.path / "silhouettes", "missing: make silhouettes first (mocap segment)")
     bounds = None if args.bounds is None else np.array(args.bounds).reshape(2, 3)
