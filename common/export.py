@@ -64,8 +64,9 @@ class FittedMotion:
     """A fitted sequence ready to export.
 
     frames: (F,) int frame numbers; fps: frames per second; params: (F, 35);
-    joints: (F, 17, 3) world joint positions, metres (as recorded by the fit);
-    model: the actor whose forward kinematics turns params into joints.
+    joints: (F, 17, 3) world joint positions, metres, in the user's frame (as recorded by the fit);
+    model: the actor whose forward kinematics turns params into joints; up: the user's up axis
+    (``common.world``): params and ``fit_joints`` are in the z-up fit frame.
     """
 
     frames: np.ndarray
@@ -73,6 +74,16 @@ class FittedMotion:
     params: np.ndarray
     joints: np.ndarray
     model: BodyModel
+    up: str = "+z"
+
+    @property
+    def world(self):
+        return world_frame(self.up)
+
+    @property
+    def fit_joints(self) -> np.ndarray:
+        """(F, 17, 3) the joints in the z-up fit frame (as params put them): for pictures."""
+        return self.world.points_to_fit(self.joints)
 
     @property
     def times(self) -> np.ndarray:
@@ -95,10 +106,10 @@ class FittedMotion:
             raise UserError(f"{source}: not a poses record ({exc!r})") from None
         if params.shape != (len(records), PARAM_COUNT) or joints.shape != (len(records), len(JOINT_NAMES), 3):
             raise UserError(f"{source}: expected {PARAM_COUNT} params and {len(JOINT_NAMES)} joints per frame")
+        up = str(records[0].get("world_up", "+z"))
         # joints are in the user's world; the body's parameters in the z-up fit frame (common.world)
-        fit_joints = world_frame(str(records[0].get("world_up", "+z"))).points_to_fit(joints)
-        model = actor_from_joints(base or load_body_model(), params, fit_joints, source)
-        return cls(frames, float(fps), params, joints, model)
+        model = actor_from_joints(base or load_body_model(), params, world_frame(up).points_to_fit(joints), source)
+        return cls(frames, float(fps), params, joints, model, up)
 
 
 def actor_from_joints(base: BodyModel, params: np.ndarray, joints: np.ndarray,

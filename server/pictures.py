@@ -76,7 +76,8 @@ class ResultData:
 
     records: poses.jsonl lines; summary: summary.json ({} when missing); motion: the fitted
     motion; sequence: the sequence it was fitted to, or None when it cannot be found;
-    truth: (F, 17, 3) true joints aligned with motion.frames (NaN where a frame has none), or None.
+    truth: (F, 17, 3) true joints aligned with motion.frames (NaN where a frame has none), or None,
+    in the z-up fit frame as everything drawn is (``motion.fit_joints``; the files hold the user's).
     """
 
     path: Path
@@ -98,7 +99,7 @@ class ResultData:
         """(F, 17) distance from fitted to true joints, mm (NaN where no truth), or None."""
         if self.truth is None:
             return None
-        return np.linalg.norm(self.motion.joints - self.truth, axis=-1) * 1000.0
+        return np.linalg.norm(self.motion.fit_joints - self.truth, axis=-1) * 1000.0
 
 
 def _sequence_path(result_dir: Path, summary: dict, sequence_dir) -> Path | None:
@@ -147,8 +148,7 @@ def load_result(result_dir, sequence_dir=None, fps: float | None = None) -> Resu
                 t = frames_truth.get(int(f))
                 if t is not None:
                     truth[i] = [t.joints[n] for n in JOINT_NAMES]
-            if np.all(np.isnan(truth)):
-                truth = None
+            truth = None if np.all(np.isnan(truth)) else motion.world.points_to_fit(truth)
     return ResultData(result_dir, records, summary, motion, sequence, truth)
 
 
@@ -421,7 +421,7 @@ def model_views(result: ResultData, painter: ModelPainter, frame: int,
                 angles=((-70.0, 12.0), (0.0, 12.0), (-90.0, 70.0)), size=VIEW_SIZE) -> np.ndarray:
     """The fitted model at ``frame`` from several (azimuth, elevation) viewpoints, side by side."""
     i = frame_index(result, frame)
-    joints = result.motion.joints[i]
+    joints = result.motion.fit_joints[i]
     truth = result.truth[i] if result.truth is not None else None
     target = view_target(joints)
     pics = []
@@ -448,11 +448,12 @@ def write_sequence_gif(result: ResultData, painter: ModelPainter, path, camera: 
     step = max(1, int(np.ceil(F / MAX_GIF_FRAMES)))
     chosen = range(0, F, step)
     # one fixed viewing direction, the camera following the pelvis
-    ground_z = 0.5 * (result.motion.joints[..., 2].max() + max(result.motion.joints[..., 2].min(), 0.0))
+    joints = result.motion.fit_joints
+    ground_z = 0.5 * (joints[..., 2].max() + max(joints[..., 2].min(), 0.0))
     size = (GIF_HEIGHT, GIF_HEIGHT)
     frames = []
     for n, i in enumerate(chosen):
-        target = np.array([result.motion.joints[i, 0, 0], result.motion.joints[i, 0, 1], ground_z])
+        target = np.array([joints[i, 0, 0], joints[i, 0, 1], ground_z])
         cam = orbit_camera(target, -70.0, 12.0, size, distance_m=GIF_VIEW_DISTANCE_M)
         panels = [painter.view(result.motion.params[i], cam)]
         caption = f"frame {int(result.motion.frames[i])}"

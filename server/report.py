@@ -57,7 +57,7 @@ def _json_for_script(doc) -> str:
 def player_data(result: ResultData) -> dict:
     """What the skeleton player needs: joints in mm (rounded), bones, per-frame numbers."""
     m = result.motion
-    fitted = np.round(m.joints * MM).astype(int).reshape(len(m.frames), -1).tolist()
+    fitted = np.round(m.fit_joints * MM).astype(int).reshape(len(m.frames), -1).tolist()  # upright: z up
     truth = None
     if result.truth is not None:
         truth = [None if np.any(np.isnan(t)) else np.round(t * MM).astype(int).reshape(-1).tolist()
@@ -90,7 +90,22 @@ def summary_rows(result: ResultData) -> list[tuple[str, str]]:
         ("evaluations per frame", _fmt(s.get("evaluations_per_frame"), ".0f")),
         ("mean energy (XOR pixels)", _fmt(float(np.nanmean(result.energies)), ".0f")),
     ]
+    quality = s.get("fit_quality") or {}
+    quality_rows = []
+    if quality:
+        flagged = quality["frames_flagged"]
+        quality_rows = [("fit quality: XOR / silhouette area", f"mean {quality['mean_xor_share']:.0%}, worst frame "
+                                                                f"{quality['max_xor_share']:.0%}"),
+                        ("XOR share per camera", ", ".join(f"{c} {v:.0%}" for c, v in
+                                                          quality["per_camera_mean_xor_share"].items())),
+                        (f"frames over {quality['flag_share']:.0%} in a camera",
+                         f"{len(flagged)} of {len(m.frames)}" + (f" (first: frame {flagged[0]['frame']}, "
+                                                                  f"{', '.join(flagged[0]['cameras'])})" if flagged else ""))]
     err = result.joint_errors_mm()
+    if err is None:  # without truth, how well the body explains the masks comes first
+        rows = rows[:2] + quality_rows + rows[2:]
+    else:
+        rows += quality_rows
     if err is not None:
         rows += [("mean joint error", _fmt(float(np.nanmean(err)), ".1f", " mm")),
                  ("max joint error", _fmt(float(np.nanmax(err)), ".1f", " mm"))]
@@ -100,7 +115,9 @@ def summary_rows(result: ResultData) -> list[tuple[str, str]]:
         rows.append(("joint error", "no truth.jsonl in the sequence"))
     if result.sequence is not None:
         st = result.sequence.studio
-        rows += [("cameras", f"{len(st)} ({st[0].width}x{st[0].height})"), ("sequence", str(result.sequence.path))]
+        sizes = sorted({f"{w}x{h}" for w, h in st.sizes})
+        rows += [("cameras", f"{len(st)} ({', '.join(sizes)})"), ("world up axis", result.motion.up),
+                 ("sequence", str(result.sequence.path))]
     else:
         rows.append(("sequence", f"{s.get('sequence', '?')} (not found)"))
     rows.append(("result", str(result.path)))

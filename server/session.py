@@ -215,30 +215,31 @@ def voxel_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:
     return starts + list(head_down_starts(model, init.shells)) + postures
 
 
-POSTURE_HEADINGS = 8        # headings (evenly spread) at which each of SEARCH_POSTURES is tried
-POSTURE_SCREENED = 12       # of those, the lowest by energy as placed get their root fitted ...
-POSTURE_STARTS_KEPT = 3     # ... and the lowest this many after it start the search
-POSTURE_ROOT_EVALS = 200    # evaluations of the root's Powell fit per screened posture
+POSTURE_HEADINGS = 8        # headings (evenly spread) at which each of SEARCH_POSTURES is tried, its root fitted
+POSTURE_STARTS_KEPT = 3     # the lowest this many of them start the search
+POSTURE_ROOT_EVALS = 200    # evaluations of the root's Powell fit per posture and heading
 
 
 def posture_starts(model: BodyModel, data: FrameData, centre: np.ndarray | None, heading: float) -> list:
     """Seated, crouching, kneeling and lying starts (``common.postures.SEARCH_POSTURES``) at the
     actor's place, screened cheaply on the half-resolution whole-image energy: every posture at
-    POSTURE_HEADINGS headings from ``heading``, the POSTURE_SCREENED lowest with their root
-    (position and heading) fitted by Powell, the POSTURE_STARTS_KEPT lowest of those kept.
+    POSTURE_HEADINGS headings from ``heading``, each with its root (position and heading) fitted
+    by Powell, the POSTURE_STARTS_KEPT lowest kept.
     Why: every other start is upright or head down, and the search's local fits do not fold a
-    standing body onto a chair (a seated take fitted from them ends standing, 71% XOR)."""
+    standing body onto a chair (a seated take fitted from them ends standing, 71% XOR). Every
+    heading gets its root fitted because a crouch or a seat as placed looks alike facing front
+    and back, the silhouettes' centre ahead of the pelvis (ranked as placed, a crouch was kept
+    facing back, 90 mm off)."""
     if centre is None:
         return []
     energy = data.whole_image_energy(half=True)
     headings = heading + np.arange(POSTURE_HEADINGS) * (2.0 * np.pi / POSTURE_HEADINGS)
     placed = np.array([posture_params(model, name, centre[0], centre[1], h)
                        for name in SEARCH_POSTURES for h in headings])
-    order = np.argsort(energy(placed), kind="stable")[:POSTURE_SCREENED]
     root = [P["root_x"], P["root_y"], P["root_z"], P["root_heading"]]
     steps = np.array([0.1, 0.1, 0.05, 0.3])
     options = FitOptions()
-    fitted = [powell(energy, placed[i], root, steps, options, POSTURE_ROOT_EVALS)[:2] for i in order]
+    fitted = [powell(energy, start, root, steps, options, POSTURE_ROOT_EVALS)[:2] for start in placed]
     fitted.sort(key=lambda f: f[1])
     return [params for params, _ in fitted[:POSTURE_STARTS_KEPT]]
 
@@ -247,13 +248,19 @@ def posture_starts(model: BodyModel, data: FrameData, centre: np.ndarray | None,
 # model's own (1.66 m): adults of about 1.5 to 2.15 m, in the calibration's units (a rig
 # calibrated with a mis-measured board scales everyone).
 ACTOR_SCALES = (0.9, 1.0, 1.1, 1.2, 1.3)
+# Another size is taken only where its fit has this much less energy than the model's own size:
+# the same pose fitted again at a nearby size moves the energy by a few per cent either way
+# (a crouch, 1.0 truth: 2.4% less at 0.9), a body really too small by much more (the seated
+# take: 28% less at 1.3).
+ACTOR_SCALE_MIN_GAIN = 0.05
 
 
 def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions) -> float:
     """The actor's size over ``model``'s, chosen by the silhouettes of the first frame: the
     first frame searched once at the model's size (every start, one way of re-detecting limbs),
     then its best pose fitted again at each of ACTOR_SCALES (the pelvis height scaled along),
-    and the size whose fit explains the masks best (lowest XOR energy) kept.
+    and the size whose fit explains the masks best (lowest XOR energy) kept if it beats the
+    model's own size by ACTOR_SCALE_MIN_GAIN.
     Why: real subjects are not the body model's size, and a body too small for its silhouettes
     folds into them wrongly (the seated take, fitted at 1.66 m, stood)."""
     frame = seq.frames[0]
@@ -261,7 +268,7 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions) -> 
     solver = LocalSolver(model, options)
     wide = first_frame_options(options, FIRST_FRAME_REDETECT_TURNS[0])
     found = fit_from_starts(model, data, frame, voxel_starts(model, data), [wide], solver)
-    best_scale, best_energy = 1.0, found.energy
+    best_scale, best_energy = 1.0, found.energy * (1.0 - ACTOR_SCALE_MIN_GAIN)
     for scale in ACTOR_SCALES:
         if scale == 1.0:
             continue

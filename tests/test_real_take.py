@@ -61,6 +61,12 @@ def test_the_seated_take_fits_seated_upright_and_still(tmp_path):
     # upright: the head above the pelvis in the z-up fit frame, i.e. below it in the file's z-down world
     assert all(r["joints"]["head_top"][2] < r["joints"]["pelvis"][2] for r in records)
     assert np.median(fig["jitter_mm"]) < 10.0
+    mocap("report", result)
+    page = (result / "report.html").read_text()
+    assert "fit quality: XOR / silhouette area" in page and "world up axis" in page
+    player = json.loads(page.split('<script type="application/json" id="player-data">')[1].split("</script>")[0])
+    head, pelvis = player["joints"].index("head_top"), player["joints"].index("pelvis")
+    assert all(f[3 * head + 2] > f[3 * pelvis + 2] for f in player["fitted"])  # upright in the report's z-up view
     summary = json.loads((result / "summary.json").read_text())
     assert summary["world_up"] == "-z" and summary["fit_quality"]["mean_xor_share"] < 0.6
     assert set(summary["fit_quality"]["per_camera_mean_xor_share"]) == set(CAMERAS)

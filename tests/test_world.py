@@ -92,3 +92,39 @@ def test_a_sequence_cleans_its_masks_unless_asked_not_to(small_sequence):
     np.testing.assert_array_equal(cleaned.silhouettes(frame), masks)
     assert not np.any(masks & ~raw.silhouettes(frame))  # cleaning only removes
     np.testing.assert_array_equal(removed, (raw.silhouettes(frame) & ~masks).sum(axis=(1, 2)))
+
+
+def test_a_fitted_motion_in_a_z_down_world_is_drawn_z_up(model):
+    from common.body import rest_params
+    from common.export import FittedMotion
+
+    params = rest_params(model)[None]
+    fit = forward_kinematics(model, params).joints
+    user = world_frame("-z").points_to_user(fit)
+    records = [{"frame": 0, "params": params[0].tolist(), "world_up": "-z",
+                "joints": {n: user[0, i].tolist() for i, n in enumerate(JOINT_NAMES)}}]
+    motion = FittedMotion.from_records(records, 30.0)
+    assert motion.up == "-z" and motion.joints[0, -1, 2] < 0  # the file's frame: the head at negative z
+    np.testing.assert_allclose(motion.fit_joints, fit, atol=1e-12)
+
+
+@pytest.mark.parametrize("energies,chosen", [
+    ({0.9: 99.0, 1.1: 97.0, 1.2: 96.0, 1.3: 98.0}, 1.0),  # a few per cent either way: the model's size
+    ({0.9: 120.0, 1.1: 90.0, 1.2: 80.0, 1.3: 72.0}, 1.3),  # much less energy at 1.3: the actor is larger
+    ({0.9: 80.0, 1.1: 110.0, 1.2: 130.0, 1.3: 150.0}, 0.9),
+])
+def test_the_actor_size_changes_only_for_a_clear_gain(monkeypatch, model, energies, chosen):
+    from common.fitting import FitOptions, FrameResult
+    from server import session
+
+    seq = type("Seq", (), {"frames": [0]})()
+    monkeypatch.setattr(session, "frame_data", lambda *_: None)
+    monkeypatch.setattr(session, "voxel_starts", lambda *_: [])
+    monkeypatch.setattr(session, "fit_from_starts",
+                        lambda m, d, f, starts, opts, solver: FrameResult(np.zeros(35), 100.0, 1, 1))
+
+    def fake_fit(actor, data, start, options, dispatch, **_):
+        return FrameResult(start, energies[round(actor.height / model.height, 2)], 1, 1)
+
+    monkeypatch.setattr(session, "fit_frame", fake_fit)
+    assert session.choose_actor_scale(model, seq, FitOptions()) == chosen
