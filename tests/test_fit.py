@@ -428,14 +428,14 @@ def test_fit_silhouette_of_the_wrong_size(broken_copy, tmp_path, capsys):
     _expect_user_error(capsys, rc, str(png), "80x60")
 
 
-def test_fit_truncated_png_keeps_the_frames_already_fitted(broken_copy, tmp_path, capsys):
+def test_fit_truncated_png_is_refused_before_anything_is_written(broken_copy, tmp_path, capsys):
     png = broken_copy / "silhouettes" / "cam3" / "000001.png"
     png.write_bytes(png.read_bytes()[:60])
     out = tmp_path / "out"
     rc = fit(broken_copy, out, "--frames", "2")
     _expect_user_error(capsys, rc, str(png))
-    # frame 0 was fitted and written before frame 1's silhouettes were read
-    assert [r["frame"] for r in read_lines(out / "poses.jsonl")] == [0]
+    # every frame's masks are read before the first is fitted: no result folder at all
+    assert not out.exists()
 
 
 # ------------------------------------------------------------------ loss of tracking
@@ -567,7 +567,9 @@ def test_a_searching_pass_refits_a_frame_from_its_limbs_other_basins(model, five
     from server.session import LocalSolver, RunStats, refine_pass, refinement_note, run_fit
 
     monkeypatch.setattr(session, "PASS_START_HOPS", 0)  # the search alone, not the start's hops
-    seq = load_sequence(five_frames)
+    # the masks as rendered: the cleaning drops a few stray pixels of the hands (1-6 per camera),
+    # and on them the arm's other basin lies 460 mm off with less energy
+    seq = load_sequence(five_frames, clean_masks=False)
     options = FitOptions(refine_passes=2, refine_search=True)
     summary = run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=2)
     assert [(p["direction"], p["search"]) for p in summary["refinement_passes"]] == [("backward", True),
