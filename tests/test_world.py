@@ -128,3 +128,23 @@ def test_the_actor_size_changes_only_for_a_clear_gain(monkeypatch, model, energi
 
     monkeypatch.setattr(session, "fit_frame", fake_fit)
     assert session.choose_actor_scale(model, seq, FitOptions()) == chosen
+
+
+@pytest.mark.parametrize("posture", ["crouching", "seated", "lying_side"])
+def test_posture_starts_face_the_way_the_actor_does(tmp_path, model, posture):
+    """The best posture start of a crouch, a seat or a side-lying body stands where the actor is
+    and faces its way (placed as they are, a crouch looked alike facing back)."""
+    from common import voxels
+    from common.camera import circle_studio
+    from common.sequence import load_sequence
+    from common.synth import SynthOptions, synthesize
+    from server.session import frame_data, posture_starts
+
+    synthesize(model, circle_studio(6, 160, 120), None, tmp_path / "seq",
+               SynthOptions(frames=1, posture=posture, noise="none", seed=1))
+    seq = load_sequence(tmp_path / "seq")
+    truth = seq.truth()[seq.frames[0]].params
+    data = frame_data(model, seq, seq.frames[0])
+    best = posture_starts(model, data, voxels.silhouette_centre(data.studio, data.masks), 0.0)[0]
+    turn = np.angle(np.exp(1j * (best[P["root_heading"]] - truth[P["root_heading"]])))
+    assert abs(turn) < 0.5 and np.linalg.norm(best[:2] - truth[:2]) < 0.2
