@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 DEMO_DIR ?= demo
 DEMO_CLIP ?= common/data/clips/cmu_12_01_walk.bvh
 
-.PHONY: venv demo test test-all real-test bench cluster cluster-test clean
+.PHONY: venv demo test test-all real-test bench reliability cluster cluster-test clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -31,6 +31,10 @@ real-test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m server.cli bench all --out bench
+
+# Bad inputs, injected faults and a long fuzz run, counted into bench/reliability.json.
+reliability: $(STAMP)
+	$(PY) tools/reliability.py --out bench/reliability.json
 
 # The fitting cluster as containers (server + 4 clients) on a private Docker engine; needs root.
 # cluster: the demo sequence, its summary, single process vs distributed (images kept in

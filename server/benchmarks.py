@@ -177,7 +177,8 @@ def restarted_tail_errors_mm(model, seq, workdir: Path, options: FitOptions, fra
     tail = copy.copy(seq)
     tail.frames = list(seq.frames[-frames:])
     tracking = replace(options, refine_passes=0, refine_search=False, refine_hops=0)
-    summary = run_fit(model, tail, workdir, tracking, LocalSolver(model, tracking), init="truth")
+    summary = run_fit(model, tail, workdir, tracking, LocalSolver(model, tracking), init="truth",
+                      overwrite=True)
     return np.asarray(summary["per_frame_error_mm"])
 
 
@@ -209,7 +210,7 @@ def accuracy_rows(frames: int, workdir: Path, clips=ACCURACY_CLIPS, options: Fit
             synthesize(model, circle_studio(), clip_dir / clip, seq_dir, SynthOptions(frames=frames, noise="cheung", seed=0))
         seq = load_sequence(seq_dir)
         summary = run_fit(model, seq, workdir / f"result-{Path(clip).stem}-{options.energy}", options,
-                          LocalSolver(model, options), progress=progress)
+                          LocalSolver(model, options), progress=progress, overwrite=True)
         row = {"clip": clip, "energy_backend": options.energy, "frames": summary["frames"],
                "refine_passes": options.refine_passes, "refine_search": options.refine_search,
                "refine_hops": options.refine_hops}
@@ -295,13 +296,13 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
             auto_dir = workdir / f"auto-{clip.stem}-{label}"
             try:
                 auto = run_fit(model, seq, auto_dir, options, LocalSolver(model, options), init="auto",
-                               max_frames=fitted)
+                               max_frames=fitted, overwrite=True)
             except UserError as exc:  # the clip's other rows still count (an actor out of most views)
                 rows.append({"clip": clip.name, "start": label, "start_frame": start, "first_frame_ok": False,
                              "error": str(exc)})
                 continue
             given = run_fit(model, seq, workdir / f"truth-{clip.stem}-{label}", options, LocalSolver(model, options),
-                            init="truth", max_frames=fitted)
+                            init="truth", max_frames=fitted, overwrite=True)
             first = auto["per_frame_error_mm"][0]
             first_record = load_records(auto_dir)[0]
             rows.append({"clip": clip.name, "start": label, "start_frame": start, "frames": auto["frames"],

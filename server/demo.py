@@ -16,7 +16,9 @@ from pathlib import Path
 from common.body import load_body_model
 from common.camera import circle_studio
 from common.synth import SynthOptions, synthesize
+from server.argtypes import count
 from server.commands.synth import DEFAULT_CLIP
+from server.output import staged_folder
 
 DEMO_FRAMES = 30
 
@@ -25,17 +27,18 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m server.demo", description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=Path("demo"))
     ap.add_argument("--clip", type=Path, default=DEFAULT_CLIP)
-    ap.add_argument("--frames", type=int, default=DEMO_FRAMES)
-    ap.add_argument("--clients", type=int, default=0)
+    ap.add_argument("--frames", type=count(1), default=DEMO_FRAMES)
+    ap.add_argument("--clients", type=count(0), default=0)
     args = ap.parse_args(argv)
     from server.cli import main as mocap
 
     seq, result = args.out / "sequence", args.out / "result"
     print(f"1/3 virtual studio: {args.clip.name}, {args.frames} frames, 8 cameras, Cheung noise -> {seq}")
-    synthesize(load_body_model(), circle_studio(), args.clip, seq,
-               SynthOptions(frames=args.frames, noise="cheung", seed=0))
+    with staged_folder(seq) as staged:  # the demo's own folder: made again on every run
+        synthesize(load_body_model(), circle_studio(), args.clip, staged,
+                   SynthOptions(frames=args.frames, noise="cheung", seed=0))
     print(f"2/3 fitting -> {result}")
-    code = mocap(["fit", str(seq), "--out", str(result), "--quiet", *(
+    code = mocap(["fit", str(seq), "--out", str(result), "--quiet", "--overwrite", *(
         ["--clients", str(args.clients)] if args.clients else [])])
     if code:
         return code

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from common.body import JOINT_NAMES
+from server.output import write_text
 from server.pictures import (
     BONES, AGREE, EXTRA, MISSED, ModelPainter, ResultData, camera_indices, default_cameras,
     default_frames, fit_height, worst_frame, load_result, make_plots, model_views, overlay_strip, png_bytes,
@@ -206,7 +207,7 @@ def write_report(result_dir, sequence_dir=None, frames=None, cameras=None, out=N
     """
     result = load_result(result_dir, sequence_dir, fps)
     path = Path(out) if out else result.path / REPORT_NAME
-    path.write_text(build_report(result, frames, cameras), encoding="utf-8")
+    write_text(path, build_report(result, frames, cameras))
     return path
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -36,9 +37,19 @@ from common.fitting import (ARM_CHAINS, HOP_JOBS, ChainResult, FitOptions, Frame
                             lowest_energy, midway, powell, rotated_about_pelvis, solve_job, spot_grid, tilted_ahead)
 from common.postures import SEARCH_POSTURES, posture_params
 from common.sequence import Sequence
+from server.output import check_folder_target, write_text
 
 POSES_FILE = "poses.jsonl"
 SUMMARY_FILE = "summary.json"
+RUN_FILE = "run.json"  # the settings of the run that wrote poses.jsonl, which --resume must match
+MOTION_FILE = "motion.bvh"
+RESULT_FILES = (POSES_FILE, SUMMARY_FILE, RUN_FILE, MOTION_FILE)
+# made from a result, so stale once it is replaced (mocap report, mocap export's default names)
+DERIVED_FILES = ("report.html", "pictures", "motion.c3d", "motion.trc", "motion.jsonl", "motion.csv")
+# fewer views leave depth and the limbs' sides unresolved (tools/camera_count_accuracy.py,
+# docs/accuracy.md "Fewer cameras": a walk fits 95/908 mm mean/worst with 1 camera, 63/858 with 2,
+# 7/21 with 3)
+MIN_GOOD_CAMERAS = 3
 FIRST_FRAME_ITERATIONS = 6      # torso -> limbs rounds for a first frame started without truth
 FIRST_FRAME_GRID_STEPS = 5      # limb grid points per parameter, first frame
 FIRST_FRAME_GRID_RANGE = 1.0    # radians, +- limb grid half-width, first frame
@@ -464,19 +475,88 @@ def recovery_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:
 
 
 def read_done_frames(path: Path) -> list[dict]:
-    """Complete lines of an existing poses.jsonl (a torn last line from a crash is dropped)."""
+    """The records of an existing poses.jsonl.
+
+    A torn last line (a crash while it was written: no newline at its end) is dropped; any
+    other line that is not a record is an InputFileError naming it, because the frames after
+    it would otherwise be lost or fitted again.
+    """
     if not path.exists():
         return []
+    lines = path.read_bytes().split(b"\n")
     done = []
-    with open(path) as fh:
-        for line in fh:
-            if not line.endswith("\n"):
-                break
-            try:
-                done.append(json.loads(line))
-            except json.JSONDecodeError:
-                break
+    for n, raw in enumerate(lines[:-1], start=1):  # lines[-1]: b"" or the torn last line
+        try:
+            record = json.loads(raw)
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            record = None
+        if not (isinstance(record, dict) and isinstance(record.get("frame"), int)
+                and isinstance(record.get("params"), list)):
+            raise InputFileError(path, f"line {n}: not a pose record (corrupt?); repair or remove the file, "
+                                       "or fit again with --overwrite")
+        done.append(record)
     return done
+
+
+def run_settings(model: BodyModel, seq: Sequence, options: FitOptions, init: str) -> dict:
+    """What decides a run's poses: written to run.json, and what ``--resume`` must match."""
+    return {"sequence": str(seq.path.resolve()), "init": init, "world_up": seq.world.up,
+            "masks_cleaned": seq.clean_masks, "mask_threshold": seq.mask_threshold,
+            "actor_scale": model_scale(model), "options": options.to_wire()}
+
+
+def settings_differences(before: dict, now: dict, prefix: str = "") -> list[str]:
+    """'KEY NOW (was BEFORE)' for every setting that differs, nested keys joined by dots."""
+    out = []
+    for key in sorted(set(before) | set(now)):
+        a, b = before.get(key), now.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += settings_differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append(f"{prefix}{key} {b!r} (was {a!r})")
+    return out
+
+
+def check_resume(out_dir: Path, settings: dict) -> None:
+    """Refuse to continue a run with other settings than those it was started with."""
+    path = out_dir / RUN_FILE
+    if not path.exists():
+        raise InputFileError(path, "missing: no record of the settings the earlier frames were fitted with; "
+                                   "fit again with --overwrite")
+    try:
+        before = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise InputFileError(path, "not valid JSON (corrupt?); fit again with --overwrite") from None
+    if not isinstance(before, dict):
+        raise InputFileError(path, "expected a JSON object; fit again with --overwrite")
+    differ = settings_differences(before, settings)
+    if differ:
+        raise UserError(f"--resume: the settings differ from the run being continued ({path}): "
+                        + "; ".join(differ) + ". Pass the same options, or --overwrite to fit again")
+
+
+def prepare_result_folder(out_dir: Path, settings: dict, resume: bool, overwrite: bool) -> list[dict]:
+    """Check a result folder and make it ready for a run; returns the records being continued.
+
+    An earlier result is refused unless ``resume`` (its settings must match, see
+    ``check_resume``) or ``overwrite`` (its files, and those made from them, are removed).
+    """
+    earlier = check_folder_target(out_dir, RESULT_FILES, resume=resume, overwrite=overwrite)
+    poses_path = out_dir / POSES_FILE
+    if resume and earlier:
+        check_resume(out_dir, settings)
+        done = read_done_frames(poses_path)
+        _rewrite_complete(poses_path, done)  # drop a torn last line before appending
+        return done
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name in (RESULT_FILES + DERIVED_FILES) if earlier else ():
+        target = out_dir / name
+        if target.is_dir():
+            shutil.rmtree(target)
+        else:
+            target.unlink(missing_ok=True)
+    write_text(out_dir / RUN_FILE, json.dumps(settings, indent=1))
+    return []
 
 
 def _rewrite_complete(path: Path, records: list[dict]) -> None:
@@ -663,25 +743,29 @@ def _refits(model: BodyModel, seq: Sequence, record: dict, neighbour: np.ndarray
 
 
 def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions, solver: Solver,
-            init: str | None = None, resume: bool = False, max_frames: int | None = None, progress=None) -> dict:
-    """Fit the sequence's frames in order; returns the summary (also written to summary.json)."""
+            init: str | None = None, resume: bool = False, max_frames: int | None = None, progress=None,
+            overwrite: bool = False) -> dict:
+    """Fit the sequence's frames in order; returns the summary (also written to summary.json).
+
+    ``resume``: continue the frames of an earlier run there (same settings); ``overwrite``:
+    replace an earlier result; with neither, an earlier result is refused before any work.
+    """
     frames = seq.frames[:max_frames] if max_frames else list(seq.frames)
     seq.check_files(frames)  # every mask there and readable before anything is written
     for warning in seq.check_masks(frames):
         print_warning(warning)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    poses_path = out_dir / POSES_FILE
-    done = read_done_frames(poses_path) if resume else []
-    if resume:
-        expected = frames[:len(done)]
-        if [d.get("frame") for d in done] != expected:
-            raise UserError(f"{poses_path}: does not hold the first frames of {seq.path}; cannot --resume")
-        _rewrite_complete(poses_path, done)  # drop a torn last line before appending
-    elif poses_path.exists():
-        poses_path.unlink()
+    if len(seq.studio) < MIN_GOOD_CAMERAS:
+        print_warning(f"{len(seq.studio)} camera(s): fewer than {MIN_GOOD_CAMERAS} views leave depth and the "
+                      "limbs' sides unresolved; expect joint errors of several centimetres and frames off by up "
+                      "to a metre (a walk in the virtual studio, 2 cameras: 63 mm mean, 858 mm worst; 3 "
+                      "cameras: 7 mm, 21 mm)")
     truth = seq.truth()
     if init is None:  # the truth's first pose where there is one, else automatic initialisation
         init = "truth" if truth else "auto"
+    done = prepare_result_folder(out_dir, run_settings(model, seq, options, init), resume, overwrite)
+    if done and [d["frame"] for d in done] != frames[:len(done)]:
+        raise InputFileError(out_dir / POSES_FILE, f"does not hold the first frames of {seq.path}; cannot --resume")
+    poses_path = out_dir / POSES_FILE
     stats = RunStats()
     wall0 = time.perf_counter()
     x = np.asarray(done[-1]["params"], dtype=np.float64) if done else None
@@ -794,7 +878,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         **{f"tracking_{k}": v for k, v in accuracy([r.get("first_pass", r) | {"frame": r["frame"]} for r in records],
                                                    truth).items() if k != "per_joint_error_mm"},
     }
-    (out_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=1))
+    write_text(out_dir / SUMMARY_FILE, json.dumps(summary, indent=1))
     return summary
 
 

@@ -72,7 +72,7 @@ def test_bench_init_rejects_a_missing_clip(tmp_path, captured, capsys):
 
 def test_bench_init_rejects_negative_hops(captured, capsys):
     assert main(["bench", "init", "--bundled", "--refine-hops", "-1"]) == 2
-    assert "refine_hops must be >= 0" in capsys.readouterr().err and not captured
+    assert "--refine-hops: expected an integer >= 0" in capsys.readouterr().err and not captured
 
 
 def test_init_table_counts_first_frames_on_target(capsys):

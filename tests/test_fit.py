@@ -350,7 +350,7 @@ def test_the_summary_table_shows_refinement_beside_tracking(fresh_result):
 
 def test_fit_refuses_negative_refine_passes(small_sequence, tmp_path, capsys):
     assert fit(small_sequence, tmp_path / "r", "--refine-passes", "-1") == 2
-    assert "refine_passes" in capsys.readouterr().err
+    assert "--refine-passes: expected an integer >= 0, got -1" in capsys.readouterr().err
 
 
 def test_mocap_fit_resume_after_a_crash(fresh_result, small_sequence, tmp_path):
@@ -359,6 +359,7 @@ def test_mocap_fit_resume_after_a_crash(fresh_result, small_sequence, tmp_path):
     out.mkdir()
     torn = fresh[1][: len(fresh[1]) // 3]  # a crash in the middle of writing frame 1
     (out / "poses.jsonl").write_text(fresh[0] + torn)
+    shutil.copy(fresh_result / "run.json", out)  # the settings the crashed run was started with
     assert fit(small_sequence, out, "--frames", "2", "--resume") == 0
     resumed = read_lines(out / "poses.jsonl")
     first, second = json.loads(fresh[0]), json.loads(fresh[1])
@@ -373,10 +374,11 @@ def test_mocap_fit_resume_after_a_crash(fresh_result, small_sequence, tmp_path):
     assert (out / "motion.bvh").is_file()
 
 
-def test_mocap_fit_resume_refuses_a_foreign_result(small_sequence, tmp_path, capsys):
+def test_mocap_fit_resume_refuses_a_foreign_result(fresh_result, small_sequence, tmp_path, capsys):
     out = tmp_path / "result"
     out.mkdir()
     (out / "poses.jsonl").write_text(json.dumps({"frame": 7, "params": [0.0] * 35}) + "\n")
+    shutil.copy(fresh_result / "run.json", out)
     assert fit(small_sequence, out, "--frames", "2", "--resume") == 2
     err = capsys.readouterr().err
     assert "poses.jsonl" in err and "resume" in err
@@ -774,9 +776,9 @@ def test_refinement_note_names_what_the_first_pass_did():
 
 
 @pytest.mark.parametrize("args, field", [(("--refine-hops", "5", "--refine-passes", "0"), "refine_hops needs"),
-                                         (("--refine-hops", "-1"), "refine_hops must"),
-                                         (("--spine-twist-prior", "-1"), "spine_twist_prior must"),
-                                         (("--spine-twist-prior", "nan"), "spine_twist_prior must")])
+                                         (("--refine-hops", "-1"), "--refine-hops: expected an integer >= 0"),
+                                         (("--spine-twist-prior", "-1"), "--spine-twist-prior: expected a finite"),
+                                         (("--spine-twist-prior", "nan"), "--spine-twist-prior: expected a finite")])
 def test_fit_refuses_bad_refinement_and_prior_options(small_sequence, tmp_path, capsys, args, field):
     assert fit(small_sequence, tmp_path / "r", *args) == 2
     assert field in capsys.readouterr().err

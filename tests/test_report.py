@@ -70,7 +70,7 @@ def test_mocap_report_writes_page_and_pictures(fitted, capsys):
     assert {"overlay_000000.png", "overlay_000002.png", "model_000002.png", "sequence.gif", "joint_error.png"} <= names
     assert mocap_report([str(res), "--quiet", "--no-pictures", "--out", str(res / "r2.html")]) == 0
     assert capsys.readouterr().out == "" and (res / "r2.html").exists()
-    assert mocap_report([str(res), "--no-gif", "--no-pictures"]) == 0
+    assert mocap_report([str(res), "--no-gif", "--no-pictures", "--overwrite"]) == 0
     assert "report.html" in capsys.readouterr().out
 
 
@@ -121,9 +121,9 @@ def test_report_without_the_sequence(fitted, tmp_path, capsys):
     (moved / "summary.json").write_text(json.dumps({**json.loads((res / "summary.json").read_text()),
                                                     "sequence": str(tmp_path / "gone")}))
     with pytest.raises(UserError, match="--fps"):
-        mocap_report([str(moved), "--quiet"])
+        mocap_report([str(moved), "--quiet", "--overwrite"])
     shutil.rmtree(moved / "pictures", ignore_errors=True)
-    assert mocap_report([str(moved), "--json", "--fps", "30", "--no-gif"]) == 0
+    assert mocap_report([str(moved), "--json", "--fps", "30", "--no-gif", "--overwrite"]) == 0
     pictures = {Path(p).name for p in json.loads(capsys.readouterr().out)["pictures"]}
     assert "energy.png" in pictures and "model_000000.png" in pictures
     assert not any(p.startswith("overlay") for p in pictures) and "joint_error.png" not in pictures

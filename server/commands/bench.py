@@ -2,10 +2,12 @@
 from __future__ import annotations
 
 import json
+import math
 import tempfile
 from pathlib import Path
 
 from common.errors import UserError
+from server.argtypes import count, non_negative, real
 
 BENCH_CLIP_FRAMES = 20  # frames of the bundled walk used for fitting benchmarks
 
@@ -20,37 +22,37 @@ def register(sub) -> None:
     f = bsub.add_parser("fit", help="seconds per frame, single process (paper Table 2)")
     f.add_argument("sequence", type=Path, nargs="?", default=None,
                    help="sequence folder (default: synthesise the bundled walk)")
-    f.add_argument("--frames", type=int, default=BENCH_CLIP_FRAMES)
+    f.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES)
     f.add_argument("--json", type=Path, default=None)
     c = bsub.add_parser("cluster", help="single process vs server + clients (paper Table 2)")
     c.add_argument("sequence", type=Path)
-    c.add_argument("--frames", type=int, default=BENCH_CLIP_FRAMES)
-    c.add_argument("--clients", type=int, default=4)
+    c.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES)
+    c.add_argument("--clients", type=count(0), default=4)
     c.add_argument("--json", type=Path, default=None)
     h = bsub.add_parser("hops", help="the refinement's hops, single process vs server + clients side by side")
     h.add_argument("sequence", type=Path)
-    h.add_argument("--frames", type=int, default=10)
-    h.add_argument("--clients", type=int, default=4)
-    h.add_argument("--hops", type=int, default=20, metavar="N", help="as mocap fit --refine-hops")
+    h.add_argument("--frames", type=count(1), default=10)
+    h.add_argument("--clients", type=count(0), default=4)
+    h.add_argument("--hops", type=count(0), default=20, metavar="N", help="as mocap fit --refine-hops")
     h.add_argument("--json", type=Path, default=None)
     s = bsub.add_parser("segment", help="background subtraction frames/s and error rates")
     s.add_argument("--json", type=Path, default=None)
     v = bsub.add_parser("voxels", help="SPOT voxel reconstruction frames/s")
     v.add_argument("--json", type=Path, default=None)
     acc = bsub.add_parser("accuracy", help="joint error on walk, dance and basketball clips (virtual studio)")
-    acc.add_argument("--frames", type=int, default=100)
+    acc.add_argument("--frames", type=count(1), default=100)
     acc.add_argument("--hypotheses", type=int, choices=(1, 2), default=1, help="as mocap fit --hypotheses")
-    acc.add_argument("--turn-hypotheses", type=int, default=None, metavar="N",
+    acc.add_argument("--turn-hypotheses", type=count(0), default=None, metavar="N",
                      help="as mocap fit --turn-hypotheses (default: its default)")
-    acc.add_argument("--turn-step", type=float, default=None, metavar="RAD",
+    acc.add_argument("--turn-step", type=real(0.0, math.pi, exclusive_minimum=True), default=None, metavar="RAD",
                      help="as mocap fit --turn-step (default: its default)")
     acc.add_argument("--no-redetect", action="store_true", help="as mocap fit --no-redetect")
-    acc.add_argument("--spine-twist-prior", type=float, default=None, metavar="PX_PER_RAD2",
+    acc.add_argument("--spine-twist-prior", type=non_negative, default=None, metavar="PX_PER_RAD2",
                      help="as mocap fit --spine-twist-prior (default: its default)")
-    acc.add_argument("--refine-passes", type=int, default=None, metavar="N",
+    acc.add_argument("--refine-passes", type=count(0), default=None, metavar="N",
                      help="as mocap fit --refine-passes (default: its default)")
     acc.add_argument("--refine-search", action="store_true", help="as mocap fit --refine-search")
-    acc.add_argument("--refine-hops", type=int, default=None, metavar="N", help="as mocap fit --refine-hops")
+    acc.add_argument("--refine-hops", type=count(0), default=None, metavar="N", help="as mocap fit --refine-hops")
     acc.add_argument("--energy", default="cpu",
                      help="energy backends to compare on the same sequences, comma separated (e.g. cpu,volume)")
     acc.add_argument("--no-restart", action="store_true",
@@ -61,15 +63,15 @@ def register(sub) -> None:
                      help="BVH clips (default: all of ../shared/data/mocap if there, else the bundled ones)")
     ini.add_argument("--bundled", action="store_true", help="the bundled clips, even where shared data exists")
     ini.add_argument("--tpose", action="store_true", help="also start at frame 0 (the CMU clips' added T-pose)")
-    ini.add_argument("--frames", type=int, default=10)
+    ini.add_argument("--frames", type=count(1), default=10)
     ini.add_argument("--first-frame-only", action="store_true",
                      help="fit only the first frame of each run (the search alone), on the same clips and starts")
     ini.add_argument("--refine-search", action="store_true", help="both runs as mocap fit --refine-search")
-    ini.add_argument("--refine-hops", type=int, default=0, metavar="N", help="both runs as mocap fit --refine-hops")
+    ini.add_argument("--refine-hops", type=count(0), default=0, metavar="N", help="both runs as mocap fit --refine-hops")
     ini.add_argument("--json", type=Path, default=None)
     a = bsub.add_parser("all", help="everything, into a folder of JSON files")
     a.add_argument("--out", type=Path, default=Path("bench"))
-    a.add_argument("--frames", type=int, default=BENCH_CLIP_FRAMES)
+    a.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES)
     p.set_defaults(func=run)
 
 

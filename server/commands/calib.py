@@ -12,6 +12,7 @@ file or ``--size`` get twice their principal point; ``show`` marks them with ``*
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 
@@ -21,6 +22,7 @@ from common.calibration import (
 from common.camera import Studio
 from common.errors import UserError, print_warning
 from common.world import UP_CHOICES, cameras_below_floor, detect_up, resolve_world
+from server.output import add_overwrite_argument, check_file_target, check_folder_target, replace_file, staged_folder
 
 
 def register(subparsers) -> None:
@@ -35,6 +37,7 @@ def register(subparsers) -> None:
     convert.add_argument("--format", choices=WRITE_FORMATS,
                          help="output format (default: from OUT's extension; .toml means pose2sim)")
     _input_options(convert)
+    add_overwrite_argument(convert)
     convert.set_defaults(func=run_convert)
 
     show = sub.add_parser("show", help="print a table of the cameras in a calibration")
@@ -68,8 +71,18 @@ def _load(args) -> Studio:
 
 def run_convert(args) -> int:
     fmt = output_format(args.output, args.format)  # fail before reading when OUT is ambiguous
+    out = Path(args.output)
+    single_file = fmt in ("json", "pose2sim", "anipose") or out.suffix.lower() == ".xml"
+    if single_file:
+        check_file_target(out, args.overwrite, option="OUT")
+    else:
+        check_folder_target(out, ("*",), option="OUT", overwrite=args.overwrite, what="calibration")
     studio = _load(args)
-    save_calibration(studio, args.output, fmt)
+    if single_file:
+        replace_file(out, lambda tmp: save_calibration(studio, tmp, fmt))
+    else:  # a folder of per-camera files, swapped in whole
+        with staged_folder(out, merge=True) as staged:
+            save_calibration(studio, staged, fmt)
     print(f"wrote {len(studio)} cameras to {args.output} ({fmt})")
     print(world_line(studio, args.up))
     return 0

@@ -11,8 +11,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from common.errors import UserError
 from common.export import FORMATS, SUFFIXES, export_motion
+from server.argtypes import real
+from server.output import add_overwrite_argument, check_file_target, check_folder_target, replace_file
 from server.pictures import load_result
 
 EXPORT_STEM = "motion"
@@ -27,28 +28,29 @@ def register(sub) -> None:
     p.add_argument("--out", type=Path, default=None,
                    help="file to write (default RESULT/motion.EXT); with --format all, a folder")
     p.add_argument("--sequence", type=Path, default=None, help="the fitted sequence, if it moved since the fit")
-    p.add_argument("--fps", type=float, default=None, help="frame rate (default: the sequence's)")
+    p.add_argument("--fps", type=real(0.0, exclusive_minimum=True), default=None,
+                   help="frame rate (default: the sequence's)")
+    add_overwrite_argument(p)
     p.add_argument("--quiet", action="store_true", help="print nothing")
     p.add_argument("--json", action="store_true", help="print what was written as JSON")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    if args.fps is not None and not args.fps > 0:
-        raise UserError(f"--fps must be positive, got {args.fps}")
     result = load_result(args.result, args.sequence, args.fps)
     motion = result.motion
     if args.format == "all":
         folder = args.out or args.result
+        check_folder_target(folder, (), overwrite=True)  # a file, or not writable: refused
         folder.mkdir(parents=True, exist_ok=True)
         targets = [(f, folder / f"{EXPORT_STEM}{SUFFIXES[f]}") for f in FORMATS]
     else:
         targets = [(args.format, args.out or args.result / f"{EXPORT_STEM}{SUFFIXES[args.format]}")]
+    for _, path in targets:  # every target checked before the first is written
+        check_file_target(path, args.overwrite)
     written = []
     for fmt, path in targets:
-        if not path.parent.is_dir():
-            raise UserError(f"--out: folder {path.parent} does not exist")
-        export_motion(fmt, path, motion)
+        replace_file(path, lambda tmp: export_motion(fmt, tmp, motion))
         written.append({"format": fmt, "path": str(path), "frames": len(motion.frames), "fps": motion.fps,
                         "bytes": path.stat().st_size})
     if args.json:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -11,9 +12,11 @@ from common.export import write_motion_bvh
 from common.fitting import ENERGY_BACKENDS, FitOptions
 from common.sequence import load_sequence
 from common.world import UP_CHOICES
+from server.argtypes import count, non_negative, real
 from server.cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.progress import Progress
-from server.session import (POSES_FILE, LocalSolver, choose_actor_scale, load_records, read_done_frames,
+from server.output import add_overwrite_argument, check_folder_target, replace_file
+from server.session import (MOTION_FILE, POSES_FILE, RESULT_FILES, LocalSolver, choose_actor_scale, load_records, read_done_frames,
                             refinement_note, run_fit, tracking_error_note)
 
 INIT_CHOICES = ("auto", "truth", "standing")
@@ -23,36 +26,38 @@ def add_fit_arguments(p) -> None:
     p.add_argument("sequence", type=Path, help="sequence folder (calibration.json + silhouettes/)")
     p.add_argument("--out", type=Path, required=True, help="result folder")
     p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
-    p.add_argument("--frames", type=int, default=None, help="fit only the first N frames")
-    p.add_argument("--iterations", type=int, default=FitOptions.max_iterations, help="rounds per frame")
-    p.add_argument("--grid-steps", type=int, default=FitOptions.grid_steps, help="grid points per limb parameter")
-    p.add_argument("--grid-range", type=float, default=FitOptions.grid_range_rad, help="limb grid half-width, rad")
+    p.add_argument("--frames", type=count(1), default=None, help="fit only the first N frames")
+    p.add_argument("--iterations", type=count(1), default=FitOptions.max_iterations, help="rounds per frame")
+    p.add_argument("--grid-steps", type=count(1), default=FitOptions.grid_steps,
+                   help="grid points per limb parameter")
+    p.add_argument("--grid-range", type=non_negative, default=FitOptions.grid_range_rad,
+                   help="limb grid half-width, rad")
     p.add_argument("--no-prerender", action="store_true", help="render every part in every evaluation")
     p.add_argument("--hypotheses", type=int, choices=(1, 2), default=FitOptions.hypotheses,
                    help="2: fit each frame with both first-round torso schedules and keep the better "
                         "(more accurate, twice the time)")
-    p.add_argument("--turn-hypotheses", type=int, default=FitOptions.turn_hypotheses, metavar="N",
+    p.add_argument("--turn-hypotheses", type=count(0), default=FitOptions.turn_hypotheses, metavar="N",
                    help="also fit each frame from the start turned by -+1..N turn steps about the vertical and "
                         f"keep the lowest energy (default {FitOptions.turn_hypotheses}; 0: off, a fifth of the time)")
-    p.add_argument("--polish-iterations", type=int, default=FitOptions.polish_iterations, metavar="N",
+    p.add_argument("--polish-iterations", type=count(0), default=FitOptions.polish_iterations, metavar="N",
                    help="then up to N more rounds for the best of them while the energy still falls "
                         f"(default {FitOptions.polish_iterations}; 0: off)")
-    p.add_argument("--refine-passes", type=int, default=FitOptions.refine_passes, metavar="N",
+    p.add_argument("--refine-passes", type=count(0), default=FitOptions.refine_passes, metavar="N",
                    help="after tracking, fit every frame again N times, backwards then forwards alternately, each "
                         f"from its neighbour's fit, keeping the lower energy (default {FitOptions.refine_passes}; "
                         "0: tracking only, half the time)")
     p.add_argument("--refine-search", action="store_true",
                    help="the first refinement pass also fits every frame from each limb's other basins, as a "
                         "first frame is: more accurate, about nine times tracking's time (offline work)")
-    p.add_argument("--refine-hops", type=int, default=FitOptions.refine_hops, metavar="N",
+    p.add_argument("--refine-hops", type=count(0), default=FitOptions.refine_hops, metavar="N",
                    help="the first refinement pass also fits every frame by N hops: one chain moved at random, "
                         "then the whole body fitted at once, the lowest energy kept (basin hopping; 60: about a "
                         "dozen times tracking's time, offline work; default 0)")
-    p.add_argument("--spine-twist-prior", type=float, default=FitOptions.spine_twist_prior, metavar="PX_PER_RAD2",
+    p.add_argument("--spine-twist-prior", type=non_negative, default=FitOptions.spine_twist_prior, metavar="PX_PER_RAD2",
                    help="how hard the torso's fit resists twisting the chest against the pelvis, silhouette pixels "
                         f"per rad^2 (default {FitOptions.spine_twist_prior:g}; the twist hardly shows in silhouettes; "
                         "lower it for dancers who twist a lot, 0: off)")
-    p.add_argument("--turn-step", type=float, default=FitOptions.turn_step_rad, metavar="RAD",
+    p.add_argument("--turn-step", type=real(0.0, math.pi, exclusive_minimum=True), default=FitOptions.turn_step_rad, metavar="RAD",
                    help=f"the turn step, rad (default {FitOptions.turn_step_rad})")
     p.add_argument("--no-redetect", action="store_true",
                    help="do not search one limb per frame over its whole range (lost-limb recovery)")
@@ -65,7 +70,9 @@ def add_fit_arguments(p) -> None:
                    help="the actor's height in the calibration's units (metres): the body model is scaled to it; "
                         "auto (default): the model's own size when starting from the truth, else chosen by the "
                         "first frame's silhouettes among 0.9-1.3 times the model's 1.66 m")
-    p.add_argument("--resume", action="store_true", help="continue a result folder after a crash")
+    p.add_argument("--resume", action="store_true",
+                   help="continue a result folder after a crash (with the options it was started with)")
+    add_overwrite_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar, no table")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
 
@@ -89,7 +96,8 @@ def finish(model, seq, args, summary: dict) -> None:
     if records:
         import numpy as np
 
-        write_motion_bvh(args.out / "motion.bvh", model, np.array([r["params"] for r in records]), seq.fps)
+        params = np.array([r["params"] for r in records])
+        replace_file(args.out / MOTION_FILE, lambda tmp: write_motion_bvh(tmp, model, params, seq.fps))
     if args.json:
         print(json.dumps(summary, indent=1))
     elif not args.quiet:
@@ -131,7 +139,7 @@ def _cluster_rows(summary: dict) -> list:
 def register(sub) -> None:
     p = sub.add_parser("fit", help="fit the body model to a sequence")
     add_fit_arguments(p)
-    p.add_argument("--clients", type=int, default=0,
+    p.add_argument("--clients", type=count(0), default=0,
                    help="start N local limb clients and a server on 127.0.0.1 (default 0: one process)")
     add_cluster_arguments(p, server=False)
     p.set_defaults(func=run)
@@ -169,6 +177,8 @@ def actor_model(model, seq, options, args, init: str):
 
 
 def run(args) -> int:
+    # the folder first: a result in the way is refused before the slow actor-size search
+    check_folder_target(args.out, RESULT_FILES, resume=args.resume, overwrite=args.overwrite)
     base = load_body_model()
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
                         clean_masks=args.clean_masks)
@@ -180,13 +190,11 @@ def run(args) -> int:
                         f"{base.height:.2f} (or fit single-process) for this sequence")
     total = min(len(seq.frames), args.frames or len(seq.frames))
     bar = Progress("fit", total, enabled=None if not args.quiet else False)
-    if args.clients < 0:
-        raise UserError(f"--clients must be >= 0, got {args.clients}")
     if args.clients == 0:
         solver = LocalSolver(model, options)
         try:
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
-                              max_frames=args.frames, progress=bar)
+                              max_frames=args.frames, progress=bar, overwrite=args.overwrite)
         finally:
             solver.close()
     else:
@@ -194,6 +202,6 @@ def run(args) -> int:
         with terminate_on_sigterm(), LocalCluster(model, options, args.clients, heartbeat_interval=args.heartbeat,
                                                   client_timeout=args.client_timeout) as solver:
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
-                              max_frames=args.frames, progress=bar)
+                              max_frames=args.frames, progress=bar, overwrite=args.overwrite)
     finish(model, seq, args, summary)
     return 0

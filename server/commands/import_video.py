@@ -20,6 +20,7 @@ counted before the output folder is made.
 """
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +30,12 @@ from common.calibration import load_calibration, save_calibration, with_image_si
 from common.errors import InputFileError, UserError, print_warning
 from common.sequence import (DEFAULT_FPS, FRAME_NAME, IMAGE_SUFFIXES, check_size, frame_files, image_size,
                              read_image, write_sequence_meta)
+from server.argtypes import count, real
+from server.output import add_overwrite_argument, check_folder_target, staged_folder
 
+# what an earlier import (or segment) left in a sequence folder; a calibration.json there may be
+# the --calibration being imported, and is replaced by its checked copy
+SEQUENCE_PARTS = ("images", "background", "silhouettes", "sequence.json")
 PNG_COMPRESS_LEVEL = 1  # fast; frames are large and many
 MAX_TRIM_FRAMES = 10  # recordings may differ in length by at most this many frames ...
 MAX_TRIM_FRACTION = 0.05  # ... and this fraction of the longest, and are then cut to the common range
@@ -50,14 +56,15 @@ def register(subparsers) -> None:
     parser.add_argument("--background", nargs="+", action="extend", default=[], metavar="CAMERA=PATH",
                         help="empty-studio recording per camera (all frames are kept)")
     parser.add_argument("--out", required=True, metavar="SEQUENCE", help="sequence folder to create")
-    parser.add_argument("--start", type=int, default=0, help="first frame (default 0)")
-    parser.add_argument("--stop", type=int, default=None, help="frame to stop before (default: all)")
-    parser.add_argument("--step", type=int, default=1, help="keep every STEP-th frame (default 1)")
+    parser.add_argument("--start", type=count(0), default=0, help="first frame (default 0)")
+    parser.add_argument("--stop", type=count(0), default=None, help="frame to stop before (default: all)")
+    parser.add_argument("--step", type=count(1), default=1, help="keep every STEP-th frame (default 1)")
     parser.add_argument("--offset", nargs="+", action="extend", default=[], metavar="CAMERA=FRAMES",
                         help="CAMERA's frame i + FRAMES is synchronous with the other cameras' frame i "
                              "(FRAMES may be negative; default 0)")
-    parser.add_argument("--fps", type=float, default=None,
+    parser.add_argument("--fps", type=real(0.0, exclusive_minimum=True), default=None,
                         help="frame rate of the sources (default: from the video, else 30)")
+    add_overwrite_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -273,12 +280,8 @@ def run(args) -> int:
     if backgrounds and missing:
         raise UserError(f"--background: no empty-studio recording for camera(s) {', '.join(missing)}")
     offsets = _offsets(args.offset, names, calibration)
-    if args.step < 1 or args.start < 0 or (args.stop is not None and args.stop < 0):
-        raise UserError("--start and --stop must be >= 0 and --step >= 1")
     out = Path(args.out)
-    for sub in ("images", "background", "silhouettes"):
-        if (out / sub).exists():
-            raise InputFileError(out / sub, "already exists; import into a new sequence folder")
+    check_folder_target(out, SEQUENCE_PARTS, overwrite=args.overwrite, what="sequence")
 
     # Every source is opened, sized and counted before anything is written.
     sources = {n: FrameSource(n, videos[n], "--video") for n in names}
@@ -310,27 +313,30 @@ def run(args) -> int:
     if warning:
         print_warning(warning)
 
-    out.mkdir(parents=True, exist_ok=True)
-    for n in names:
-        cam = studio.camera(n)
-        folder = out / "images" / n
-        folder.mkdir(parents=True)
-        for j, image in sources[n].frames(i + offsets[n] for i in frames):
-            check_size(image.shape, sources[n].where(j), cam)
-            _write_rgb(folder / FRAME_NAME.format(frame=j - offsets[n]), image)
-        sources[n].held.clear()  # frames past the common range
-        if n in bg_sources:
-            folder = out / "background" / n
-            folder.mkdir(parents=True)
-            for j, image in bg_sources[n].frames(range(bg_sources[n].count)):
-                check_size(image.shape, bg_sources[n].where(j), cam)
-                _write_rgb(folder / FRAME_NAME.format(frame=j), image)
     fps = args.fps or sources[names[0]].fps or DEFAULT_FPS
-    save_calibration(studio, out / "calibration.json")
-    extra = {"source": {n: str(p) for n, p in videos.items()}}
-    if any(offsets.values()):
-        extra["offsets"] = offsets
-    write_sequence_meta(out, list(frames), float(fps), names, **extra)
+    # the whole sequence is built beside OUT and moved in at the end: a failed import leaves OUT as it was
+    with staged_folder(out, merge=True) as staged:
+        for n in names:
+            cam = studio.camera(n)
+            folder = staged / "images" / n
+            folder.mkdir(parents=True)
+            for j, image in sources[n].frames(i + offsets[n] for i in frames):
+                check_size(image.shape, sources[n].where(j), cam)
+                _write_rgb(folder / FRAME_NAME.format(frame=j - offsets[n]), image)
+            sources[n].held.clear()  # frames past the common range
+            if n in bg_sources:
+                folder = staged / "background" / n
+                folder.mkdir(parents=True)
+                for j, image in bg_sources[n].frames(range(bg_sources[n].count)):
+                    check_size(image.shape, bg_sources[n].where(j), cam)
+                    _write_rgb(folder / FRAME_NAME.format(frame=j), image)
+        save_calibration(studio, staged / "calibration.json")
+        extra = {"source": {n: str(p) for n, p in videos.items()}}
+        if any(offsets.values()):
+            extra["offsets"] = offsets
+        write_sequence_meta(staged, list(frames), float(fps), names, **extra)
+    if args.overwrite:  # silhouettes of the images just replaced
+        shutil.rmtree(out / "silhouettes", ignore_errors=True)
     print(f"imported {len(frames)} frames ({frames[0]}..{frames[-1]}) x {len(names)} cameras"
           + (" and empty-studio frames" if bg_sources else "") + f" -> {out}")
     return 0

@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from common.ellipsoid_fit import SHELL_NAMES, fit_ellipsoids
-from common.errors import InputFileError, UserError
+from common.errors import InputFileError
 from common.sequence import load_sequence, read_image
+from server.argtypes import count, non_negative
 from server.commands.fit import add_world_arguments
 from common.voxels import SpotGrid, surface_voxels
 
@@ -56,11 +57,11 @@ def register(subparsers) -> None:
                               description="Run the multi-threaded reconstruction pipeline over a sequence "
                                           "and report frames per second and latency per stage.")
     p.add_argument("sequence", type=Path, help="sequence folder (calibration.json + silhouettes/ or images/)")
-    p.add_argument("--grid", type=int, default=64, help="voxels per side N of the N^3 grid (default 64)")
-    p.add_argument("--q", type=int, default=2, help="SPOT sample pixels per voxel and camera (default 2)")
-    p.add_argument("--frames", type=int, default=None, help="only the first N frames")
-    p.add_argument("--repeat", type=int, default=1, help="run the frames this many times (steadier timing)")
-    p.add_argument("--rate", type=float, default=0.0,
+    p.add_argument("--grid", type=count(2), default=64, help="voxels per side N of the N^3 grid (default 64)")
+    p.add_argument("--q", type=count(1), default=2, help="SPOT sample pixels per voxel and camera (default 2)")
+    p.add_argument("--frames", type=count(1), default=None, help="only the first N frames")
+    p.add_argument("--repeat", type=count(1), default=1, help="run the frames this many times (steadier timing)")
+    p.add_argument("--rate", type=non_negative, default=0.0,
                    help="feed frames at this many per second, like live cameras (default 0: as fast as possible)")
     p.add_argument("--method", default="cheung", help="background subtraction method when segmenting images")
     p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
@@ -70,12 +71,6 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    if args.frames is not None and args.frames < 1:
-        raise UserError(f"--frames: expected a positive count, got {args.frames}")
-    if args.repeat < 1:
-        raise UserError(f"--repeat: expected a positive count, got {args.repeat}")
-    if not args.rate >= 0.0:
-        raise UserError(f"--rate: expected frames per second >= 0, got {args.rate}")
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
                         clean_masks=args.clean_masks)
     frames = (seq.frames[:args.frames] if args.frames else seq.frames) * args.repeat

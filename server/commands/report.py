@@ -9,8 +9,11 @@ import json
 from pathlib import Path
 
 from common.errors import UserError
-from server.pictures import make_result_pictures
-from server.report import write_report
+from server.argtypes import real
+from server.output import add_overwrite_argument, check_file_target, check_folder_target
+from server.pictures import PICTURES_DIR, make_result_pictures
+from server.report import REPORT_NAME, write_report
+from server.session import load_records
 
 
 def _int_list(text: str | None, option: str) -> list[int] | None:
@@ -32,20 +35,25 @@ def register(sub) -> None:
                                    "and pictures (overlays, 3D views, GIF, plots) of a result folder.")
     p.add_argument("result", type=Path, help="result folder (poses.jsonl from mocap fit)")
     p.add_argument("--sequence", type=Path, default=None, help="the fitted sequence, if it moved since the fit")
-    p.add_argument("--fps", type=float, default=None, help="frame rate, when the sequence is not available")
+    p.add_argument("--fps", type=real(0.0, exclusive_minimum=True), default=None,
+                   help="frame rate, when the sequence is not available")
     p.add_argument("--frames", default=None, help="frame numbers to picture, comma-separated (default: a few)")
     p.add_argument("--cameras", default=None, help="camera names for overlays, comma-separated (default: up to 4)")
     p.add_argument("--out", type=Path, default=None, help="report file (default RESULT/report.html)")
     p.add_argument("--no-pictures", action="store_true", help="only the report page, no RESULT/pictures/")
     p.add_argument("--no-gif", action="store_true", help="no sequence.gif (the slowest picture)")
+    add_overwrite_argument(p)
     p.add_argument("--quiet", action="store_true", help="print nothing")
     p.add_argument("--json", action="store_true", help="print the written paths as JSON")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    if args.fps is not None and not args.fps > 0:
-        raise UserError(f"--fps must be positive, got {args.fps}")
+    load_records(args.result)  # a result folder, readable, before its report's place is checked
+    check_file_target(args.out or args.result / REPORT_NAME, args.overwrite)
+    if not args.no_pictures:
+        check_folder_target(args.result / PICTURES_DIR, ("*",), option="pictures", overwrite=args.overwrite,
+                            what="set of pictures")
     frames = _int_list(args.frames, "--frames")
     cameras = _name_list(args.cameras)
     pictures = []

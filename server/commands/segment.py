@@ -14,8 +14,9 @@ import numpy as np
 
 from common.errors import InputFileError
 from common.segmentation import METHODS, load_params, make_segmenter, params_dict
-from common.sequence import (IMAGE_SUFFIXES, check_size, frame_files, image_size, load_sequence, read_image,
+from common.sequence import (IMAGE_SUFFIXES, MASK_FOLDERS, check_size, frame_files, image_size, load_sequence, read_image,
                              write_mask_png, write_sequence_meta)
+from server.output import add_overwrite_argument, check_folder_target, staged_folder, write_text
 
 
 def register(subparsers) -> None:
@@ -29,6 +30,7 @@ def register(subparsers) -> None:
                         help="background subtraction method (default: cheung)")
     parser.add_argument("--params", metavar="FILE.toml",
                         help="method parameters as flat TOML keys over the defaults")
+    add_overwrite_argument(parser)
     parser.set_defaults(func=run)
 
 
@@ -57,24 +59,27 @@ def run(args) -> int:
             width, height = image_size(path)
             check_size((height, width), path, cam)
     seq.check_files(seq.frames, masks=False, images=True)
+    silhouettes = root / MASK_FOLDERS[0]
+    check_folder_target(silhouettes, ("*",), option="silhouettes", overwrite=args.overwrite, what="segmentation")
 
     seconds = 0.0
-    for cam in seq.studio:
-        backgrounds = np.stack([_read_rgb(p, cam) for p in background_files[cam.name]])
-        segmenter = make_segmenter(args.method, params).fit(backgrounds)
-        for frame in seq.frames:
-            image = seq.image(cam, frame)
-            t0 = time.perf_counter()
-            mask = segmenter.segment(image)
-            seconds += time.perf_counter() - t0
-            write_mask_png(seq.silhouette_path(cam.name, frame), mask)
+    with staged_folder(silhouettes) as staged:  # all new silhouettes, or the old ones as they were
+        for cam in seq.studio:
+            backgrounds = np.stack([_read_rgb(p, cam) for p in background_files[cam.name]])
+            segmenter = make_segmenter(args.method, params).fit(backgrounds)
+            for frame in seq.frames:
+                image = seq.image(cam, frame)
+                t0 = time.perf_counter()
+                mask = segmenter.segment(image)
+                seconds += time.perf_counter() - t0
+                write_mask_png(staged / seq.silhouette_path(cam.name, frame).relative_to(silhouettes), mask)
 
     record = {"method": args.method, "params": params_dict(params)}
     meta_path = root / "sequence.json"
     if meta_path.exists():
         doc = dict(seq.meta)
         doc["segmentation"] = record
-        meta_path.write_text(json.dumps(doc, indent=1))
+        write_text(meta_path, json.dumps(doc, indent=1))
     else:
         write_sequence_meta(root, seq.frames, seq.fps, seq.studio.names, segmentation=record)
     count = len(seq.frames) * len(seq.studio)

@@ -17,6 +17,8 @@ from common.errors import InputFileError, UserError
 from common.postures import POSTURES
 from common.synth import (MAX_DISTORTION_K1, NOISE_MODELS, PROPS, RING_FOV_DEG, SURFACES, UP_AXES, SynthOptions,
                           synth_studio, synthesize)
+from server.argtypes import count, real
+from server.output import add_overwrite_argument, check_folder_target, staged_folder
 from server.progress import Progress
 
 DEFAULT_CLIP = Path(__file__).resolve().parents[2] / "common" / "data" / "clips" / "cmu_12_01_walk.bvh"
@@ -59,19 +61,19 @@ def register(sub) -> None:
                    help="instead of a clip: a take moving smoothly between seeded variations of this posture "
                         "(--frames frames at 30 fps; --start, --step and --joint-map are for clips)")
     p.add_argument("--out", type=Path, required=True, help="sequence folder to write")
-    p.add_argument("--frames", type=int, default=60)
-    p.add_argument("--start", type=int, default=1, help="first source frame (CMU frame 0 is a T-pose)")
-    p.add_argument("--step", type=int, default=4, help="take every STEP-th source frame (120 fps -> 30 fps: 4)")
-    p.add_argument("--cameras", type=int, default=8)
+    p.add_argument("--frames", type=count(1), default=60)
+    p.add_argument("--start", type=count(0), default=1, help="first source frame (CMU frame 0 is a T-pose)")
+    p.add_argument("--step", type=count(1), default=4, help="take every STEP-th source frame (120 fps -> 30 fps: 4)")
+    p.add_argument("--cameras", type=count(1), default=8)
     sizes = p.add_mutually_exclusive_group()
     sizes.add_argument("--size", default=None, help=f"every camera's image size (default {DEFAULT_SIZE})")
     sizes.add_argument("--sizes", default=None, metavar="WxH,WxH,...",
                        help="image size per camera, cycled when fewer than cameras (a mixed-resolution studio)")
-    p.add_argument("--radius", type=float, default=3.0, help="studio radius: cameras' distance from its axis, metres")
-    p.add_argument("--height", type=float, default=1.5, help="height of the ring cameras, metres")
-    p.add_argument("--fov", type=float, default=RING_FOV_DEG, metavar="DEG",
+    p.add_argument("--radius", type=real(), default=3.0, help="studio radius: cameras' distance from its axis, metres")
+    p.add_argument("--height", type=real(), default=1.5, help="height of the ring cameras, metres")
+    p.add_argument("--fov", type=real(), default=RING_FOV_DEG, metavar="DEG",
                    help=f"vertical field of view of the ring cameras, degrees (default {RING_FOV_DEG:g})")
-    p.add_argument("--distortion", type=float, default=0.0, metavar="K1",
+    p.add_argument("--distortion", type=real(), default=0.0, metavar="K1",
                    help="radial distortion k1 of every camera (barrel < 0, e.g. -0.35), with k2 = -0.3 K1")
     p.add_argument("--up", default="+z", metavar="|".join(UP_AXES),
                    help="up axis of the world calibration.json and the truth joints are written in (default +z; "
@@ -84,7 +86,8 @@ def register(sub) -> None:
     p.add_argument("--surface", choices=SURFACES, default="skinned")
     p.add_argument("--images", action="store_true", help="also render colour images and empty backgrounds")
     p.add_argument("--joint-map", type=Path, default=None, help="TOML joint-name overrides for the clip")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=count(0), default=0)
+    add_overwrite_argument(p)
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=run)
 
@@ -103,8 +106,6 @@ def run(args) -> int:
     clip = args.clip if args.clip is not None else DEFAULT_CLIP
     if args.posture is None and not clip.exists():
         raise InputFileError(clip, "missing")
-    if args.frames < 1 or args.step < 1 or args.start < 0:
-        raise UserError("--frames and --step must be >= 1 and --start >= 0")
     if not 1 <= args.cameras <= 64:
         raise UserError("--cameras must be between 1 and 64")
     if not 0.0 < args.radius <= MAX_STUDIO_M:  # NaN too
@@ -125,7 +126,9 @@ def run(args) -> int:
                         surface=args.surface, seed=args.seed, images=args.images, up=args.up, prop=args.prop,
                         posture=args.posture, position=position)
     bar = Progress("synth", args.frames, enabled=None if not args.quiet else False)
-    summary = synthesize(load_body_model(), studio, clip, args.out, opts, args.joint_map, bar)
+    check_folder_target(args.out, ("*",), overwrite=args.overwrite, what="sequence")
+    with staged_folder(args.out) as staged:  # a new folder whole, or the old one as it was
+        summary = synthesize(load_body_model(), studio, clip, staged, opts, args.joint_map, bar)
     if not args.quiet:
         print(json.dumps({k: summary[k] for k in ("frames", "fps", "cameras", "noise", "surface")}))
     return 0

@@ -10,16 +10,20 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, ImageDraw
 
-from common.errors import InputFileError, UserError
+from common.errors import InputFileError
 from common.sequence import FRAME_NAME, load_sequence
+from server.argtypes import count, real
 from server.commands.fit import add_world_arguments
+from server.output import add_overwrite_argument, check_folder_target, staged_folder, write_text
 from common.voxels import SpotGrid, save_voxels
 
+SUMMARY = "voxels.json"
 PICTURE_SIZE = 240  # pixels per view
 BACKGROUND = (24, 24, 28)
 POINT_COLOUR = np.array([120.0, 190.0, 255.0])  # nearest points; farther ones are darker
@@ -38,26 +42,24 @@ def register(subparsers) -> None:
                                           "by SPOT (Cheung et al. 2000) and write them with pictures.")
     p.add_argument("sequence", type=Path, help="sequence folder (calibration.json + silhouettes/)")
     p.add_argument("--out", type=Path, required=True, help="result folder")
-    p.add_argument("--grid", type=int, default=64, help="voxels per side N of the N^3 grid (default 64)")
-    p.add_argument("--q", type=int, default=2, help="sample pixels per voxel and camera (default 2)")
-    p.add_argument("--epsilon", type=float, default=None,
+    p.add_argument("--grid", type=count(2), default=64, help="voxels per side N of the N^3 grid (default 64)")
+    p.add_argument("--q", type=count(1), default=2, help="sample pixels per voxel and camera (default 2)")
+    p.add_argument("--epsilon", type=real(0.0, 1.0), default=None,
                    help="a voxel is inside a camera's silhouette with at least epsilon*Q samples (default 1/Q)")
-    p.add_argument("--bounds", type=float, nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
+    p.add_argument("--bounds", type=real(), nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
                    help="volume of interest in metres (default 2.4 x 2.4 x 2.2 m around the studio target)")
-    p.add_argument("--frames", type=int, default=None, help="only the first N frames")
-    p.add_argument("--pictures", type=int, default=1, metavar="EVERY",
+    p.add_argument("--frames", type=count(1), default=None, help="only the first N frames")
+    p.add_argument("--pictures", type=count(0), default=1, metavar="EVERY",
                    help="a picture every EVERY frames (0: none; default 1)")
     p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
     add_world_arguments(p)
+    add_overwrite_argument(p)
     p.add_argument("--quiet", action="store_true", help="print nothing")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    if args.frames is not None and args.frames < 1:
-        raise UserError(f"--frames: expected a positive count, got {args.frames}")
-    if args.pictures < 0:
-        raise UserError(f"--pictures: expected 0 or more, got {args.pictures}")
+    check_folder_target(args.out, (SUMMARY, "voxels", "pictures"), overwrite=args.overwrite, what="reconstruction")
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
                         clean_masks=args.clean_masks)
     if not seq.has_silhouettes:
@@ -67,22 +69,22 @@ def run(args) -> int:
     grid = SpotGrid.build(seq.studio, grid=args.grid, q=args.q, bounds=bounds, epsilon=args.epsilon)
     build_seconds = time.perf_counter() - start
     frames = seq.frames[:args.frames] if args.frames else seq.frames
-    (args.out / "voxels").mkdir(parents=True, exist_ok=True)
-    if args.pictures:
-        (args.out / "pictures").mkdir(exist_ok=True)
     rows = []
-    for i, frame in enumerate(frames):
-        masks = seq.silhouettes(frame)
-        t0 = time.perf_counter()
-        result = grid.reconstruct(masks)
-        seconds = time.perf_counter() - t0
-        name = FRAME_NAME.format(frame=frame)
-        save_voxels(args.out / "voxels" / Path(name).with_suffix(".npz"), result, frame=frame, q=grid.q,
-                    threshold=grid.threshold)
-        if args.pictures and i % args.pictures == 0:
-            Image.fromarray(picture(result.surface_points(), grid.bounds)).save(args.out / "pictures" / name)
-        rows.append({"frame": int(frame), "occupied": int(result.occupied.sum()),
-                     "surface": int(result.surface.sum()), "tests": result.tests, "seconds": seconds})
+    # the voxels and their pictures of every frame, or the old ones as they were
+    pictures = staged_folder(args.out / "pictures") if args.pictures else nullcontext()
+    with staged_folder(args.out / "voxels") as voxel_dir, pictures as picture_dir:
+        for i, frame in enumerate(frames):
+            masks = seq.silhouettes(frame)
+            t0 = time.perf_counter()
+            result = grid.reconstruct(masks)
+            seconds = time.perf_counter() - t0
+            name = FRAME_NAME.format(frame=frame)
+            save_voxels(voxel_dir / Path(name).with_suffix(".npz"), result, frame=frame, q=grid.q,
+                        threshold=grid.threshold)
+            if args.pictures and i % args.pictures == 0:
+                Image.fromarray(picture(result.surface_points(), grid.bounds)).save(picture_dir / name)
+            rows.append({"frame": int(frame), "occupied": int(result.occupied.sum()),
+                         "surface": int(result.surface.sum()), "tests": result.tests, "seconds": seconds})
     median = float(np.median([r["seconds"] for r in rows]))
     summary = {
         "sequence": str(seq.path), "grid": grid.grid, "q": grid.q, "threshold": grid.threshold,
@@ -90,7 +92,7 @@ def run(args) -> int:
         "build_seconds": build_seconds, "frames_per_second": 1.0 / median if median > 0 else None,
         "frames": rows,
     }
-    (args.out / "voxels.json").write_text(json.dumps(summary, indent=1))
+    write_text(args.out / SUMMARY, json.dumps(summary, indent=1))
     if not args.quiet:
         fps = f"{summary['frames_per_second']:.0f}" if summary["frames_per_second"] else "-"
         print(f"  frames     {len(rows)}\n  grid       {grid.grid}^3, Q = {grid.q}, {len(seq.studio)} cameras\n"

@@ -1,0 +1,62 @@
+"""Checked argparse types: every numeric option says what range it takes.
+
+argparse turns the ``ValueError`` these raise into ``argument --NAME: MESSAGE`` (one line,
+exit 2, see ``server.cli.MocapParser``), so ``--frames -1`` or ``--grid-range nan`` are refused
+before any work starts instead of meaning something surprising.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+from typing import Callable
+
+
+def count(minimum: int = 0) -> Callable[[str], int]:
+    """An integer >= ``minimum`` (0: "none" allowed, 1: at least one)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
+        return value
+
+    parse.__name__ = f"count>={minimum}"
+    return parse
+
+
+def real(minimum: float | None = None, maximum: float | None = None, exclusive_minimum: bool = False
+         ) -> Callable[[str], float]:
+    """A finite float within [minimum, maximum] ((minimum, maximum] with ``exclusive_minimum``)."""
+    low = "" if minimum is None else (f"> {minimum:g}" if exclusive_minimum else f">= {minimum:g}")
+    high = "" if maximum is None else f"<= {maximum:g}"
+    wanted = " and ".join(p for p in (low, high) if p)
+    wanted = f"a finite number{' ' + wanted if wanted else ''}"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {text!r}") from None
+        if not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {text}")
+        if minimum is not None and (value <= minimum if exclusive_minimum else value < minimum):
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {value:g}")
+        if maximum is not None and value > maximum:
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {value:g}")
+        return value
+
+    parse.__name__ = "number"
+    return parse
+
+
+def seconds(text: str) -> float:
+    """A finite duration > 0 seconds (time-outs, intervals)."""
+    return real(0.0, exclusive_minimum=True)(text)
+
+
+def non_negative(text: str) -> float:
+    """A finite number >= 0 (a weight, a range, a distance)."""
+    return real(0.0)(text)

@@ -1,0 +1,150 @@
+"""Output files and folders that never lose a result.
+
+Every command that writes follows the same rules:
+ - ``check_target`` runs before any work: ``--out`` naming a file where a folder goes (or the
+   reverse), a folder that cannot be written, or an earlier result in the way (refused unless
+   ``--resume`` or ``--overwrite``) is one clear error, and nothing is touched;
+ - files are written beside their final name and renamed over it (``replace_file``,
+   ``write_text``), so a crash leaves the old file or the new one, never half of one;
+ - a folder made in one go (``mocap synth``, ``import-video``, ``voxels``) is built beside its
+   final name and swapped in whole at the end (``staged_folder``): a failed run leaves the old
+   folder as it was, and no old frames stay beside new ones.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Iterator
+
+from common.errors import UserError
+
+OVERWRITE_HELP = "replace an earlier result there (default: refuse, so that nothing is lost)"
+
+
+def add_overwrite_argument(p) -> None:
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+
+
+def _writable_folder(folder: Path, option: str) -> None:
+    """The folder, or the nearest folder above it that exists, can be written to."""
+    probe = folder
+    while not probe.exists():
+        if probe.parent == probe:
+            break
+        probe = probe.parent
+    if not probe.is_dir():
+        raise UserError(f"{option} {folder}: {probe} is a file, not a folder")
+    _probe_write(probe, f"{option} {folder}")
+
+
+def _probe_write(folder: Path, where: str) -> None:
+    """Create and remove a file in ``folder``: the only test that read-only mounts, full disks
+    and permissions (root ignores modes) all answer truthfully."""
+    try:
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-test-"):
+            pass
+    except OSError as exc:
+        raise UserError(f"{where}: {folder} is not writable ({exc.strerror or exc})") from None
+
+
+def check_folder_target(folder: Path, earlier: tuple[str, ...], option: str = "--out", resume: bool = False,
+                        overwrite: bool = False, what: str = "result") -> bool:
+    """Check a folder a command is about to write before any work is done.
+
+    ``earlier``: names of files or folders whose presence means the folder holds an earlier
+    result (``("*",)``: anything at all). Returns whether such a result is there (which
+    ``resume`` or ``overwrite`` then allowed). Raises UserError naming the folder otherwise.
+    """
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise UserError(f"{option} {folder}: is a file; name a folder")
+    _writable_folder(folder, option)
+    if not folder.is_dir():
+        return False
+    present = sorted(p.name for p in folder.iterdir()) if earlier == ("*",) else \
+        [name for name in earlier if (folder / name).exists()]
+    if present and not (resume or overwrite):
+        shown = ", ".join(present[:4]) + (", ..." if len(present) > 4 else "")
+        again = "--resume to continue it or " if what == "result" else ""
+        raise UserError(f"{option} {folder}: holds an earlier {what} ({shown}); pass {again}--overwrite to "
+                        "replace it, or choose another folder")
+    return bool(present)
+
+
+def check_file_target(path: Path, overwrite: bool, option: str = "--out") -> None:
+    """A file a command is about to write: its folder exists and is writable, and an existing file
+    there is replaced only with ``overwrite``."""
+    path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{option} {path}: is a folder; name a file")
+    if not path.parent.is_dir():
+        raise UserError(f"{option} {path}: folder {path.parent} does not exist")
+    _probe_write(path.parent, f"{option} {path}")
+    if path.exists() and not overwrite:
+        raise UserError(f"{option} {path}: exists; pass --overwrite to replace it")
+
+
+def _partial_name(path: Path) -> Path:
+    """A hidden name beside ``path`` with its suffix kept (writers that read the suffix)."""
+    return path.with_name(f".{path.stem}.partial-{os.getpid()}{path.suffix}")
+
+
+def replace_file(path: Path, write: Callable[[Path], None]) -> Path:
+    """``write(tmp)`` a file beside ``path``, then rename it over ``path`` (atomic on one file
+    system); the partial file is removed when ``write`` fails."""
+    path = Path(path)
+    tmp = _partial_name(path)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def write_text(path: Path, text: str) -> Path:
+    """``path.write_text(text)``, atomically."""
+    return replace_file(path, lambda tmp: tmp.write_text(text))
+
+
+@contextmanager
+def staged_folder(folder: Path, merge: bool = False) -> Iterator[Path]:
+    """Build a folder beside ``folder`` and swap it in when the block ends without an error.
+
+    The block writes into the yielded path; an earlier ``folder`` (already allowed by
+    ``check_folder_target``) is replaced whole, or with ``merge`` only the entries the block
+    wrote are (the folder's other files stay). On an error the staged folder is removed and
+    ``folder`` is as it was.
+    """
+    folder = Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    staged = Path(tempfile.mkdtemp(prefix=f".{folder.name}.partial-", dir=folder.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(staged, 0o777 & ~umask)  # mkdtemp's 0700 would hide the folder from others (containers)
+    try:
+        yield staged
+    except BaseException:
+        shutil.rmtree(staged, ignore_errors=True)
+        raise
+    if merge and folder.is_dir():
+        for entry in sorted(staged.iterdir()):
+            _replace_entry(entry, folder / entry.name)
+        staged.rmdir()
+    else:
+        _replace_entry(staged, folder)
+
+
+def _replace_entry(new: Path, target: Path) -> None:
+    """Rename ``new`` over ``target`` (a file or a folder); an old folder is moved aside first,
+    as a rename cannot replace a folder that is not empty."""
+    if not target.is_dir():
+        os.replace(new, target)
+        return
+    aside = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
+    os.replace(target, aside / target.name)
+    os.replace(new, target)
+    shutil.rmtree(aside, ignore_errors=True)

@@ -1,0 +1,273 @@
+"""Results are never lost: earlier results refused unless --resume/--overwrite, checked inputs
+before any write, atomic files, staged folders, --resume that checks what it continues, and
+options whose ranges are checked (issue: "Never lose a result, refuse bad input cleanly")."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from server.cli import main
+from server.output import check_folder_target, replace_file, staged_folder
+from common.errors import UserError
+
+pytestmark = pytest.mark.timeout(240)
+
+FAST = ["--iterations", "1", "--refine-passes", "0", "--turn-hypotheses", "0", "--polish-iterations", "0",
+        "--quiet"]
+
+
+def run(capsys, *argv) -> tuple[int, str]:
+    code = main([str(a) for a in argv])
+    return code, capsys.readouterr().err
+
+
+def one_error_line(err: str, *names: str) -> str:
+    lines = [line for line in err.splitlines() if line.strip() and not line.startswith("warning:")]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for name in names:
+        assert name in lines[0], lines[0]
+    return lines[0]
+
+
+def snapshot(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture
+def seq(tmp_path, small_sequence) -> Path:
+    out = tmp_path / "seq"
+    shutil.copytree(small_sequence, out)
+    return out
+
+
+@pytest.fixture
+def fitted(tmp_path, seq, capsys) -> Path:
+    out = tmp_path / "res"
+    code, err = run(capsys, "fit", seq, "--out", out, "--frames", "2", *FAST)
+    assert code == 0, err
+    return out
+
+
+def test_an_earlier_result_is_refused_and_kept(fitted, seq, capsys):
+    before = snapshot(fitted)
+    code, err = run(capsys, "fit", seq, "--out", fitted, *FAST)
+    assert code == 2
+    one_error_line(err, str(fitted), "--resume", "--overwrite")
+    assert snapshot(fitted) == before
+
+
+def test_a_failing_overwrite_leaves_the_earlier_result(fitted, seq, capsys):
+    """The issue's case: a frame file missing is found before poses.jsonl is touched."""
+    before = snapshot(fitted)
+    (seq / "silhouettes" / "cam3" / "000002.png").unlink()
+    code, err = run(capsys, "fit", seq, "--out", fitted, "--overwrite", *FAST)
+    assert code == 2
+    one_error_line(err, "cam3", "000002.png")
+    assert snapshot(fitted) == before
+
+
+def test_overwrite_replaces_the_result_and_what_was_made_from_it(fitted, seq, capsys):
+    (fitted / "report.html").write_text("old report")
+    code, err = run(capsys, "fit", seq, "--out", fitted, "--overwrite", "--frames", "1", *FAST)
+    assert code == 0, err
+    assert len((fitted / "poses.jsonl").read_text().splitlines()) == 1
+    assert json.loads((fitted / "summary.json").read_text())["frames"] == 1
+    assert not (fitted / "report.html").exists()
+    assert not list(fitted.glob(".*partial*"))
+
+
+def test_out_naming_a_file_is_one_line(tmp_path, seq, capsys):
+    target = tmp_path / "a_file"
+    target.write_text("keep me")
+    code, err = run(capsys, "fit", seq, "--out", target, *FAST)
+    assert code == 2
+    one_error_line(err, str(target), "is a file")
+    assert target.read_text() == "keep me"
+
+
+@pytest.fixture
+def read_only_dir(tmp_path):
+    """A folder nobody can write to: a read-only tmpfs as root (root ignores modes), else mode 0555."""
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    if os.geteuid() != 0:
+        folder.chmod(0o555)
+        yield folder
+        folder.chmod(0o755)
+        return
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(folder)],
+                             capture_output=True, timeout=10).returncode == 0
+    if not mounted:
+        pytest.skip("root without mount rights: no read-only folder to test with")
+    try:
+        yield folder
+    finally:
+        subprocess.run(["umount", str(folder)], capture_output=True, timeout=10)
+
+
+def test_read_only_output_is_refused_before_fitting(read_only_dir, seq, capsys):
+    code, err = run(capsys, "fit", seq, "--out", read_only_dir / "res", *FAST)
+    assert code == 2
+    one_error_line(err, "not writable")
+
+
+def test_resume_continues_a_valid_prefix_with_the_same_poses(tmp_path, seq, capsys):
+    whole = tmp_path / "whole"
+    assert run(capsys, "fit", seq, "--out", whole, *FAST)[0] == 0
+    part = tmp_path / "part"
+    assert run(capsys, "fit", seq, "--out", part, *FAST)[0] == 0
+    lines = (part / "poses.jsonl").read_text().splitlines(keepends=True)
+    (part / "poses.jsonl").write_text(lines[0] + lines[1][:40])  # a crash while frame 1 was written
+    code, err = run(capsys, "fit", seq, "--out", part, "--resume", *FAST)
+    assert code == 0, err
+    params = [[json.loads(line)["params"] for line in (d / "poses.jsonl").read_text().splitlines()]
+              for d in (whole, part)]
+    assert params[0] == params[1]
+
+
+def test_resume_with_other_options_says_which(fitted, seq, capsys):
+    before = snapshot(fitted)
+    code, err = run(capsys, "fit", seq, "--out", fitted, "--resume", *FAST[:-3], "--polish-iterations", "2",
+                    "--quiet")
+    assert code == 2
+    one_error_line(err, "--resume", "polish_iterations 2 (was 0)")
+    assert snapshot(fitted) == before
+
+
+def test_resume_refuses_a_corrupt_middle_line(tmp_path, seq, capsys):
+    out = tmp_path / "res"
+    assert run(capsys, "fit", seq, "--out", out, *FAST)[0] == 0
+    lines = (out / "poses.jsonl").read_text().splitlines(keepends=True)
+    (out / "poses.jsonl").write_text(lines[0] + "{not json\n" + lines[2])
+    before = snapshot(out)
+    code, err = run(capsys, "fit", seq, "--out", out, "--resume", *FAST)
+    assert code == 2
+    one_error_line(err, "poses.jsonl", "line 2")
+    assert snapshot(out) == before
+    code, err = run(capsys, "export", out, "--format", "csv", "--out", tmp_path / "m.csv")
+    assert code == 2
+    one_error_line(err, "poses.jsonl", "line 2")
+
+
+@pytest.mark.parametrize("argv, names", [
+    (["--frames", "-1"], ["--frames", ">= 1"]),
+    (["--frames", "0"], ["--frames", ">= 1"]),
+    (["--grid-range", "nan"], ["--grid-range", "finite"]),
+    (["--grid-range", "-1"], ["--grid-range", ">= 0"]),
+    (["--iterations", "0"], ["--iterations"]),
+    (["--refine-hops", "-2"], ["--refine-hops"]),
+    (["--turn-step", "inf"], ["--turn-step"]),
+    (["--clients", "-1"], ["--clients"]),
+])
+def test_fit_option_ranges(tmp_path, seq, capsys, argv, names):
+    code, err = run(capsys, "fit", seq, "--out", tmp_path / "res", *argv)
+    assert code == 2
+    one_error_line(err, *names)
+    assert not (tmp_path / "res").exists()
+
+
+def test_fewer_than_three_cameras_warn(tmp_path, capsys):
+    seq = tmp_path / "two"
+    assert run(capsys, "synth", "--out", seq, "--cameras", "2", "--frames", "1", "--size", "80x60", "--quiet")[0] == 0
+    code, err = run(capsys, "fit", seq, "--out", tmp_path / "res", *FAST)
+    assert code == 0, err
+    assert "warning: 2 camera(s)" in err and "858 mm worst" in err
+
+
+def test_synth_refuses_a_folder_in_use_and_replaces_it_whole(tmp_path, capsys):
+    out = tmp_path / "seq"
+    common = ["synth", "--out", out, "--cameras", "2", "--size", "80x60", "--quiet"]
+    assert run(capsys, *common, "--frames", "3")[0] == 0
+    before = snapshot(out)
+    code, err = run(capsys, *common, "--frames", "2")
+    assert code == 2
+    one_error_line(err, str(out), "--overwrite")
+    assert snapshot(out) == before
+    assert run(capsys, *common, "--frames", "2", "--overwrite")[0] == 0
+    assert sorted(p.name for p in (out / "silhouettes" / "cam1").iterdir()) == ["000000.png", "000001.png"]
+    assert not list(tmp_path.glob(".*"))
+
+
+def test_a_failed_staged_build_leaves_the_old_folder(tmp_path):
+    out = tmp_path / "folder"
+    out.mkdir()
+    (out / "old.txt").write_text("old")
+    with pytest.raises(RuntimeError):
+        with staged_folder(out) as staged:
+            (staged / "new.txt").write_text("half")
+            raise RuntimeError("the run failed")
+    assert [p.name for p in out.iterdir()] == ["old.txt"]
+    assert [p.name for p in tmp_path.iterdir()] == ["folder"]
+    with staged_folder(out, merge=True) as staged:
+        (staged / "new.txt").write_text("new")
+    assert sorted(p.name for p in out.iterdir()) == ["new.txt", "old.txt"]
+
+
+def test_a_failed_file_write_leaves_the_old_file(tmp_path):
+    path = tmp_path / "summary.json"
+    path.write_text("old")
+
+    def broken(tmp: Path) -> None:
+        tmp.write_text("half")
+        raise OSError(28, "No space left on device", str(tmp))
+
+    with pytest.raises(OSError):
+        replace_file(path, broken)
+    assert path.read_text() == "old"
+    assert [p.name for p in tmp_path.iterdir()] == ["summary.json"]
+
+
+def test_check_folder_target_rules(tmp_path):
+    assert check_folder_target(tmp_path / "new", ("poses.jsonl",)) is False
+    (tmp_path / "res").mkdir()
+    (tmp_path / "res" / "notes.txt").write_text("user's")
+    assert check_folder_target(tmp_path / "res", ("poses.jsonl",)) is False  # other files are not a result
+    (tmp_path / "res" / "poses.jsonl").write_text("")
+    with pytest.raises(UserError, match="earlier result"):
+        check_folder_target(tmp_path / "res", ("poses.jsonl",))
+    assert check_folder_target(tmp_path / "res", ("poses.jsonl",), resume=True) is True
+
+
+def test_export_and_report_refuse_to_overwrite(fitted, tmp_path, capsys):
+    code, err = run(capsys, "export", fitted, "--format", "bvh")  # mocap fit wrote motion.bvh
+    assert code == 2
+    one_error_line(err, "motion.bvh", "--overwrite")
+    assert run(capsys, "export", fitted, "--format", "bvh", "--overwrite", "--quiet")[0] == 0
+    assert run(capsys, "report", fitted, "--no-pictures", "--quiet")[0] == 0
+    before = (fitted / "report.html").read_bytes()
+    code, err = run(capsys, "report", fitted, "--no-pictures", "--quiet")
+    assert code == 2
+    one_error_line(err, "report.html", "--overwrite")
+    assert (fitted / "report.html").read_bytes() == before
+
+
+def test_voxels_and_segment_refuse_to_overwrite(tmp_path, seq, capsys):
+    out = tmp_path / "vox"
+    assert run(capsys, "voxels", seq, "--out", out, "--grid", "16", "--quiet")[0] == 0
+    before = snapshot(out)
+    code, err = run(capsys, "voxels", seq, "--out", out, "--grid", "16", "--quiet")
+    assert code == 2
+    one_error_line(err, str(out), "--overwrite")
+    assert snapshot(out) == before
+    assert run(capsys, "voxels", seq, "--out", out, "--grid", "16", "--quiet", "--overwrite", "--frames", "1")[0] == 0
+    assert len(list((out / "voxels").iterdir())) == 1
+
+
+def test_segment_refuses_existing_silhouettes(tmp_path, capsys):
+    seq = tmp_path / "seq"
+    assert run(capsys, "synth", "--out", seq, "--cameras", "2", "--frames", "1", "--size", "80x60", "--images",
+               "--quiet")[0] == 0
+    before = snapshot(seq / "silhouettes")
+    code, err = run(capsys, "segment", seq)
+    assert code == 2
+    one_error_line(err, "silhouettes", "--overwrite")
+    assert snapshot(seq / "silhouettes") == before
+    code, err = run(capsys, "segment", seq, "--overwrite")
+    assert code == 0, err
+    assert sorted(snapshot(seq / "silhouettes")) == sorted(before)
