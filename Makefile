@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 DEMO_DIR ?= demo
 DEMO_CLIP ?= common/data/clips/cmu_12_01_walk.bvh
 
-.PHONY: venv demo test test-all real-test bench reliability cluster cluster-test clean
+.PHONY: venv demo test test-all real-test batch-test bench reliability cluster cluster-test batch-cluster-test clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -29,6 +29,10 @@ test-all: $(STAMP)
 real-test: $(STAMP)
 	$(PY) -m pytest -q -s tests/test_real_take.py
 
+# mocap run and mocap batch on real local Dask clusters (2 worker processes), a worker killed mid-batch.
+batch-test: $(STAMP)
+	$(PY) -m pytest -q tests/test_batch.py
+
 bench: $(STAMP)
 	$(PY) -m server.cli bench all --out bench
 
@@ -44,6 +48,10 @@ cluster: $(STAMP)
 
 cluster-test: $(STAMP)
 	PY=$(abspath $(PY)) deploy/cluster.sh test
+
+# mocap batch on a Dask scheduler + 2 worker containers, from nothing, checked, torn down.
+batch-cluster-test: $(STAMP)
+	PY=$(abspath $(PY)) deploy/cluster.sh batch-test
 
 clean:
 	rm -rf $(VENV) $(DEMO_DIR) bench/*.json .pytest_cache

@@ -9,6 +9,10 @@
 #                             poses checked against a single-process run to 1e-9, then a client
 #                             container killed mid-run (every frame must still come out, same
 #                             poses); everything torn down at the end, also after a failure.
+#   deploy/cluster.sh batch-test  `make batch-cluster-test`: from nothing, a project of 3 takes (one
+#                             broken) by `mocap batch` on a Dask scheduler + 2 worker containers
+#                             (deploy/docker-compose.dask.yml), checked against `mocap run` of each
+#                             take; everything torn down at the end
 #   deploy/cluster.sh down    stop what an interrupted run left (compose, engine, bridges)
 #
 # Steps: apt-get install docker.io docker-compose debootstrap when missing (root); dockerd on a
@@ -299,6 +303,62 @@ sigterm_run() {  # docker stop (SIGTERM) ends a waiting server and a reconnectin
     done
 }
 
+# ------------------------------------------------------------------------ batch on Dask
+BATCH_COMPOSE=deploy/docker-compose.dask.yml
+BATCH_TAKES=3                   # takes of the batch project; the last one is broken
+BATCH_FRAMES=6                  # frames per take
+BATCH_WORKERS=2
+batch_compose() { $COMPOSE_BIN --ansi never -p mocapbatch -f "$BATCH_COMPOSE" "$@"; }
+
+prepare_batch_data() {  # DATA/project: takes, the last without one silhouette; DATA/alone: each take by mocap run
+    mkdir -p "$DATA"
+    rm -rf "${DATA:?}"/*
+    chown "$IMAGE_UID:$IMAGE_UID" "$DATA"
+    say "batch project: $BATCH_TAKES takes of $BATCH_FRAMES frames, the last one broken"
+    local i
+    for i in $(seq 1 $BATCH_TAKES); do
+        mocap_once synth --out "/data/project/take$i" --frames $BATCH_FRAMES --cameras 4 --size 160x120 \
+            --start $((1 + 40 * i)) --quiet
+    done
+    printf '[fit]\nrefine_passes = 0\n\n[report]\ngif = false\n' >"$DATA/project/Config.toml"
+    rm "$DATA/project/take$BATCH_TAKES/silhouettes/cam2/000001.png"
+    cp -a "$DATA/project" "$DATA/alone"
+    chown -R "$IMAGE_UID:$IMAGE_UID" "$DATA"
+    for i in $(seq 1 $((BATCH_TAKES - 1))); do mocap_once run "/data/alone/take$i" >/dev/null; done
+}
+
+batch_run() {  # the project on a scheduler + BATCH_WORKERS worker containers; checked against DATA/alone
+    export MOCAP_IMAGE=$IMAGE MOCAP_DATA=$DATA MOCAP_UID=$IMAGE_UID MOCAP_GID=$IMAGE_UID
+    DASK_PORT=$(free_port)
+    export DASK_PORT
+    say "dask: scheduler + $BATCH_WORKERS workers, $BATCH_COMPOSE (log: $STATE/batch.log)"
+    batch_compose up -d --no-build --scale worker=$BATCH_WORKERS >"$STATE/batch.log" 2>&1 \
+        || { cat "$STATE/batch.log" >&2; die "compose up failed"; }
+    local code=0
+    timeout $RUN_TIMEOUT "$DOCKER_BIN" run --rm --network host --user "$IMAGE_UID:$IMAGE_UID" -v "$DATA:/data" \
+        "$IMAGE" batch /data/project --scheduler "tcp://127.0.0.1:$DASK_PORT" >>"$STATE/batch.log" 2>&1 || code=$?
+    batch_compose logs --no-color >>"$STATE/batch.log" 2>&1 || true
+    batch_compose down --remove-orphans --timeout 10 >>"$STATE/batch.log" 2>&1 || true
+    # exit 1: a take failed, as the broken one must
+    [ "$code" = 1 ] || { tail -n 30 "$STATE/batch.log" >&2; die "mocap batch exited with $code (expected 1)"; }
+    "$PY" - "$DATA" $BATCH_TAKES <<'EOF_CHECK' || die "the batch's results differ from mocap run's"
+import json, sys
+from pathlib import Path
+data, n = Path(sys.argv[1]), int(sys.argv[2])
+takes = {t["name"]: t for t in json.loads((data / "project" / "batch.json").read_text())["takes"]}
+def poses(root):
+    return [json.loads(line)["params"] for line in (root / "result" / "poses.jsonl").read_text().splitlines()]
+for i in range(1, n):
+    name = f"take{i}"
+    assert takes[name]["status"] == "done", takes[name]
+    assert poses(data / "project" / name) == poses(data / "alone" / name), f"{name}: poses differ"
+    print(f"cluster: {name}: done, {len(poses(data / 'project' / name))} frames, poses equal to mocap run's")
+broken = takes[f"take{n}"]
+assert broken["status"] == "failed" and "cam2" in broken["error"], broken
+print(f"cluster: take{n}: failed as it must: {broken['error']}")
+EOF_CHECK
+}
+
 # ---------------------------------------------------------------------------- teardown
 teardown() {
     local status=$?
@@ -369,10 +429,20 @@ case ${1:-} in
         step "client killed mid-run"; kill_run
         step "SIGTERM"; sigterm_run
         ;;
+    batch-test)
+        start_session "${CLUSTER_STATE:-$ROOT/build/batch-cluster-test}" 1
+        KEEP_ENGINE_DATA=0
+        step "install tools"; install_tools
+        step "start engine"; engine_start
+        step "build images"; build_images
+        step "batch project"; prepare_batch_data
+        step "mocap batch on dask"; batch_run
+        ;;
     down)
-        for STATE in ${CLUSTER_STATE:-$ROOT/build/cluster $ROOT/build/cluster-test}; do
+        for STATE in ${CLUSTER_STATE:-$ROOT/build/cluster $ROOT/build/cluster-test $ROOT/build/batch-cluster-test}; do
             if engine_env; then
                 compose down --remove-orphans --timeout 10 || true
+                batch_compose down --remove-orphans --timeout 10 || true
                 engine_stop
             fi
             [ ! -d "$STATE" ] || leftovers || true

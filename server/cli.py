@@ -16,7 +16,7 @@ EXIT_USAGE = 2  # bad input: missing/corrupt files, bad calibration, wrong argum
 
 COMMAND_MODULES = (
     "calib", "synth", "fit", "server", "keys", "bench", "segment", "import_video", "voxels", "live", "export",
-    "report",
+    "report", "run", "batch", "config",
 )
 
 

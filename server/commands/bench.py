@@ -13,7 +13,7 @@ BENCH_CLIP_FRAMES = 20  # frames of the bundled walk used for fitting benchmarks
 
 
 def register(sub) -> None:
-    p = sub.add_parser("bench", help="benchmarks (energy, fit, cluster, hops, segment, voxels, all)")
+    p = sub.add_parser("bench", help="benchmarks (energy, fit, cluster, hops, segment, voxels, batch, all)")
     bsub = p.add_subparsers(dest="bench", metavar="WHAT")
     bsub.required = True
     e = bsub.add_parser("energy", help="XOR energy evaluations per second (paper Table 1)")
@@ -69,6 +69,11 @@ def register(sub) -> None:
     ini.add_argument("--refine-search", action="store_true", help="both runs as mocap fit --refine-search")
     ini.add_argument("--refine-hops", type=count(0), default=0, metavar="N", help="both runs as mocap fit --refine-hops")
     ini.add_argument("--json", type=Path, default=None)
+    bb = bsub.add_parser("batch", help="mocap batch against a serial loop of mocap run, on the same takes")
+    bb.add_argument("--takes", type=count(1), default=4)
+    bb.add_argument("--frames", type=count(1), default=20, help="frames per take")
+    bb.add_argument("--workers", type=count(1), default=2)
+    bb.add_argument("--json", type=Path, default=None)
     a = bsub.add_parser("all", help="everything, into a folder of JSON files")
     a.add_argument("--out", type=Path, default=Path("bench"))
     a.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES)
@@ -167,6 +172,11 @@ def run(args) -> int:
             benchmarks.write_json(args.json, rows)
         benchmarks.print_init_table(rows)
         return 0
+    if args.bench == "batch":
+        from server.bench_batch import bench_batch
+
+        _emit(bench_batch(args.takes, args.frames, args.workers), args.json)
+        return 0
     if args.bench == "segment":
         from common.segmentation import bench_segmentation
 
@@ -203,7 +213,8 @@ def run_all(out: Path, frames: int) -> int:
         benchmarks.write_json(out / "fit.json", fit)
         print(json.dumps(fit, indent=1))
     for name, module, func in (("segment", "common.segmentation", "bench_segmentation"),
-                               ("voxels", "common.voxels", "bench_voxels")):
+                               ("voxels", "common.voxels", "bench_voxels"),
+                               ("batch", "server.bench_batch", "bench_batch")):
         try:
             mod = __import__(module, fromlist=[func])
         except ImportError:

@@ -1,0 +1,31 @@
+"""``mocap config show TAKE``: the settings in force for a take, and where each came from."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from server.config import SETTINGS
+from server.project import config_files, take_config
+
+
+def register(sub) -> None:
+    p = sub.add_parser("config", help="show the Config.toml settings in force for a take")
+    action = p.add_subparsers(dest="config_command", metavar="ACTION")
+    action.required = True
+    show = action.add_parser("show", help="every setting, its value and the file it came from")
+    show.add_argument("take", type=Path, help="take (or project) folder")
+    show.set_defaults(func=run_show)
+    keys = action.add_parser("keys", help="every key that a Config.toml may hold, with its meaning")
+    keys.set_defaults(func=run_keys)
+
+
+def run_show(args) -> int:
+    files = [str(p) for p in config_files(args.take) if p.is_file()]
+    print(f"{args.take}: {', '.join(files) if files else 'no Config.toml; all defaults'}")
+    print("\n".join(take_config(args.take).lines()))
+    return 0
+
+
+def run_keys(args) -> int:
+    for s in SETTINGS:
+        print(f"[{s.section}] {s.key} = {s.default!r}   # {s.help}")
+    return 0

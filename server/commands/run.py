@@ -1,0 +1,33 @@
+"""``mocap run TAKE``: every step of a take, from its raw files to exports and report.html.
+
+Steps that are up to date (their outputs made from the same inputs and settings) are skipped;
+see ``server.project``. Settings come from the project's and the take's Config.toml.
+"""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from server.project import run_take
+
+
+def register(sub) -> None:
+    p = sub.add_parser("run", help="every step of a take (import, segment, fit, export, report) as its "
+                                   "Config.toml says; steps already up to date are skipped")
+    p.add_argument("take", type=Path, help="take folder (videos/, images/ or a sequence, in a project)")
+    p.add_argument("--json", action="store_true", help="print what was done as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    def progress(step: str, state: str) -> None:
+        if not args.json:
+            print(f"  {step}: {state}", file=sys.stderr, flush=True)
+
+    done = run_take(args.take, progress)
+    if args.json:
+        print(json.dumps(done, indent=1))
+    else:
+        print(f"{done['name']}: {done['status']} -> {done['result']}")
+    return 0

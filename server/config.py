@@ -1,0 +1,173 @@
+"""Project configuration: ``Config.toml`` files over typed defaults.
+
+A project folder holds a ``Config.toml`` and any number of takes below it; a take's own
+``Config.toml`` overrides keys of the project's, key by key (Pose2Sim's cascade). Every key is
+declared once in ``SETTINGS`` with its type, default and meaning; a file with an unknown
+section or key, or a value of the wrong type or range, is refused naming the file and key.
+``Config.source(section, key)`` says where a value in force came from (``mocap config show``).
+
+Paths in a file (``[calibration] file``) are relative to the folder of the file that sets them.
+"""
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+from common.errors import InputFileError
+from common.export import FORMATS
+from common.fitting import ENERGY_BACKENDS, FitOptions
+from common.segmentation import METHODS
+from common.world import UP_CHOICES
+
+CONFIG_FILE = "Config.toml"
+DEFAULT = "default"
+
+
+@dataclass(frozen=True)
+class Setting:
+    section: str
+    key: str
+    default: Any
+    kind: type  # int, float, str, bool, list (of str) or dict (str -> int)
+    help: str
+    check: Callable[[Any], bool] | None = None  # a further condition on the value
+    wanted: str = ""  # what the check wants, for the error line
+
+    def validate(self, value, where: str):
+        """The value if it has this setting's type and passes its check, else InputFileError."""
+        kind = self.kind
+        ok = isinstance(value, kind) and not (kind is int and isinstance(value, bool))
+        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+            value, ok = float(value), True
+        if ok and kind is float:
+            ok = math.isfinite(value)
+        if ok and kind is list:
+            ok = all(isinstance(v, str) for v in value)
+        if ok and kind is dict:
+            ok = all(isinstance(v, int) and not isinstance(v, bool) for v in value.values())
+        if ok and self.check is not None:
+            ok = self.check(value)
+        if not ok:
+            wanted = self.wanted or {int: "an integer", float: "a finite number", str: "a string", bool: "true or false",
+                                     list: "a list of strings", dict: "a table of integers"}[kind]
+            raise InputFileError(where, f"[{self.section}] {self.key}: expected {wanted}, got {value!r}")
+        return value
+
+
+def _at_least(n):
+    return lambda v: v >= n
+
+
+def _one_of(choices):
+    return lambda v: v in choices
+
+
+SETTINGS: tuple[Setting, ...] = (
+    Setting("take", "sequence", "sequence", str, "folder (in the take) the take's videos or images are imported into"),
+    Setting("take", "result", "result", str, "result folder, relative to the take"),
+    Setting("calibration", "file", "", str, "calibration file or folder (default: calibration.* or Calib.toml, "
+            "in the take, else in the project)"),
+    Setting("calibration", "units", "", str, "units of a calibration that does not say: m, cm or mm",
+            _one_of(("", "m", "cm", "mm")), "one of m, cm, mm"),
+    Setting("calibration", "up", "auto", str, "the world's up axis", _one_of(UP_CHOICES),
+            "one of " + ", ".join(UP_CHOICES)),
+    Setting("import", "start", 0, int, "first source frame", _at_least(0), "an integer >= 0"),
+    Setting("import", "stop", 0, int, "source frame to stop before (0: all)", _at_least(0), "an integer >= 0"),
+    Setting("import", "step", 1, int, "keep every STEP-th frame", _at_least(1), "an integer >= 1"),
+    Setting("import", "fps", 0.0, float, "frame rate of image folders (0: the video's, else 30)", _at_least(0.0),
+            "a number >= 0"),
+    Setting("import", "offsets", {}, dict, "per camera: its frame i + N is the others' frame i"),
+    Setting("segmentation", "method", "cheung", str, "background subtraction method", _one_of(tuple(METHODS)),
+            "one of " + ", ".join(sorted(METHODS))),
+    Setting("fit", "frames", 0, int, "fit only the first N frames (0: all)", _at_least(0), "an integer >= 0"),
+    Setting("fit", "energy", "cpu", str, "energy backend", _one_of(ENERGY_BACKENDS),
+            "one of " + ", ".join(ENERGY_BACKENDS)),
+    Setting("fit", "iterations", FitOptions.max_iterations, int, "rounds per frame", _at_least(1), "an integer >= 1"),
+    Setting("fit", "turn_hypotheses", FitOptions.turn_hypotheses, int, "as mocap fit --turn-hypotheses",
+            _at_least(0), "an integer >= 0"),
+    Setting("fit", "polish_iterations", FitOptions.polish_iterations, int, "as mocap fit --polish-iterations",
+            _at_least(0), "an integer >= 0"),
+    Setting("fit", "refine_passes", FitOptions.refine_passes, int, "as mocap fit --refine-passes", _at_least(0),
+            "an integer >= 0"),
+    Setting("fit", "refine_search", False, bool, "as mocap fit --refine-search"),
+    Setting("fit", "refine_hops", FitOptions.refine_hops, int, "as mocap fit --refine-hops", _at_least(0),
+            "an integer >= 0"),
+    Setting("fit", "init", "", str, "first-frame start: auto, truth or standing (default: truth where there is one)",
+            _one_of(("", "auto", "truth", "standing")), "one of auto, truth, standing"),
+    Setting("fit", "actor_height", "auto", str, "the actor's height in metres, or auto"),
+    Setting("fit", "clean_masks", True, bool, "drop silhouette blobs the other cameras do not support"),
+    Setting("export", "formats", ["bvh", "trc", "csv"], list, "formats written into the result folder",
+            lambda v: all(f in FORMATS for f in v), "a list of " + ", ".join(FORMATS)),
+    Setting("report", "enabled", True, bool, "write report.html and pictures"),
+    Setting("report", "gif", True, bool, "also the animated sequence.gif (the slowest picture)"),
+)
+_BY_KEY = {(s.section, s.key): s for s in SETTINGS}
+SECTIONS = tuple(dict.fromkeys(s.section for s in SETTINGS))
+
+
+def read_config_file(path: Path) -> dict[tuple[str, str], Any]:
+    """{(section, key): value} of one Config.toml, every key known and checked."""
+    try:
+        doc = tomllib.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError:
+        raise InputFileError(path, "not UTF-8 text") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputFileError(path, f"not valid TOML ({exc})") from None
+    except OSError as exc:
+        raise InputFileError(path, f"cannot read ({exc.strerror or exc})") from None
+    values = {}
+    for section, table in doc.items():
+        if section not in SECTIONS:
+            raise InputFileError(path, f"unknown section [{section}] (known: {', '.join(SECTIONS)})")
+        if not isinstance(table, dict):
+            raise InputFileError(path, f"{section}: expected a [{section}] table")
+        for key, value in table.items():
+            setting = _BY_KEY.get((section, key))
+            if setting is None:
+                known = ", ".join(s.key for s in SETTINGS if s.section == section)
+                raise InputFileError(path, f"[{section}] unknown key {key!r} (known: {known})")
+            value = setting.validate(value, str(path))
+            if (section, key) == ("calibration", "file") and value:
+                value = str((path.parent / value).resolve())
+            values[(section, key)] = value
+    return values
+
+
+@dataclass(frozen=True)
+class Config:
+    """The settings in force for one take, and the file each came from."""
+
+    values: dict
+    sources: dict
+
+    def get(self, section: str, key: str):
+        return self.values[(section, key)]
+
+    def source(self, section: str, key: str) -> str:
+        return self.sources[(section, key)]
+
+    def section(self, name: str) -> dict:
+        return {k: v for (s, k), v in self.values.items() if s == name}
+
+    def lines(self) -> list[str]:
+        """``[section] key = value   # source`` for every setting (``mocap config show``)."""
+        out = []
+        for s in SETTINGS:
+            value = self.get(s.section, s.key)
+            shown = repr(value).lower() if isinstance(value, bool) else repr(value)
+            out.append(f"[{s.section}] {s.key} = {shown}   # {self.source(s.section, s.key)}")
+        return out
+
+
+def load_config(files: list[Path]) -> Config:
+    """Defaults, then each existing file of ``files`` in order (project first, take last)."""
+    values = {(s.section, s.key): s.default for s in SETTINGS}
+    sources = dict.fromkeys(values, DEFAULT)
+    for path in files:
+        if path.is_file():
+            for key, value in read_config_file(path).items():
+                values[key], sources[key] = value, str(path)
+    return Config(values, sources)

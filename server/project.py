@@ -1,0 +1,337 @@
+"""Takes of a project and ``mocap run``: every step from a take's raw files to its report.
+
+A project is a folder with ``Config.toml`` at its root; a take is a folder below it holding
+ - ``videos/<camera>.<ext>`` (or ``videos/<camera>/`` image folders), optionally with
+   ``background/<camera>.<ext>`` (or folders) of the empty studio: imported, then segmented;
+ - or ``images/<camera>/`` and ``background/<camera>/``: imported the same way;
+ - or a ready sequence (``sequence.json`` or ``silhouettes/``): fitted as it is;
+plus a calibration (``[calibration] file``, else ``calibration.json``, ``calibration.toml``,
+``Calib.toml``, a ``calibration/`` folder or EasyMocap's ``intri.yml`` + ``extri.yml``, in the
+take and then in the project).
+
+Steps (import, segment, fit, export, report) run the ``mocap`` commands themselves, so every
+check and message is theirs. Each step leaves a record (``TAKE/.mocap/<step>.json``) of its
+settings and of the sizes and times of its inputs and outputs; a step whose record matches is
+skipped, so a run after a change redoes only what the change affects. A fit that was
+interrupted is continued (``--resume``); one whose settings changed is replaced. A lock file
+keeps two runs off one take.
+"""
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import io
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from common.errors import UserError
+from common.export import SUFFIXES
+from server.commands.export import EXPORT_STEM
+from server.config import CONFIG_FILE, Config, load_config
+from server.output import write_text
+
+STATE_DIR = ".mocap"  # per take: step records, the lock, the log of the last run
+CALIBRATION_NAMES = ("calibration.json", "calibration.toml", "Calib.toml", "calibration")
+EASYMOCAP_FILES = ("intri.yml", "extri.yml")
+SEQUENCE_MARKERS = ("sequence.json", "silhouettes")
+SOURCE_FOLDERS = ("videos", "images")
+STEPS = ("import", "segment", "fit", "export", "report")
+
+
+def is_take(folder: Path) -> bool:
+    return folder.is_dir() and any((folder / name).exists() for name in SOURCE_FOLDERS + SEQUENCE_MARKERS)
+
+
+def find_takes(project: Path) -> list[Path]:
+    """The takes of a project folder (at any depth, not inside another take), sorted; a take
+    given as the project is the one take."""
+    project = Path(project)
+    if not project.is_dir():
+        raise UserError(f"{project}: not a folder")
+    return _takes_in(project)
+
+
+def _takes_in(folder: Path) -> list[Path]:
+    if is_take(folder):
+        return [folder]
+    return [t for sub in sorted(folder.iterdir()) if sub.is_dir() and not sub.name.startswith(".")
+            for t in _takes_in(sub)]
+
+
+def project_of(take: Path) -> Path | None:
+    """The nearest folder above the take that holds a Config.toml (the project), or None."""
+    for folder in Path(take).resolve().parents:
+        if (folder / CONFIG_FILE).is_file():
+            return folder
+    return None
+
+
+def config_files(take: Path) -> list[Path]:
+    """The Config.toml files that apply to a take: the project's, then the take's own."""
+    take = Path(take).resolve()
+    project = project_of(take)
+    return ([project / CONFIG_FILE] if project else []) + [take / CONFIG_FILE]
+
+
+def take_config(take: Path) -> Config:
+    return load_config(config_files(take))
+
+
+def find_calibration(take: Path, config: Config) -> Path:
+    given = config.get("calibration", "file")
+    if given:
+        if not Path(given).exists():
+            raise UserError(f"[calibration] file {given} (from {config.source('calibration', 'file')}): missing")
+        return Path(given)
+    project = project_of(take)
+    for folder in [take] + ([project] if project else []):
+        for name in CALIBRATION_NAMES:
+            if (folder / name).exists():
+                return folder / name
+        if all((folder / name).is_file() for name in EASYMOCAP_FILES):
+            return folder
+    raise UserError(f"{take}: no calibration (looked for {', '.join(CALIBRATION_NAMES)} and intri.yml + extri.yml "
+                    "in the take and the project; or set [calibration] file)")
+
+
+def _sources(folder: Path) -> dict[str, Path]:
+    """{camera: path} of a videos/ or background/ folder: files by stem, folders by name."""
+    if not folder.is_dir():
+        return {}
+    return {(p.stem if p.is_file() else p.name): p for p in sorted(folder.iterdir()) if not p.name.startswith(".")}
+
+
+def fingerprint(paths: list[Path]) -> str:
+    """A hash of the names, sizes and modification times of every file under ``paths``."""
+    h = hashlib.sha1()
+    for root in paths:
+        files = [root] if root.is_file() else sorted(p for p in root.rglob("*") if p.is_file()) if root.exists() else []
+        h.update(f"{root}:{len(files)}\n".encode())
+        for p in files:
+            st = p.stat()
+            h.update(f"{p.relative_to(root) if p != root else ''}:{st.st_size}:{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class Step:
+    """One step of a take: the mocap command lines, what it reads and writes, what decides it."""
+
+    name: str
+    commands: tuple[tuple[str, ...], ...]
+    inputs: tuple[Path, ...]
+    outputs: tuple[Path, ...]
+    settings: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class TakePlan:
+    take: Path
+    sequence: Path
+    result: Path
+    steps: tuple[Step, ...]
+
+
+def plan_take(take: Path, config: Config | None = None) -> TakePlan:
+    """The steps of a take under its configuration (nothing is run or written)."""
+    take = Path(take).resolve()
+    if not take.is_dir():
+        raise UserError(f"{take}: not a folder")
+    config = config or take_config(take)
+    result = take / config.get("take", "result")
+    steps = []
+    calib_settings = config.section("calibration")
+    imports = {name: _sources(take / name) for name in ("videos", "images")}
+    source_kind = next((k for k, v in imports.items() if v), None)
+    if any((take / m).exists() for m in SEQUENCE_MARKERS) and source_kind is None:
+        sequence = take
+    elif source_kind is None:
+        raise UserError(f"{take}: not a take (no videos/, images/, sequence.json or silhouettes/)")
+    else:
+        sequence = take / config.get("take", "sequence")
+        calibration = find_calibration(take, config)
+        videos, backgrounds = imports[source_kind], _sources(take / "background")
+        imp = config.section("import")
+        command = ["import-video", "--calibration", str(calibration), "--out", str(sequence), "--overwrite",
+                   "--video", *[f"{cam}={path}" for cam, path in videos.items()],
+                   "--start", str(imp["start"]), "--step", str(imp["step"])]
+        if backgrounds:
+            command += ["--background", *[f"{cam}={path}" for cam, path in backgrounds.items()]]
+        if imp["stop"]:
+            command += ["--stop", str(imp["stop"])]
+        if imp["fps"]:
+            command += ["--fps", str(imp["fps"])]
+        if imp["offsets"]:
+            command += ["--offset", *[f"{cam}={n}" for cam, n in imp["offsets"].items()]]
+        steps.append(Step("import", (tuple(command),), (calibration, *videos.values(), *backgrounds.values()),
+                          (sequence / "images", sequence / "calibration.json", sequence / "sequence.json"),
+                          {"import": imp, "calibration": calib_settings}))
+        method = config.get("segmentation", "method")
+        steps.append(Step("segment", (("segment", str(sequence), "--method", method, "--overwrite"),),
+                          (sequence / "images", sequence / "background"), (sequence / "silhouettes",),
+                          {"segmentation": config.section("segmentation")}))
+    fit = config.section("fit")
+    command = ["fit", str(sequence), "--out", str(result), "--quiet", "--up", calib_settings["up"],
+               "--iterations", str(fit["iterations"]), "--turn-hypotheses", str(fit["turn_hypotheses"]),
+               "--polish-iterations", str(fit["polish_iterations"]), "--refine-passes", str(fit["refine_passes"]),
+               "--refine-hops", str(fit["refine_hops"]), "--energy", fit["energy"],
+               "--actor-height", fit["actor_height"]]
+    command += ["--frames", str(fit["frames"])] if fit["frames"] else []
+    command += ["--units", calib_settings["units"]] if calib_settings["units"] else []
+    command += ["--init", fit["init"]] if fit["init"] else []
+    command += [] if fit["clean_masks"] else ["--no-clean-masks"]
+    command += ["--refine-search"] if fit["refine_search"] else []
+    calibration_file = sequence / "calibration.json"
+    steps.append(Step("fit", (tuple(command),), (calibration_file, sequence / "silhouettes", sequence / "sequence.json"),
+                      (result / "poses.jsonl", result / "summary.json"), {"fit": fit, "calibration": calib_settings}))
+    formats = config.get("export", "formats")
+    steps.append(Step("export", tuple(("export", str(result), "--format", f, "--overwrite", "--quiet") for f in formats),
+                      (result / "poses.jsonl",), tuple(result / f"{EXPORT_STEM}{SUFFIXES[f]}" for f in formats),
+                      {"formats": formats}))
+    report = config.section("report")
+    if report["enabled"]:
+        command = ["report", str(result), "--overwrite", "--quiet"] + ([] if report["gif"] else ["--no-gif"])
+        steps.append(Step("report", (tuple(command),), (result / "poses.jsonl", result / "summary.json"),
+                          (result / "report.html",), {"report": report}))
+    return TakePlan(take, sequence, result, tuple(steps))
+
+
+def _record_path(take: Path, step: str) -> Path:
+    return take / STATE_DIR / f"{step}.json"
+
+
+def _record(step: Step) -> dict:
+    return {"settings": step.settings, "commands": [list(c) for c in step.commands],
+            "inputs": fingerprint(list(step.inputs)), "outputs": fingerprint(list(step.outputs))}
+
+
+def up_to_date(take: Path, step: Step) -> bool:
+    """Whether the step's record says its outputs were made from these inputs and settings and
+    are as it left them."""
+    path = _record_path(take, step.name)
+    if not path.is_file() or not all(p.exists() for p in step.outputs):
+        return False
+    try:
+        done = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return done == _record(step)
+
+
+@contextlib.contextmanager
+def take_lock(take: Path):
+    """One run per take at a time (a second is refused); released when the process ends."""
+    (take / STATE_DIR).mkdir(exist_ok=True)
+    fh = open(take / STATE_DIR / "lock", "w")
+    try:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise UserError(f"{take}: another mocap run is working on this take") from None
+        yield
+    finally:
+        fh.close()
+
+
+def run_mocap(argv: tuple[str, ...], log) -> None:
+    """One mocap command in this process, its output into ``log``; a failure raises UserError
+    with the command's one-line message."""
+    from server.cli import main
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+        code = main(list(argv))
+    text = out.getvalue()
+    log.write(f"$ mocap {' '.join(argv)}\n{text}")
+    log.flush()
+    if code:
+        errors = [line.split(": error: ", 1)[1] for line in text.splitlines() if ": error: " in line]
+        raise UserError((errors or text.strip().splitlines() or ["failed"])[-1].strip())
+
+
+def run_take(take: Path, progress=None) -> dict:
+    """Run the take's steps that are not up to date; returns what was done (``mocap run``,
+    ``mocap batch``). Raises UserError with the failing step's message."""
+    take = Path(take).resolve()
+    plan = plan_take(take)
+    t0 = time.perf_counter()
+    steps = []
+    with take_lock(take), open(take / STATE_DIR / "run.log", "a") as log:
+        for step in plan.steps:
+            if up_to_date(take, step):
+                steps.append({"step": step.name, "status": "up to date", "seconds": 0.0})
+                if progress:
+                    progress(step.name, "up to date")
+                continue
+            record = _record_path(take, step.name)
+            record.unlink(missing_ok=True)  # outputs being replaced: no longer vouched for
+            s0 = time.perf_counter()
+            if progress:
+                progress(step.name, "running")
+            for command in step.commands:
+                command = _resume_if_interrupted(take, step, command)
+                try:
+                    run_mocap(command, log)
+                except UserError as exc:
+                    raise UserError(f"{step.name}: {exc}") from None
+            write_text(record, json.dumps(_record(step), indent=1))
+            (take / STATE_DIR / f"{step.name}.pending.json").unlink(missing_ok=True)
+            steps.append({"step": step.name, "status": "done", "seconds": time.perf_counter() - s0})
+    ran = [s for s in steps if s["status"] == "done"]
+    return {"name": take.name, "path": str(take), "status": "done" if ran else "skipped", "steps": steps,
+            "result": str(plan.result), "seconds": time.perf_counter() - t0, **result_figures(plan.result)}
+
+
+def _resume_if_interrupted(take: Path, step: Step, command: tuple[str, ...]) -> tuple[str, ...]:
+    """A fit that an earlier run started with the same settings and inputs is continued; any other
+    fit replaces what is there (the pending record says which)."""
+    if step.name != "fit":
+        return command
+    pending = take / STATE_DIR / "fit.pending.json"
+    now = {"settings": step.settings, "inputs": fingerprint(list(step.inputs))}
+    try:
+        same = json.loads(pending.read_text()) == now
+    except (OSError, ValueError):
+        same = False
+    write_text(pending, json.dumps(now, indent=1))
+    result = Path(command[command.index("--out") + 1])
+    resume = same and (result / "poses.jsonl").exists()
+    return command + (("--resume",) if resume else ("--overwrite",))
+
+
+def result_figures(result: Path) -> dict:
+    """Frames, seconds per frame and accuracy (where there was truth) of a result folder."""
+    try:
+        summary = json.loads((result / "summary.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    frames = summary.get("frames") or 0
+    out = {"frames": frames,
+           "seconds_per_frame": summary["wall_seconds"] / frames if frames and summary.get("wall_seconds") else None}
+    for key in ("mean_joint_error_mm", "max_joint_error_mm"):
+        if key in summary:
+            out[key] = summary[key]
+    return out
+
+
+def frames_done(take: Path) -> tuple[int, int | None]:
+    """(frames fitted so far, frames of the take if known): for a batch's progress display."""
+    try:
+        config = take_config(take)
+    except UserError:
+        return 0, None
+    result = take / config.get("take", "result") / "poses.jsonl"
+    done = result.read_bytes().count(b"\n") if result.is_file() else 0
+    total = None
+    for seq in (take, take / config.get("take", "sequence")):
+        try:
+            total = len(json.loads((seq / "sequence.json").read_text())["frames"])
+            break
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+    if total and config.get("fit", "frames"):
+        total = min(total, config.get("fit", "frames"))
+    return min(done, total) if total else done, total

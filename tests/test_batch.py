@@ -1,0 +1,216 @@
+"""A project of takes: Config.toml cascade, ``mocap run`` (steps skipped when up to date) and
+``mocap batch`` on a real local Dask cluster of 2 worker processes (those two tests are slow:
+``make batch-test``, which CI runs)."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from common.errors import UserError
+from server.cli import main
+from server.config import load_config
+from server.project import find_takes, plan_take, run_take
+
+pytestmark = pytest.mark.timeout(300)
+
+PROJECT_CONFIG = """
+[fit]
+iterations = 1
+refine_passes = 0
+turn_hypotheses = 0
+polish_iterations = 0
+
+[report]
+gif = false
+"""
+
+
+def make_take(folder: Path, model, studio, frames: int = 3, start: int = 1) -> Path:
+    from common.synth import SynthOptions, synthesize
+
+    from tests.conftest import WALK_CLIP
+
+    synthesize(model, studio, WALK_CLIP, folder, SynthOptions(frames=frames, start=start, step=4, seed=0))
+    return folder
+
+
+@pytest.fixture
+def project(tmp_path, model, small_studio) -> Path:
+    """3 takes: two good ones (walk from two starts), one with a silhouette file missing."""
+    root = tmp_path / "project"
+    root.mkdir()
+    (root / "Config.toml").write_text(PROJECT_CONFIG)
+    make_take(root / "walk_a", model, small_studio)
+    make_take(root / "walk_b", model, small_studio, start=20)
+    make_take(root / "broken", model, small_studio)
+    (root / "broken" / "silhouettes" / "cam2" / "000001.png").unlink()
+    return root
+
+
+def poses(take: Path) -> list:
+    return [json.loads(line)["params"] for line in (take / "result" / "poses.jsonl").read_text().splitlines()]
+
+
+def test_config_cascade_and_sources(tmp_path):
+    (tmp_path / "take").mkdir()
+    (tmp_path / "Config.toml").write_text("[fit]\niterations = 2\nrefine_passes = 0\n")
+    (tmp_path / "take" / "Config.toml").write_text("[fit]\niterations = 3\n[export]\nformats = ['csv']\n")
+    config = load_config([tmp_path / "Config.toml", tmp_path / "take" / "Config.toml"])
+    assert config.get("fit", "iterations") == 3 and config.source("fit", "iterations").endswith("take/Config.toml")
+    assert config.get("fit", "refine_passes") == 0 and config.source("fit", "refine_passes") == str(
+        tmp_path / "Config.toml")
+    assert config.source("fit", "energy") == "default"
+    assert config.get("export", "formats") == ["csv"]
+
+
+@pytest.mark.parametrize("text, names", [
+    ("[fit]\niteration = 2\n", ["[fit] unknown key 'iteration'"]),
+    ("[fitting]\niterations = 2\n", ["unknown section [fitting]"]),
+    ("[fit]\niterations = 'two'\n", ["[fit] iterations", "an integer"]),
+    ("[fit]\niterations = 0\n", ["[fit] iterations", ">= 1"]),
+    ("[export]\nformats = ['gif']\n", ["[export] formats"]),
+    ("[fit\n", ["not valid TOML"]),
+])
+def test_bad_config_is_one_line_naming_file_and_key(tmp_path, capsys, text, names):
+    take = tmp_path / "take"
+    (take / "silhouettes").mkdir(parents=True)
+    (tmp_path / "Config.toml").write_text(text)
+    assert main(["config", "show", str(take)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    for name in [str(tmp_path / "Config.toml"), *names]:
+        assert name in err, err
+
+
+def test_config_show_says_where_each_value_came_from(project, capsys):
+    (project / "walk_a" / "Config.toml").write_text("[fit]\nframes = 2\n")
+    assert main(["config", "show", str(project / "walk_a")]) == 0
+    out = capsys.readouterr().out
+    assert f"[fit] frames = 2   # {project / 'walk_a' / 'Config.toml'}" in out
+    assert f"[fit] iterations = 1   # {project / 'Config.toml'}" in out
+    assert "[fit] energy = 'cpu'   # default" in out
+
+
+def test_run_redoes_only_what_changed(project, capsys):
+    take = project / "walk_a"
+    first = run_take(take)
+    assert [s["status"] for s in first["steps"]] == ["done"] * 3  # fit, export, report
+    assert (take / "result" / "motion.trc").is_file() and (take / "result" / "report.html").is_file()
+    fitted = (take / "result" / "poses.jsonl").stat().st_mtime_ns
+    again = run_take(take)
+    assert again["status"] == "skipped" and {s["status"] for s in again["steps"]} == {"up to date"}
+    (take / "Config.toml").write_text("[export]\nformats = ['csv', 'json']\n")
+    changed = run_take(take)
+    assert [s["status"] for s in changed["steps"]] == ["up to date", "done", "up to date"]
+    assert (take / "result" / "motion.jsonl").is_file()
+    assert (take / "result" / "poses.jsonl").stat().st_mtime_ns == fitted
+    (take / "Config.toml").write_text("[fit]\nframes = 2\n")
+    refit = run_take(take)
+    assert [s["status"] for s in refit["steps"]] == ["done"] * 3
+    assert len(poses(take)) == 2
+
+
+def test_an_interrupted_fit_is_continued(project):
+    from server.project import fingerprint
+
+    take = project / "walk_a"
+    run_take(take)
+    whole = poses(take)
+    fit = plan_take(take).steps[0]
+    lines = (take / "result" / "poses.jsonl").read_text().splitlines(keepends=True)
+    # what a run killed while writing frame 1 leaves: a torn line, a pending record, no done record
+    (take / "result" / "poses.jsonl").write_text(lines[0] + lines[1][:30])
+    (take / ".mocap" / "fit.json").unlink()
+    (take / ".mocap" / "fit.pending.json").write_text(json.dumps(
+        {"settings": fit.settings, "inputs": fingerprint(list(fit.inputs))}))
+    done = run_take(take)
+    assert poses(take) == whole
+    summary = json.loads((take / "result" / "summary.json").read_text())
+    assert summary["frames_fitted_this_run"] == len(whole) - 1 and done["status"] == "done"
+
+
+def test_run_on_a_broken_take_is_one_line(project, capsys):
+    assert main(["run", str(project / "broken")]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
+    assert len(err) == 1 and "cam2" in err[0] and "000001.png" in err[0]
+
+
+def test_find_takes(project):
+    assert [t.name for t in find_takes(project)] == ["broken", "walk_a", "walk_b"]
+    with pytest.raises(UserError, match="not a take"):
+        plan_take(project)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(420)
+def test_batch_on_a_local_dask_cluster(project, tmp_path, capsys):
+    alone = tmp_path / "alone"
+    shutil.copytree(project, alone)
+    for name in ("walk_a", "walk_b"):
+        assert main(["run", str(alone / name)]) == 0
+    capsys.readouterr()
+    assert main(["batch", str(project), "--workers", "2"]) == 1  # one take failed
+    out = capsys.readouterr().out
+    record = json.loads((project / "batch.json").read_text())
+    by_name = {t["name"]: t for t in record["takes"]}
+    assert record["workers"] == 2 and set(by_name) == {"walk_a", "walk_b", "broken"}
+    for name in ("walk_a", "walk_b"):
+        assert by_name[name]["status"] == "done" and by_name[name]["error"] is None
+        assert by_name[name]["result"] == str(project / name / "result")
+        assert poses(project / name) == poses(alone / name)
+    assert by_name["broken"]["status"] == "failed"
+    assert "cam2" in by_name["broken"]["error"] and "\n" not in by_name["broken"]["error"]
+    assert "failed" in out and "walk_a" in out
+    index = (project / "index.html").read_text()
+    assert 'href="walk_a/result/report.html"' in index
+    before = {n: (project / n / "result" / "poses.jsonl").stat().st_mtime_ns for n in ("walk_a", "walk_b")}
+    assert main(["batch", str(project), "--workers", "2", "--quiet"]) == 1
+    again = {t["name"]: t["status"] for t in json.loads((project / "batch.json").read_text())["takes"]}
+    assert again == {"walk_a": "skipped", "walk_b": "skipped", "broken": "failed"}
+    assert before == {n: (project / n / "result" / "poses.jsonl").stat().st_mtime_ns for n in before}
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(420)
+def test_a_worker_killed_mid_batch_loses_no_frame(tmp_path, model, small_studio):
+    from server.batch import run_batch
+
+    root = tmp_path / "project"
+    root.mkdir()
+    (root / "Config.toml").write_text(PROJECT_CONFIG.replace("iterations = 1", "iterations = 3"))
+    frames = 8
+    for name in ("a", "b"):
+        make_take(root / name, model, small_studio, frames=frames)
+    killed = []
+
+    def kill_one_mid_fit(client) -> None:
+        def watch():
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and not killed:
+                for name in ("a", "b"):
+                    path = root / name / "result" / "poses.jsonl"
+                    lines = path.read_bytes().count(b"\n") if path.exists() else 0
+                    if 1 <= lines < frames - 2:
+                        pids = client.run(os.getpid)
+                        busy = [w for w, keys in client.processing().items() if any(name in k for k in keys)]
+                        if busy and busy[0] in pids:
+                            os.kill(pids[busy[0]], signal.SIGKILL)
+                            killed.append((name, lines))
+                            return
+                time.sleep(0.05)
+
+        threading.Thread(target=watch, daemon=True).start()
+
+    record = run_batch(root, workers=2, quiet=True, started=kill_one_mid_fit)
+    assert killed, "no worker was killed mid-fit"
+    for take in record["takes"]:
+        assert take["status"] == "done", take
+        records = [json.loads(line) for line in (root / take["name"] / "result" / "poses.jsonl").read_text().splitlines()]
+        assert [r["frame"] for r in records] == list(range(frames))  # every frame, once
