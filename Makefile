@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 DEMO_DIR ?= demo
 DEMO_CLIP ?= common/data/clips/cmu_12_01_walk.bvh
 
-.PHONY: venv demo test test-all real-test batch-test bench reliability cluster cluster-test batch-cluster-test clean
+.PHONY: venv demo test test-all real-test batch-test bench reliability interop-test cluster cluster-test batch-cluster-test clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -35,6 +35,11 @@ batch-test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m server.cli bench all --out bench
+
+# Our exports opened by Blender (BVH, GLB), OpenSim (TRC, MOT), the Khronos validator and three.js in
+# headless Chromium; installs Debian's blender and chromium and npm packages where missing.
+interop-test: $(STAMP)
+	$(PY) tools/interop_test.py
 
 # Bad inputs, injected faults and a long fuzz run, counted into bench/reliability.json.
 reliability: $(STAMP)

@@ -1,6 +1,7 @@
 """``python -m client --connect tcp://HOST:5555`` (also ``mocap client ...``): run one limb worker.
 
-Exits 0 after the server's SHUTDOWN or on SIGTERM/SIGINT (within a second), 2 on bad arguments.
+Exits 0 after the server's SHUTDOWN or on SIGTERM/SIGINT (within a second), 2 on bad arguments,
+3 when the server refuses its CURVE handshake (a key problem: retrying cannot help).
 """
 from __future__ import annotations
 
@@ -13,36 +14,41 @@ import zmq
 
 EXIT_OK = 0
 EXIT_USAGE = 2
+EXIT_REFUSED = 3
 
 
 def build_parser() -> argparse.ArgumentParser:
     from client.worker import RECONNECT_MAX, RECONNECT_MIN
+    from server.argtypes import OneLineParser, count, non_negative, seconds
 
-    p = argparse.ArgumentParser(prog="mocap client", description="Limb-fitting client of a mocap server.")
+    p = OneLineParser(prog="mocap client", description="Limb-fitting client of a mocap server.")
     p.add_argument("--connect", required=True, help="server address, e.g. tcp://HOST:5555")
     p.add_argument("--id", dest="client_id", default=None, help="name in the server's logs and timing "
                                                               "(default HOST-PID)")
     p.add_argument("--curve-keys", default=None, metavar="DIR",
                    help="CURVE keys: DIR/client.key_secret and the server's DIR/server.key")
-    p.add_argument("--reconnect-min", type=float, default=RECONNECT_MIN, help="first reconnect delay, s")
-    p.add_argument("--reconnect-max", type=float, default=RECONNECT_MAX, help="longest reconnect delay, s")
+    p.add_argument("--reconnect-min", type=seconds, default=RECONNECT_MIN, help="first reconnect delay, s")
+    p.add_argument("--reconnect-max", type=seconds, default=RECONNECT_MAX, help="longest reconnect delay, s")
     p.add_argument("-v", "--verbose", action="store_true", help="log every request")
     p.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
     # for local clusters and fault tests; not part of the user interface
     p.add_argument("--exit-with-parent", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--test-stall", type=float, default=0.0, help=argparse.SUPPRESS)
-    p.add_argument("--test-stall-requests", type=int, default=1, help=argparse.SUPPRESS)
+    p.add_argument("--test-stall", type=non_negative, default=0.0, help=argparse.SUPPRESS)
+    p.add_argument("--test-stall-requests", type=count(1), default=1, help=argparse.SUPPRESS)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.reconnect_max < args.reconnect_min:
+        parser.error(f"--reconnect-max {args.reconnect_max:g} is below --reconnect-min {args.reconnect_min:g}")
     level = logging.DEBUG if args.verbose else logging.WARNING if args.quiet else logging.INFO
     name = f"client {args.client_id}" if args.client_id else "client"
     logging.basicConfig(level=level, format=f"{name}: %(message)s")
     from common.body import load_body_model
     from common.energy import compile_kernels
-    from client.worker import CurveKeys, Worker
+    from client.worker import REFUSED, CurveKeys, Worker
 
     try:
         curve = CurveKeys.load(args.curve_keys) if args.curve_keys else None
@@ -61,6 +67,9 @@ def main(argv: list[str] | None = None) -> int:
     except zmq.ZMQError as exc:
         print(f"mocap client: error: {args.connect}: {exc}", file=sys.stderr)
         return EXIT_USAGE
+    if outcome == "refused":
+        print(f"mocap client: error: {args.connect}: {REFUSED}", file=sys.stderr)
+        return EXIT_REFUSED
     logging.getLogger("client").info("%s after %d chains", outcome, worker.solved)
     return EXIT_OK
 

@@ -22,6 +22,11 @@ current are dropped, never sent.
 
 Every message from the wire goes through ``common.protocol.decode``; bad ones are logged once
 per reason, counted (``Worker.dropped``) and dropped.
+
+A server that refuses our CURVE handshake (our key is not in its allow-list, or we hold the
+wrong server key) sends nothing at all; the socket monitor tells us, and after
+``HANDSHAKE_REFUSALS`` refused connections with no session between them ``run`` returns
+"refused", with that said in one line.
 """
 from __future__ import annotations
 
@@ -38,6 +43,7 @@ from importlib import metadata
 import numpy as np
 import zmq
 import zmq.auth
+from zmq.utils.monitor import recv_monitor_message
 
 from common.body import BodyModel
 from common.camera import Studio
@@ -53,6 +59,11 @@ RECONNECT_MIN = 1.0  # seconds before the first reconnect; doubles after every f
 RECONNECT_MAX = 32.0  # seconds
 MAX_SLEEP = 1.0  # seconds the main loop sleeps at most (it wakes for messages, results and stop())
 FRAMES_KEPT = 2  # FRAME messages cached: the current frame and the one received before
+HANDSHAKE_REFUSALS = 3  # refused connections before giving up: a key problem, not a glitch
+HANDSHAKE_EVENTS = (zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
+                    | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL)
+REFUSED = ("server refused the CURVE handshake: is this client's key in the server's clients/ folder, "
+           "and the server key right?")
 
 # energy backends this client can try (a failing one is reported as an ERROR, and the server
 # then solves those chains itself)
@@ -147,19 +158,31 @@ class Worker:
 
     def run(self) -> str:
         backoff = self.reconnect_min
+        refusals = 0
         try:
             while True:
-                sock = self._open()
+                sock, monitor = self._open()
                 try:
-                    outcome = self._serve(sock)
+                    outcome = self._serve(sock, monitor)
                 finally:
+                    sock.disable_monitor()
+                    monitor.close(linger=0)
                     sock.close(linger=0)
-                if outcome != "lost":
+                if outcome == "refused":
+                    refusals += 1
+                elif self.session:  # it let us in: a later refusal starts the count afresh
+                    refusals = 0
+                if refusals >= HANDSHAKE_REFUSALS:
+                    return "refused"
+                if outcome not in ("lost", "refused"):
                     return outcome
                 if self.session:
                     backoff = self.reconnect_min  # we had a session: a fresh loss, start over
-                log.warning("server %s silent for %.1f s; reconnecting in %.1f s", self.connect,
-                            HEARTBEAT_LIVENESS * self.heartbeat_interval, backoff)
+                if outcome == "refused":
+                    log.warning("%s Retrying in %.1f s", REFUSED, backoff)
+                else:
+                    log.warning("server %s silent for %.1f s; reconnecting in %.1f s", self.connect,
+                                HEARTBEAT_LIVENESS * self.heartbeat_interval, backoff)
                 self.session = ""
                 self._frames.clear()
                 if self._stop.wait(backoff) or self._parent_gone():
@@ -175,20 +198,28 @@ class Worker:
 
     # ------------------------------------------------------------------ connection
 
-    def _open(self) -> zmq.Socket:
+    def _open(self) -> tuple[zmq.Socket, zmq.Socket]:
+        """A connected DEALER that has sent REGISTER, and its monitor for failed handshakes
+        (watching before the connection starts, so that none is missed)."""
         sock = self.ctx.socket(zmq.DEALER)
+        monitor = None
         try:
             sock.linger = 0
             sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
             if self.curve:
                 sock.curve_publickey, sock.curve_secretkey = self.curve.public, self.curve.secret
                 sock.curve_serverkey = self.curve.server
+            monitor = sock.get_monitor_socket(HANDSHAKE_EVENTS)
+            monitor.linger = 0
             sock.connect(self.connect)
         except zmq.ZMQError:
+            if monitor is not None:
+                sock.disable_monitor()
+                monitor.close(linger=0)
             sock.close(linger=0)  # an open socket would keep the context from terminating
             raise
         self._register(sock)
-        return sock
+        return sock, monitor
 
     def _register(self, sock: zmq.Socket) -> None:
         self._send(sock, Register(client_id=self.client_id, cores=os.cpu_count() or 1, backends=BACKENDS,
@@ -200,10 +231,11 @@ class Worker:
         except zmq.Again:  # queue full while the server is away: heartbeats and retries cover it
             pass
 
-    def _serve(self, sock: zmq.Socket) -> str:
+    def _serve(self, sock: zmq.Socket, monitor: zmq.Socket) -> str:
         poller = zmq.Poller()
         poller.register(sock, zmq.POLLIN)
         poller.register(self._wake_rx, zmq.POLLIN)
+        poller.register(monitor, zmq.POLLIN)
         now = time.monotonic()
         server_expiry = now + HEARTBEAT_LIVENESS * self.heartbeat_interval
         self._heartbeat_at = now + self.heartbeat_interval
@@ -218,6 +250,8 @@ class Worker:
             if events.get(self._wake_rx):
                 while self._wake_rx.poll(0):
                     self._wake_rx.recv()
+            if events.get(monitor) and self._refused(monitor):
+                return "refused"
             self._send_results(sock)
             if events.get(sock):
                 while True:
@@ -235,6 +269,14 @@ class Worker:
                 self._heartbeat_at = now + self.heartbeat_interval
             if now >= server_expiry:
                 return "lost"
+
+    def _refused(self, monitor: zmq.Socket) -> bool:
+        """Whether the monitor reports a failed handshake (it reports nothing else)."""
+        refused = False
+        while monitor.poll(0):
+            recv_monitor_message(monitor)
+            refused = True
+        return refused
 
     def _say_goodbye(self, sock: zmq.Socket, why: str) -> None:
         """Tell the server we leave, so it re-sends our chain now instead of after the liveness timeout."""

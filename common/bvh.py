@@ -24,12 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
-from common.errors import InputFileError
+from common.errors import FieldChecks, InputFileError
 
 POSITION_CHANNELS = ("Xposition", "Yposition", "Zposition")
 ROTATION_CHANNELS = ("Xrotation", "Yrotation", "Zrotation")
 _CHANNEL_BY_LOWER = {c.lower(): c for c in POSITION_CHANNELS + ROTATION_CHANNELS}
 VALUE_FORMAT = "%.6f"  # written channel values and offsets: 1e-6 file units, ample for mm data
+MAX_DEPTH = 200  # joints nested in joints; skeletons have 10-30 levels (a hand's fingers included)
+_WHOLE = re.compile(r"[0-9]+")  # a count in the file: ASCII digits (str.isdigit also takes "²")
 
 
 def _frozen(a, dtype) -> np.ndarray:
@@ -168,9 +170,11 @@ class _Tokens:
         return x
 
 
-def _parse_joint(tk: _Tokens, parent: int, out: dict):
+def _parse_joint(tk: _Tokens, parent: int, out: dict, depth: int = 0):
     """Reads the body of ROOT/JOINT after its keyword, recursively: name { OFFSET CHANNELS ... }."""
     kw_line = tk.toks[tk.pos - 1][1]
+    if depth > MAX_DEPTH:
+        raise tk.error(f"joints nested more than {MAX_DEPTH} deep (a '}}' missing?)", kw_line)
     name_parts = []  # a name may hold spaces ("Bip01 L Thigh") but ends with its line
     while tk.peek() not in ("{", None) and tk.toks[tk.pos][1] == kw_line:
         name_parts.append(tk.next("joint name")[0])
@@ -199,7 +203,7 @@ def _parse_joint(tk: _Tokens, parent: int, out: dict):
                 raise tk.error(f"second CHANNELS in joint {name!r}", line)
             seen_channels = True
             n_tok, n_line = tk.next("channel count")
-            if not n_tok.isdigit():
+            if not _WHOLE.fullmatch(n_tok):
                 raise tk.error(f"CHANNELS count must be a whole number, found {n_tok!r}", n_line)
             chans = []
             for _ in range(int(n_tok)):
@@ -214,7 +218,7 @@ def _parse_joint(tk: _Tokens, parent: int, out: dict):
         elif key in ("JOINT", "ROOT"):
             if key == "ROOT":
                 raise tk.error("ROOT inside a joint (use JOINT)", line)
-            _parse_joint(tk, j, out)
+            _parse_joint(tk, j, out, depth + 1)
         elif key == "END":
             site_line = line
             while tk.peek() not in ("{", None) and tk.toks[tk.pos][1] == site_line:  # "End Site [name]"
@@ -276,7 +280,7 @@ def parse_bvh(text: str, source: str = "<bvh>") -> BvhMotion:
             raise InputFileError(source, f"line {line_no}: expected '{want}', found {line.strip()[:40]!r}")
         header[key] = (m.group(1), line_no)
     n_tok, n_line = header["frames"]
-    if not n_tok.isdigit():
+    if not _WHOLE.fullmatch(n_tok):
         raise InputFileError(source, f"line {n_line}: Frames must be a whole number, found {n_tok!r}")
     n_frames = int(n_tok)
     t_tok, t_line = header["frame_time"]
@@ -326,10 +330,10 @@ def read_bvh(path) -> BvhMotion:
     """Reads a BVH file. Errors: InputFileError(path, "line N: ...")."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8", errors="replace")
+        data = path.read_bytes()
     except OSError as e:
         raise InputFileError(path, f"cannot read: {e.strerror or e}") from None
-    return parse_bvh(text, str(path))
+    return parse_bvh(FieldChecks(path).decode(data), str(path))
 
 
 # ---------------------------------------------------------------------------------------------

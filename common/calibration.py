@@ -1,6 +1,6 @@
 """Calibration files: read and write studios in the formats users already have.
 
-Our own JSON format (``calibration.json``)::
+Our own JSON format (``calibration.json``; ``version`` other than ``JSON_VERSION`` is refused)::
 
     {"format": "silhouette-mocap-calibration", "version": 1, "units": "m",
      "cameras": [{"name": str, "K": 3x3, "dist": [k1, k2, p1, p2, k3], "R": 3x3,
@@ -37,7 +37,8 @@ A folder of per-camera files (``opencv-xml`` and ``projection``) is either ``<ca
 next to the full camera) are skipped and named in one warning line; two files with a camera in
 one sub-folder are an error. A ``.txt`` made only of numbers is a projection file (12 numbers).
 
-Image sizes are optional in every format: without one in the file or ``size``, a camera's size
+Image sizes are optional in every format (and at most ``MAX_IMAGE_PIXELS``, as every image read
+is): without one in the file or ``size``, a camera's size
 is twice its principal point, rounded (as Pose2Sim's converters do), one warning line names the
 cameras, and ``Camera.size_guessed`` is set (kept in our JSON as ``"size_guessed": true``) so
 that ``with_image_sizes`` can later put in the images' real size.
@@ -62,7 +63,7 @@ import numpy as np
 import yaml
 
 from common.camera import Camera, CalibrationError, Studio, make_camera
-from common.errors import print_warning
+from common.errors import FieldChecks, print_warning
 
 try:
     import tomllib
@@ -70,12 +71,15 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 JSON_FORMAT_NAME = "silhouette-mocap-calibration"
-JSON_VERSION = 1
+JSON_VERSION = 1  # the only version there is; a file of another was written by a newer release
 UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per unit
 WRITE_FORMATS = ("json", "easymocap", "pose2sim", "anipose", "opencv-xml")
 FORMATS = WRITE_FORMATS + ("projection", "qualisys")
 ROUNDING_TOLERANCE = 1e-5  # |R^T R - I| of a rotation matrix written with 6 decimals; snapped
 MAX_CAMERA_DISTANCE = 50.0  # metres; a camera centre farther from the origin means "not metres"
+# Pixels (width x height) a camera's image, and so any image file read, may have: three times
+# 8K video (7680 x 4320, 33 Mpx), ten times a 10 Mpx machine-vision camera; 300 MB as RGB.
+MAX_IMAGE_PIXELS = 100_000_000
 EASYMOCAP_FILES = ("intri.yml", "extri.yml")
 TOML_NON_CAMERA_SECTIONS = ("metadata", "capture_volume", "charuco", "checkerboard")  # FreeMocap adds the last three
 YAML_KEY_NAME = re.compile(r"^[A-Za-z0-9_\-]+$")  # what OpenCV FileStorage accepts in K_<cam> keys
@@ -123,13 +127,22 @@ def studio_to_json(studio: Studio) -> dict:
     }
 
 
+def _checks(source) -> FieldChecks:
+    """Field checks whose failures are CalibrationError ("<file>" for the whole file)."""
+    return FieldChecks(source, error=lambda path, where, problem: CalibrationError(path, where or "<file>", problem))
+
+
 def studio_from_json(doc, source: str, units: str | None = None) -> Studio:
+    checks = _checks(source)
     if not isinstance(doc, dict):
         raise CalibrationError(source, "<root>", "expected a JSON object")
     if doc.get("format", JSON_FORMAT_NAME) != JSON_FORMAT_NAME:
         raise CalibrationError(source, "format", f"expected {JSON_FORMAT_NAME!r}, got {doc.get('format')!r}")
+    if doc.get("version", JSON_VERSION) != JSON_VERSION or isinstance(doc.get("version"), bool):
+        raise CalibrationError(source, "version", f"version {doc.get('version')!r} is not supported (this release "
+                               f"reads version {JSON_VERSION}); convert the file with the release that wrote it")
     file_units = doc.get("units", units or "m")
-    if file_units not in UNIT_SCALE:
+    if not isinstance(file_units, str) or file_units not in UNIT_SCALE:
         raise CalibrationError(source, "units", f"expected one of {sorted(UNIT_SCALE)}, got {file_units!r}")
     scale = UNIT_SCALE[file_units]
     cams = doc.get("cameras")
@@ -142,23 +155,17 @@ def studio_from_json(doc, source: str, units: str | None = None) -> Studio:
         for key in ("name", "K", "R", "t", "width", "height"):
             if key not in c:
                 raise CalibrationError(source, f"cameras[{i}].{key}", "missing")
-        t = np.asarray(c["t"], dtype=np.float64) * scale if _numeric(c["t"]) else c["t"]
-        guessed = c.get("size_guessed", False)
-        if not isinstance(guessed, bool):
-            raise CalibrationError(source, f"cameras[{i}].size_guessed", f"expected true or false, got {guessed!r}")
-        cam = make_camera(c["name"], c["K"], c.get("dist"), c["R"], t, c["width"], c["height"], source)
+        name = checks.text(c["name"], f"cameras[{i}].name")
+        width, height = (checks.whole(c[key], f"{name}.{key}", minimum=1) for key in ("width", "height"))
+        guessed = checks.flag(c.get("size_guessed", False), f"cameras[{i}].size_guessed")
+        K, R, t = (_numbers(c[key], source, f"{name}.{key}") for key in ("K", "R", "t"))
+        dist = None if c.get("dist") is None else _numbers(c["dist"], source, f"{name}.dist")
+        cam = make_camera(name, K, dist, R, t * scale, width, height, source)
         out.append(replace(cam, size_guessed=guessed))
     studio = Studio(tuple(out), source)
     if "units" not in doc and units is None:
         check_units(studio, source)
     return studio
-
-
-def _numeric(value) -> bool:
-    try:
-        return np.asarray(value, dtype=np.float64).size > 0
-    except (TypeError, ValueError):
-        return False
 
 
 # ----------------------------------------------------------------------------- public API
@@ -181,9 +188,12 @@ def load_calibration(path, units: str | None = None, fmt: str | None = None,
     if fmt == "json":
         if path.is_dir():
             raise CalibrationError(str(path), "<file>", "is a folder, expected a calibration JSON file")
-        return studio_from_json(_read_json(path), str(path), units)
+        studio = studio_from_json(_read_json(path), str(path), units)
+        _check_image_sizes(studio, str(path))
+        return studio
     lines: list[str] = []  # warnings wait for success: a failed read says one thing, its error
     studio = _read_format(path, fmt, units, size, lines.append)
+    _check_image_sizes(studio, str(path))
     guessed = [c.name for c in studio if c.size_guessed]
     if guessed:
         lines.append(f"{path}: no image size for {', '.join(guessed)}; guessed as twice the principal point "
@@ -193,6 +203,14 @@ def load_calibration(path, units: str | None = None, fmt: str | None = None,
     for line in lines:
         warn(line)
     return studio
+
+
+def _check_image_sizes(studio: Studio, source: str) -> None:
+    """Refuse a camera whose image would be larger than any image may be (MAX_IMAGE_PIXELS)."""
+    for cam in studio:
+        if cam.width * cam.height > MAX_IMAGE_PIXELS:
+            raise CalibrationError(source, f"{cam.name}.size", f"{cam.width}x{cam.height} pixels, more than the "
+                                   f"{MAX_IMAGE_PIXELS / 1e6:g} Mpx an image may have")
 
 
 def _read_format(path: Path, fmt: str, units: str | None, size, warn: Warn) -> Studio:
@@ -386,17 +404,13 @@ class _CvMat:
 
 
 def _read_text(path: Path) -> str:
-    try:
-        return path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise CalibrationError(str(path), "<file>", f"cannot read ({exc})") from None
+    checks = _checks(path)
+    return checks.decode(checks.read())
 
 
 def _read_json(path: Path):
-    try:
-        return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CalibrationError(str(path), "<file>", f"not valid JSON ({exc})") from None
+    checks = _checks(path)
+    return checks.parse_json(checks.read())
 
 
 def _write(path: Path, text: str, newline: str | None = None) -> None:
@@ -563,7 +577,9 @@ def _read_easymocap(folder: Path, scale: float, size) -> Studio:
     if not isinstance(names, list) or not names:
         raise CalibrationError(si, "names", "missing or empty list of camera names")
     cams = []
-    for raw in names:
+    for i, raw in enumerate(names):
+        if isinstance(raw, bool) or not isinstance(raw, (str, int)) or raw == "":
+            raise CalibrationError(si, f"names[{i}]", f"expected a camera name, got {raw!r}")
         name = str(raw)
         K, k_key = _yaml_node(intri, si, f"K_{name}")
         dist, d_key = _yaml_node(intri, si, f"dist_{name}", f"D_{name}")
@@ -631,7 +647,7 @@ def _read_toml(path: Path, scale: float, size) -> Studio:
         for key in ("matrix", "distortions", "rotation", "translation"):
             if key not in c:
                 raise CalibrationError(source, f"{sec}.{key}", "missing")
-        if c.get("fisheye") is True:
+        if _checks(source).flag(c.get("fisheye", False), f"{sec}.fisheye"):
             raise CalibrationError(source, f"{sec}.fisheye", "fisheye cameras are not supported "
                                    "(pinhole with k1 k2 p1 p2 k3 only)")
         dims = c.get("size", [None, None])
@@ -640,8 +656,8 @@ def _read_toml(path: Path, scale: float, size) -> Studio:
         fields = {"K": (source, f"{sec}.matrix"), "dist": (source, f"{sec}.distortions"),
                   "R": (source, f"{sec}.rotation"), "t": (source, f"{sec}.translation"),
                   "size": (source, f"{sec}.size")}
-        name = c.get("name", sec)
-        cams.append(_build(str(name), c["matrix"], c["distortions"], c["rotation"], c["translation"],
+        name = _checks(source).text(c.get("name", sec), f"{sec}.name")
+        cams.append(_build(name, c["matrix"], c["distortions"], c["rotation"], c["translation"],
                            *dims, scale, fields, size))
     return Studio(tuple(cams), source)
 
@@ -803,10 +819,9 @@ def _read_camera_file(name: str, path: Path, scale: float, size) -> tuple[Camera
 
 
 def _parse_xml(path: Path) -> ET.Element:
+    data = _checks(path).read()
     try:
-        return ET.fromstring(path.read_bytes())
-    except OSError as exc:
-        raise CalibrationError(str(path), "<file>", f"cannot read ({exc})") from None
+        return ET.fromstring(data)
     except ET.ParseError as exc:
         raise CalibrationError(str(path), "<file>", f"not valid XML ({exc})") from None
 
@@ -886,7 +901,7 @@ def _projection_text(path: Path) -> str:
 def _projection_matrix(value, source: str, field: str) -> np.ndarray:
     arr = _numbers(value, source, field)
     if arr.size != 12 or (arr.ndim == 2 and arr.shape != (3, 4)):
-        raise CalibrationError(source, field, f"expected a 3x4 projection matrix (12 numbers), got "
+        raise CalibrationError(source, field, "expected a 3x4 projection matrix (12 numbers), got "
                                + (f"shape {arr.shape}" if arr.size == 12 else f"{arr.size} numbers"))
     return arr.reshape(3, 4)
 

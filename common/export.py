@@ -1,13 +1,23 @@
-"""Fitted motion out: BVH (Blender, MotionBuilder), C3D and TRC of joint positions, JSON lines, CSV.
+"""Fitted motion out: glTF (.glb), BVH, OpenSim TRC and MOT, EasyMocap keypoints3d, C3D, JSON lines, CSV.
 
-Axis conventions of the files we write (docs/exports.md has the full table):
+Axis conventions of the files we write (docs/exports.md has the full table and the import
+settings of Blender, OpenSim and three.js):
+- GLB: metres, Y up, the actor facing +Z at rest (glTF's rules; ``common.gltf``). Blender's
+  glTF importer turns it into its Z-up world, which is then our z-up fit frame.
 - BVH: Y up, the actor facing +Z in the rest pose, centimetres. Blender's importer (default
   forward -Z, up Y) turns this into its Z-up world, which is then exactly our world: x to the
-  actor's left at rest, the actor facing -y, z up.
+  actor's left at rest, the actor facing -y, z up. The rest pose is the body model's A-pose or
+  a T-pose (``BVH_RESTS``); the motion is the same in both.
+- TRC and MOT: OpenSim's convention, Y up, the actor's rest forward along +X, Z to its right,
+  metres; TRC markers are named as Pose2Sim's HALPE_26 skeleton names them.
+- keypoints3d: EasyMocap's per-frame JSON, body25 joint order, the user's world, metres.
 - C3D: our world unchanged, Z up, millimetres (the usual lab convention; POINT:X_SCREEN/Y_SCREEN
   say so to viewers such as Mokka).
-- TRC: OpenSim's convention, Y up, the actor's rest forward along +X, Z to its right, millimetres.
 - CSV and JSON lines: our world, Z up, metres.
+
+Upright formats (GLB, BVH, TRC, MOT) are written from the z-up fit frame, so that their up is
+the actor's up whatever the user's world; keypoints3d, C3D, CSV and JSON lines keep the user's
+world, the one poses.jsonl and the calibration are in (for a z-up world the two are the same).
 
 Every writer takes a ``FittedMotion``: frame numbers, frame rate, per-frame parameters and joint
 positions, and the body model (with the fitted actor's segment lengths) that turns one into the
@@ -30,11 +40,17 @@ from common.body import (
 )
 from common.bvh import BvhMotion, bvh_global_transforms, end_site_positions, write_bvh
 from common.errors import UserError
+from common.gltf import write_glb
 from common.world import world_frame
 from common.retarget import nearest_turn
 
-FORMATS = ("bvh", "c3d", "trc", "json", "csv")
-SUFFIXES = {"bvh": ".bvh", "c3d": ".c3d", "trc": ".trc", "json": ".jsonl", "csv": ".csv"}
+FORMATS = ("glb", "mot", "trc", "keypoints3d", "bvh", "c3d", "json", "csv")
+# keypoints3d is a folder (one JSON file per frame); the others are files
+SUFFIXES = {"glb": ".glb", "mot": ".mot", "trc": ".trc", "keypoints3d": "_keypoints3d", "bvh": ".bvh", "c3d": ".c3d",
+            "json": ".jsonl", "csv": ".csv"}
+FOLDER_FORMATS = ("keypoints3d",)
+BVH_RESTS = ("apose", "tpose")
+DEFAULT_BVH_REST = "apose"  # the body model's own rest, as BVH files of ours always had
 
 BVH_UNITS_PER_M = 100.0  # centimetres
 MM_PER_M = 1000.0
@@ -169,19 +185,60 @@ def continuous_euler_zxy(R: np.ndarray) -> np.ndarray:
     return np.degrees(out)
 
 
-def params_to_bvh(model: BodyModel, params: np.ndarray, frame_time: float) -> BvhMotion:
+def rest_rotations(model: BodyModel, rest: str = DEFAULT_BVH_REST) -> np.ndarray:
+    """(16, 3, 3) world rotation of each segment from the body model's rest to the rest pose ``rest``.
+
+    "apose": the body model's own rest (arms hanging at about 45 degrees, forearms a little
+    forward): identities. "tpose": upper arms and forearms straight out sideways (the left
+    along +x), thighs and shins straight down, each turned the shortest way; hands and feet
+    turn with their forearm and shin, the torso and head stay.
+    """
+    if rest not in BVH_RESTS:
+        raise UserError(f"unknown BVH rest pose {rest!r}; choose one of {', '.join(BVH_RESTS)}")
+    T = np.tile(np.eye(3), (16, 1, 1))
+    if rest == "apose":
+        return T
+    J = model.joint_rest
+    lateral, down = np.array([1.0, 0.0, 0.0]), np.array([0.0, 0.0, -1.0])
+    # (segment, its proximal and distal joints, target direction); the extremity follows
+    for seg, a, b, target, extremity in ((4, 4, 5, lateral, None), (5, 5, 6, lateral, 6),
+                                         (7, 7, 8, -lateral, None), (8, 8, 9, -lateral, 9),
+                                         (10, 10, 11, down, None), (11, 11, 12, down, 12),
+                                         (13, 13, 14, down, None), (14, 14, 15, down, 15)):
+        T[seg] = _shortest_rotation(J[b] - J[a], target)
+        if extremity is not None:
+            T[extremity] = T[seg]
+    return T
+
+
+def _shortest_rotation(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3,), (3,) -> (3, 3) the smallest rotation taking direction a to direction b."""
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    s = np.linalg.norm(axis)
+    if s < 1e-12:
+        return np.eye(3)  # aligned already (a segment exactly opposite its target does not occur)
+    return Rotation.from_rotvec(axis / s * np.arctan2(s, a @ b)).as_matrix()
+
+
+def params_to_bvh(model: BodyModel, params: np.ndarray, frame_time: float, rest: str = DEFAULT_BVH_REST) -> BvhMotion:
     """(F, 35) fitted parameters -> a BvhMotion in BVH conventions (Y up, cm).
 
     One joint per segment at its proximal joint, plus the fixed Head joint; the head, hands and
     feet end in End Sites (the head's is the head_top joint). Offsets are the actor's rest
-    segments. Joints are in depth-first order, as the file lists them.
+    segments, turned into the rest pose ``rest`` (``rest_rotations``: T_s per segment): a
+    segment's offsets and End Sites turn with it, its local rotation becomes
+    T_parent L T_s^-1, so that every joint's world position is unchanged. Joints are in
+    depth-first order, as the file lists them.
     """
     p = np.atleast_2d(params)
-    local = local_rotations(model, p)
+    T = rest_rotations(model, rest)
+    TP = np.stack([T[SEGMENT_PARENTS[s]] if s else np.eye(3) for s in range(16)])  # each segment's parent's
+    local = TP[None] @ local_rotations(model, p) @ np.swapaxes(T, -1, -2)[None]
     C = TO_BVH
-    seg_offsets = (model.offsets @ C.T) * BVH_UNITS_PER_M
+    seg_offsets = (np.einsum("sij,sj->si", TP, model.offsets) @ C.T) * BVH_UNITS_PER_M
     seg_offsets[0] = 0.0  # the root's position comes from its channels
-    head_top = C @ model.head_top_offset * BVH_UNITS_PER_M
+    head_top = C @ T[HEAD_TOP_SEGMENT] @ model.head_top_offset * BVH_UNITS_PER_M
     seg_euler = [continuous_euler_zxy(C @ local[:, s] @ C.T) for s in range(16)]
     index = {s: (s if s <= HEAD_TOP_SEGMENT else s + 1) for s in range(16)}  # segment -> BVH joint
     head = HEAD_TOP_SEGMENT + 1
@@ -201,7 +258,7 @@ def params_to_bvh(model: BodyModel, params: np.ndarray, frame_time: float) -> Bv
     end_offsets = [(1.0 - HEAD_JOINT_FRACTION) * head_top]
     for s in (6, 9, 12, 15):  # hands and feet
         end_parents.append(index[s])
-        end_offsets.append(C @ model.ellipsoid_centres[s] * EXTREMITY_END_SCALE * BVH_UNITS_PER_M)
+        end_offsets.append(C @ T[s] @ model.ellipsoid_centres[s] * EXTREMITY_END_SCALE * BVH_UNITS_PER_M)
     return BvhMotion(BVH_JOINT_NAMES, parents, offsets, channels, np.array(end_parents), np.array(end_offsets),
                      frame_time, np.concatenate(cols, axis=1), "silhouette-mocap")
 
@@ -226,33 +283,142 @@ def bvh_joint_positions_to_world(positions: np.ndarray) -> np.ndarray:
     return (positions @ TO_BVH) / BVH_UNITS_PER_M
 
 
-def write_motion_bvh(path, model: BodyModel, params: np.ndarray, fps: float) -> None:
-    write_bvh(path, params_to_bvh(model, params, 1.0 / fps))
+def write_motion_bvh(path, model: BodyModel, params: np.ndarray, fps: float, rest: str = DEFAULT_BVH_REST) -> None:
+    write_bvh(path, params_to_bvh(model, params, 1.0 / fps, rest))
 
 
-def write_bvh_export(path, motion: FittedMotion) -> None:
-    write_motion_bvh(path, motion.model, motion.params, motion.fps)
+def write_bvh_export(path, motion: FittedMotion, rest: str = DEFAULT_BVH_REST) -> None:
+    write_motion_bvh(path, motion.model, motion.params, motion.fps, rest)
+
+
+def write_glb_export(path, motion: FittedMotion) -> None:
+    """The skinned body, its skeleton and the motion as glTF 2.0 binary (``common.gltf``)."""
+    write_glb(path, motion.model, motion.params, motion.times, motion.fps)
 
 
 # ------------------------------------------------------------------------- joint positions
 
-def write_trc(path, motion: FittedMotion) -> None:
-    """OpenSim TRC marker file: one marker per joint, millimetres, Y up (OpenSim's axes)."""
-    F, J, _ = motion.joints.shape
-    fps = motion.fps
-    pts = (motion.joints @ TO_OPENSIM.T) * MM_PER_M
+def _midpoint(a: str, b: str):
+    ia, ib = JOINT_NAMES.index(a), JOINT_NAMES.index(b)
+    return lambda joints: 0.5 * (joints[..., ia, :] + joints[..., ib, :])
+
+
+def _joint(name: str):
+    i = JOINT_NAMES.index(name)
+    return lambda joints: joints[..., i, :]
+
+
+# Pose2Sim's HALPE_26 markers (Pose2Sim/skeletons.py) that our skeleton has, in HALPE_26's tree
+# order. Hip (HALPE's mid-hip) and Neck (the base of the neck, between the shoulders) are the
+# midpoints of our two hip and two shoulder joints; Head is HALPE's head top. Nose, the toes and
+# heels we do not fit, so they are left out rather than made up.
+HALPE26_MARKERS = {
+    "Hip": _midpoint("l_hip", "r_hip"),
+    "RHip": _joint("r_hip"), "RKnee": _joint("r_knee"), "RAnkle": _joint("r_ankle"),
+    "LHip": _joint("l_hip"), "LKnee": _joint("l_knee"), "LAnkle": _joint("l_ankle"),
+    "Neck": _midpoint("l_shoulder", "r_shoulder"), "Head": _joint("head_top"),
+    "RShoulder": _joint("r_shoulder"), "RElbow": _joint("r_elbow"), "RWrist": _joint("r_wrist"),
+    "LShoulder": _joint("l_shoulder"), "LElbow": _joint("l_elbow"), "LWrist": _joint("l_wrist"),
+}
+# OpenPose BODY_25 order, as EasyMocap's CONFIG['body25'] lists it
+BODY25_NAMES = (
+    "Nose", "Neck", "RShoulder", "RElbow", "RWrist", "LShoulder", "LElbow", "LWrist", "MidHip",
+    "RHip", "RKnee", "RAnkle", "LHip", "LKnee", "LAnkle", "REye", "LEye", "REar", "LEar",
+    "LBigToe", "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel",
+)
+BODY25_FROM_HALPE = {"MidHip": "Hip"}  # the same point under OpenPose's name; others share names
+KEYPOINTS3D_FORMAT = "%06d.json"       # EasyMocap names each frame's file by its frame number
+KEYPOINTS3D_PERSON = 0                 # EasyMocap's person id of our one actor
+
+
+def halpe26_markers(joints: np.ndarray) -> tuple[tuple[str, ...], np.ndarray]:
+    """(F, 17, 3) joints -> the HALPE_26 marker names we have and (F, M, 3) their positions."""
+    return tuple(HALPE26_MARKERS), np.stack([f(joints) for f in HALPE26_MARKERS.values()], axis=-2)
+
+
+def body25_keypoints(joints: np.ndarray) -> np.ndarray:
+    """(F, 17, 3) joints -> (F, 25, 4) BODY_25 keypoints (x, y, z, confidence): confidence 1
+    where our skeleton has the point, 0 (and the point at the origin) where it has not."""
+    out = np.zeros(joints.shape[:-2] + (len(BODY25_NAMES), 4))
+    for k, name in enumerate(BODY25_NAMES):
+        halpe = BODY25_FROM_HALPE.get(name, name)
+        if halpe in HALPE26_MARKERS:
+            out[..., k, :3] = HALPE26_MARKERS[halpe](joints)
+            out[..., k, 3] = 1.0
+    return out
+
+
+def opensim_points(motion: FittedMotion) -> np.ndarray:
+    """(F, 17, 3) the joints in OpenSim's axes (Y up, X forward), metres, from the fit frame."""
+    return motion.fit_joints @ TO_OPENSIM.T
+
+
+def write_trc(path, motion: FittedMotion, title: str | None = None) -> None:
+    """OpenSim TRC marker file (Pose2Sim's layout): HALPE_26 markers, metres, Y up. title: the
+    file name the header gives (default: ``path``'s)."""
+    names, pts = halpe26_markers(opensim_points(motion))
+    F, M, _ = pts.shape
+    fps = f"{motion.fps:.10g}"
     lines = [
-        f"PathFileType\t4\t(X/Y/Z)\t{Path(path).name}",
+        f"PathFileType\t4\t(X/Y/Z)\t{title or Path(path).name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
-        f"{fps:g}\t{fps:g}\t{F}\t{J}\tmm\t{fps:g}\t1\t{F}",
-        "Frame#\tTime\t" + "\t\t\t".join(JOINT_NAMES),
-        "\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(J)),
+        f"{fps}\t{fps}\t{F}\t{M}\tm\t{fps}\t1\t{F}",
+        "Frame#\tTime\t" + "\t\t\t".join(names) + "\t\t",
+        "\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(M)),
         "",
     ]
     for i in range(F):
-        vals = "\t".join(f"{v:.5f}" for v in pts[i].reshape(-1))
+        vals = "\t".join(f"{v:.6f}" for v in pts[i].reshape(-1))
         lines.append(f"{i + 1}\t{motion.times[i]:.6f}\t{vals}")
     Path(path).write_text("\n".join(lines) + "\n")
+
+
+# .mot columns: the pelvis position in OpenSim's axes (metres; OpenSim's pelvis_t* names), then
+# our 32 angle parameters in degrees (rotation-vector components are axis x angle)
+MOT_COLUMNS = ("pelvis_tx", "pelvis_ty", "pelvis_tz") + PARAM_NAMES[3:]
+
+
+def mot_table(motion: FittedMotion) -> np.ndarray:
+    """(F, 1 + 35) time (s), the pelvis in OpenSim's axes (m), the angle parameters (degrees)."""
+    p = motion.params
+    pelvis = p[:, 0:3] @ TO_OPENSIM.T
+    return np.concatenate([motion.times[:, None], pelvis, np.degrees(p[:, 3:])], axis=1)
+
+
+def write_mot(path, motion: FittedMotion, title: str | None = None) -> None:
+    """OpenSim motion file (.mot, the STO text layout): our joint angles in degrees. title: the
+    table's name in the header (default: ``path``'s stem)."""
+    table = mot_table(motion)
+    header = [
+        title or Path(path).stem,
+        "version=1",
+        f"nRows={len(table)}",
+        f"nColumns={table.shape[1]}",
+        "inDegrees=yes",
+        "",
+        "Units are S.I. units (second, meters, Newtons, ...)",
+        "Angles are in degrees: root_heading and the hinges, and rotation vectors (axis x angle) in the",
+        "z-up body frame of silhouette-mocap (docs/exports.md); pelvis_t* are metres in OpenSim's axes.",
+        "",
+        "endheader",
+        "\t".join(("time",) + MOT_COLUMNS),
+    ]
+    rows = ["\t".join(f"{v:.8g}" for v in row) for row in table]
+    Path(path).write_text("\n".join(header + rows) + "\n")
+
+
+def write_keypoints3d(folder, motion: FittedMotion) -> None:
+    """EasyMocap keypoints3d: ``folder/<frame:06d>.json`` per frame, each
+    ``[{"id": 0, "keypoints3d": [[x, y, z, confidence] x 25]}]`` in body25 order, metres, the
+    user's world (the calibration's)."""
+    folder = Path(folder)
+    folder.mkdir(exist_ok=True)
+    kp = body25_keypoints(motion.joints)
+    for f, points in zip(motion.frames, kp):
+        # laid out as EasyMocap's own writer does: one keypoint per line
+        rows = ",\n".join("      [" + ", ".join(f"{v:.6f}" for v in p) + "]" for p in points)
+        text = f'[\n  {{\n    "id": {KEYPOINTS3D_PERSON},\n    "keypoints3d": [\n{rows}\n    ]\n  }}\n]\n'
+        (folder / (KEYPOINTS3D_FORMAT % int(f))).write_text(text)
 
 
 def write_csv(path, motion: FittedMotion) -> None:
@@ -291,13 +457,21 @@ def write_c3d(path, motion: FittedMotion) -> None:
         writer.write(fh)
 
 
-WRITERS = {"bvh": write_bvh_export, "c3d": write_c3d, "trc": write_trc, "json": write_jsonl, "csv": write_csv}
+WRITERS = {"glb": write_glb_export, "mot": write_mot, "trc": write_trc, "keypoints3d": write_keypoints3d,
+           "bvh": write_bvh_export, "c3d": write_c3d, "json": write_jsonl, "csv": write_csv}
 
 
-def export_motion(fmt: str, path, motion: FittedMotion) -> Path:
-    """Write ``motion`` as ``fmt`` (one of FORMATS) to ``path``; returns the path."""
+def export_motion(fmt: str, path, motion: FittedMotion, bvh_rest: str = DEFAULT_BVH_REST,
+                  final_path=None) -> Path:
+    """Write ``motion`` as ``fmt`` (one of FORMATS) to ``path`` (a folder for FOLDER_FORMATS).
+
+    bvh_rest: the BVH's rest pose (``BVH_RESTS``); final_path: the name the file will have when
+    ``path`` is a temporary one (TRC and MOT headers name it). Returns ``path``.
+    """
     if fmt not in WRITERS:
         raise UserError(f"unknown export format {fmt!r}; choose one of {', '.join(FORMATS)}")
     path = Path(path)
-    WRITERS[fmt](path, motion)
+    final = Path(final_path or path)
+    options = {"bvh": {"rest": bvh_rest}, "trc": {"title": final.name}, "mot": {"title": final.stem}}
+    WRITERS[fmt](path, motion, **options.get(fmt, {}))
     return path

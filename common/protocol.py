@@ -9,8 +9,10 @@ packed silhouettes of a ``Frame`` message)::
 The four routing keys are in every header; a type that does not use one sends "" or 0 there
 (and decode insists on it). Use ``socket.send_multipart(encode(msg))`` and
 ``decode(frames)`` with the frames after any ROUTER identity frame. Set the socket's
-``zmq.MAXMSGSIZE`` to ``MAX_MESSAGE_BYTES`` (zmq applies it to each frame; decode checks
-the sum).
+``zmq.MAXMSGSIZE`` to ``MAX_MESSAGE_BYTES`` on a client and to ``MAX_CLIENT_MESSAGE_BYTES``
+on the server, which receives only what clients send (zmq applies it to each frame; decode
+checks the sum, and refuses more than ``MAX_PARTS`` frames). See docs/cluster.md for why
+zmq holds a whole message before any of it is delivered, and CURVE is the defence.
 
 Everything from the wire is hostile until ``decode`` returns: it raises ``ProtocolError``
 with a short ``reason`` from ``REASONS`` (so servers can count drops by reason) and never
@@ -38,7 +40,11 @@ CHAIN_NAMES = ("torso", "head", "left_arm", "right_arm", "left_leg", "right_leg"
 HOP_JOB_NAMES = ("hop0", "hop1", "hop2", "hop3")
 JOB_NAMES = CHAIN_NAMES + HOP_JOB_NAMES
 
-MAX_MESSAGE_BYTES = 64 * 1024 * 1024  # all frames of one message; also zmq.MAXMSGSIZE
+MAX_MESSAGE_BYTES = 64 * 1024 * 1024  # all frames of one message; also a client's zmq.MAXMSGSIZE
+# The largest message a client sends is an Error of MAX_TEXT_CHARS 4-byte characters, 16.7 KB
+# (tests/test_cluster_trust.py): the server's zmq.MAXMSGSIZE, 4x that, so a peer's frame of
+# more closes its connection before zmq buffers it.
+MAX_CLIENT_MESSAGE_BYTES = 64 * 1024
 MAX_HEADER_BYTES = 1024 * 1024  # the msgpack header frame
 MAX_CAMERAS = 64  # K
 MAX_IMAGE_SIDE = 4096  # pixels, H and W
@@ -63,7 +69,7 @@ REASONS = (
     "frame_count",   # wrong number of frames for the type
     "byte_length",   # packed silhouettes not ceil(K * H * W / 8) bytes
     "non_finite",    # NaN or infinity in a float field
-    "too_large",     # message, header, K, H or W over its limit
+    "too_large",     # message, header, frame count, K, H or W over its limit
 )
 
 
@@ -427,6 +433,7 @@ def camera_specs(studio: Studio) -> tuple[CameraSpec, ...]:
 
 _ROUTING = {"session": "", "frame": 0, "iteration": 0, "request": 0}  # value sent when unused
 _RAW_FIELDS = {Frame: ("silhouettes",)}  # fields sent as raw frames after the header, in order
+MAX_PARTS = 1 + max(len(names) for names in _RAW_FIELDS.values())  # frames of the longest message
 _CAMERA_KEYS = tuple(f.name for f in fields(CameraSpec))
 
 
@@ -463,6 +470,8 @@ def decode(frames: list[bytes]) -> Message:
     """
     if not frames:
         raise ProtocolError("frame_count", "no frames")
+    if len(frames) > MAX_PARTS:
+        raise ProtocolError("too_large", f"{len(frames)} frames, at most {MAX_PARTS}")
     parts = [memoryview(f) for f in frames]
     total = sum(p.nbytes for p in parts)
     if total > MAX_MESSAGE_BYTES:

@@ -27,12 +27,11 @@ from __future__ import annotations
 import time
 import tomllib
 from dataclasses import asdict, dataclass, fields
-from pathlib import Path
 
 import numpy as np
 from scipy import ndimage
 
-from common.errors import InputFileError, UserError
+from common.errors import FieldChecks, InputFileError, UserError
 
 REFERENCE_AREA = 320 * 240  # pixels; blob and hole areas are given at this resolution
 KMEANS_ITERATIONS = 12
@@ -155,25 +154,16 @@ def params_from_mapping(method: str, doc: dict, source: str = "<params>"):
 
 
 def _coerce(source: str, key: str, value, default):
-    def number(v):
-        if isinstance(v, bool) or not isinstance(v, (int, float)):
-            raise UserError(f"{source}: {key}: expected a number, got {v!r}")
-        return v
-
+    checks = FieldChecks(source)
     if isinstance(default, bool):
-        if not isinstance(value, bool):
-            raise UserError(f"{source}: {key}: expected true or false, got {value!r}")
-        return value
+        return checks.flag(value, key)
     if isinstance(default, int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise UserError(f"{source}: {key}: expected an integer, got {value!r}")
-        return value
+        return checks.whole(value, key)
     if isinstance(default, float):
-        return float(number(value))
+        return checks.number(value, key)
     if isinstance(default, tuple):  # thresholds: list of [T_L, T_U, T_C]
-        if not isinstance(value, list) or not all(isinstance(row, list) for row in value):
-            raise UserError(f"{source}: {key}: expected a list of [T_L, T_U, T_C] lists, got {value!r}")
-        return tuple(tuple(float(number(v)) for v in row) for row in value)
+        rows = checks.items(value, key)
+        return tuple(tuple(checks.numbers(row, f"{key}[{i}]", 3)) for i, row in enumerate(rows))
     raise UserError(f"{source}: {key}: unsupported value {value!r}")
 
 
@@ -183,13 +173,9 @@ def load_params(method: str, path=None):
         params = _method(method)[0]()
         params.validate()
         return params
-    path = Path(path)
+    checks = FieldChecks(path)
     try:
-        doc = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputFileError(path, "missing") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputFileError(path, f"not readable ({exc})") from None
+        doc = tomllib.loads(checks.decode(checks.read()))
     except tomllib.TOMLDecodeError as exc:
         raise InputFileError(path, f"not valid TOML ({exc})") from None
     return params_from_mapping(method, doc, str(path))

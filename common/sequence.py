@@ -28,17 +28,20 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from collections import OrderedDict
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
-from common.calibration import EASYMOCAP_FILES, load_calibration, natural_key, with_image_sizes
+from common.body import JOINT_NAMES, PARAM_NAMES
+from common.calibration import EASYMOCAP_FILES, MAX_IMAGE_PIXELS, load_calibration, natural_key, with_image_sizes
 from common.camera import Studio
 from common.consistency import supported_masks
-from common.errors import InputFileError, UserError
+from common.errors import FieldChecks, InputFileError, UserError
 from common.packing import pad_stack
 from common.voxels import silhouette_centre
 from common.world import WorldFrame, resolve_world
@@ -52,6 +55,13 @@ MAX_MASK_THRESHOLD = 65535  # grey levels of 16-bit masks
 CLEANED_FRAMES_KEPT = 64  # frames whose cleaned masks a Sequence keeps (about 0.6 MB each at 8 x 320x240)
 
 _DIGITS = re.compile(r"\d+")
+# What PIL raises for a file that is not a readable image: truncated or corrupt data ends in
+# OSError, ValueError or SyntaxError (a broken PNG chunk) or EOFError, depending on the format.
+IMAGE_ERRORS = (UnidentifiedImageError, OSError, ValueError, SyntaxError, EOFError)
+# Every image is checked against MAX_IMAGE_PIXELS on its header, before a pixel is decoded
+# (_open_image); PIL's own guard (a warning, then DecompressionBombError at twice its limit)
+# would name neither the size nor the limit, so it is off.
+Image.MAX_IMAGE_PIXELS = None
 
 
 @dataclass(frozen=True)
@@ -101,26 +111,40 @@ def expected_path(folder: Path, files: dict[int, Path], frame: int) -> Path:
     return folder / f"{stem[:last.start()]}{number}{stem[last.end():]}{example.suffix}"
 
 
-def read_image(path, mode: str) -> np.ndarray:
-    """Read one image of any PIL format ('L' -> (H, W) uint8, 'RGB' -> (H, W, 3) uint8)."""
+@contextmanager
+def _open_image(path):
+    """An image file opened on its header, for reading in the ``with`` block; a missing file, a
+    folder, a file that is not a readable image (also when its pixels are decoded in the block)
+    and one of more than MAX_IMAGE_PIXELS are each one InputFileError."""
+    if Path(path).is_dir():
+        raise InputFileError(path, "a folder, expected an image file")
     try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert(mode))
+        with warnings.catch_warnings():
+            # PIL warns (lines on stderr) of tags it skips in a damaged file; it reads or fails as it can
+            warnings.simplefilter("ignore")
+            with Image.open(path) as im:
+                width, height = im.size
+                if width * height > MAX_IMAGE_PIXELS:
+                    raise InputFileError(path, f"declares {width}x{height} pixels, more than the "
+                                               f"{MAX_IMAGE_PIXELS / 1e6:g} Mpx an image may have")
+                yield im
     except FileNotFoundError:
         raise InputFileError(path, "missing") from None
-    except (UnidentifiedImageError, OSError, ValueError) as exc:
-        raise InputFileError(path, f"not a readable image ({exc})") from None
+    except IMAGE_ERRORS as exc:
+        reason = " ".join(str(exc).split()) or type(exc).__name__  # PIL's messages may hold line breaks
+        raise InputFileError(path, f"not a readable image ({reason})") from None
+
+
+def read_image(path, mode: str) -> np.ndarray:
+    """Read one image of any PIL format ('L' -> (H, W) uint8, 'RGB' -> (H, W, 3) uint8)."""
+    with _open_image(path) as im:
+        return np.asarray(im.convert(mode))
 
 
 def image_size(path) -> tuple[int, int]:
     """(width, height) of an image file from its header (the pixels are not decoded)."""
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except FileNotFoundError:
-        raise InputFileError(path, "missing") from None
-    except (UnidentifiedImageError, OSError, ValueError) as exc:
-        raise InputFileError(path, f"not a readable image ({exc})") from None
+    with _open_image(path) as im:
+        return im.size
 
 
 def read_mask(path, threshold: int | None = None) -> np.ndarray:
@@ -131,22 +155,17 @@ def read_mask(path, threshold: int | None = None) -> np.ndarray:
     differ) and grey images with more levels are refused. With a threshold, grey level >
     threshold is silhouette (colour is converted to grey first).
     """
-    try:
-        with Image.open(path) as im:
-            if im.mode == "1":
-                return np.asarray(im, dtype=bool)
-            if im.mode in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
-                grey, colour = np.asarray(im), False
-            elif im.mode in ("LA", "La"):
-                grey, colour = np.asarray(im.getchannel(0)), False
-            else:
-                rgb = np.asarray(im.convert("RGB"))
-                colour = not (np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2]))
-                grey = np.asarray(im.convert("L")) if colour else rgb[..., 0]
-    except FileNotFoundError:
-        raise InputFileError(path, "missing") from None
-    except (UnidentifiedImageError, OSError, ValueError) as exc:
-        raise InputFileError(path, f"not a readable image ({exc})") from None
+    with _open_image(path) as im:
+        if im.mode == "1":
+            return np.asarray(im, dtype=bool)
+        if im.mode in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
+            grey, colour = np.asarray(im), False
+        elif im.mode in ("LA", "La"):
+            grey, colour = np.asarray(im.getchannel(0)), False
+        else:
+            rgb = np.asarray(im.convert("RGB"))
+            colour = not (np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2]))
+            grey = np.asarray(im.convert("L")) if colour else rgb[..., 0]
     if threshold is not None:
         return grey > threshold
     hint = "give binary masks, or a mask threshold (mocap fit --mask-threshold N: grey level > N is silhouette)"
@@ -205,18 +224,9 @@ class Sequence:
         self.clean_masks = clean_masks
         self._cleaned: OrderedDict = OrderedDict()  # frame -> (masks, pixels removed per camera)
         meta_path = self.path / "sequence.json"
-        meta = {}
-        if meta_path.exists():
-            try:
-                meta = json.loads(meta_path.read_text())
-            except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-                raise InputFileError(meta_path, f"not valid JSON ({exc})") from None
-        self.meta = meta
-        self.fps = float(meta.get("fps", DEFAULT_FPS))
-        if "frames" in meta:
-            self.frames = [int(f) for f in meta["frames"]]
-        else:
-            self.frames = self._frames_on_disk()
+        self.meta = read_sequence_meta(meta_path) if meta_path.exists() else {}
+        self.fps = self.meta.get("fps", DEFAULT_FPS)
+        self.frames = self.meta["frames"] if "frames" in self.meta else self._frames_on_disk()
         if not self.frames:
             raise InputFileError(self.path, "no frames (no silhouettes/, mask/ or images/ and no sequence.json)")
 
@@ -365,18 +375,52 @@ class Sequence:
         return {t.frame: t for t in read_truth(path)}
 
 
+def read_sequence_meta(path: Path) -> dict:
+    """sequence.json, its fields checked: ``frames`` a non-empty list of distinct whole numbers
+    >= 0 (the numbers in frame file names), ``fps`` a finite number > 0, ``cameras`` a list of
+    names. Other fields (``segmentation``, ``source``, ...) are records for the user, kept as
+    they are."""
+    checks = FieldChecks(path)
+    meta = checks.object(checks.parse_json(checks.read()), "<root>")
+    if "fps" in meta:
+        meta["fps"] = checks.number(meta["fps"], "fps", minimum=0.0, exclusive_minimum=True)
+    if "frames" in meta:
+        listed = checks.items(meta["frames"], "frames")
+        if not listed:
+            raise checks.error("frames", "an empty list; list the frame numbers, or leave frames out to fit "
+                                         "every frame on disk")
+        frames = [checks.whole(f, f"frames[{i}]", minimum=0) for i, f in enumerate(listed)]
+        if len(set(frames)) != len(frames):
+            twice = next(f for f in frames if frames.count(f) > 1)
+            raise checks.error("frames", f"frame {twice} listed twice")
+        meta["frames"] = frames
+    if "cameras" in meta:
+        cameras = checks.items(meta["cameras"], "cameras")
+        meta["cameras"] = [checks.text(c, f"cameras[{i}]") for i, c in enumerate(cameras)]
+    return meta
+
+
 def read_truth(path: Path) -> list[TruthFrame]:
+    """truth.jsonl: one JSON object a line, ``{"frame": N, "params": [35 numbers], "joints":
+    {name: [x, y, z], ...}}`` with every joint of ``JOINT_NAMES`` (metres); blank lines skipped."""
+    whole_file = FieldChecks(path)
     out = []
-    with open(path) as fh:
-        for lineno, line in enumerate(fh, 1):
-            if not line.strip():
-                continue
-            try:
-                doc = json.loads(line)
-                out.append(TruthFrame(int(doc["frame"]), np.asarray(doc["params"], dtype=np.float64),
-                                      {k: np.asarray(v, dtype=np.float64) for k, v in doc["joints"].items()}))
-            except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-                raise InputFileError(path, f"line {lineno}: not a truth record ({exc})") from None
+    for lineno, line in enumerate(whole_file.decode(whole_file.read()).split("\n"), 1):
+        if not line.strip():
+            continue
+        checks = FieldChecks(path, line=lineno)
+        doc = checks.object(checks.parse_json(line.encode()), "<record>")
+        for key in ("frame", "params", "joints"):
+            if key not in doc:
+                raise checks.error(key, "missing")
+        joints = checks.object(doc["joints"], "joints")
+        absent = [n for n in JOINT_NAMES if n not in joints]
+        if absent:
+            raise checks.error("joints", f"no {', '.join(absent)}")
+        out.append(TruthFrame(
+            checks.whole(doc["frame"], "frame", minimum=0),
+            np.array(checks.numbers(doc["params"], "params", len(PARAM_NAMES))),
+            {name: np.array(checks.numbers(v, f"joints.{name}", 3)) for name, v in joints.items()}))
     return out
 
 

@@ -1,8 +1,8 @@
 """Checked argparse types: every numeric option says what range it takes.
 
-argparse turns the ``ValueError`` these raise into ``argument --NAME: MESSAGE`` (one line,
-exit 2, see ``server.cli.MocapParser``), so ``--frames -1`` or ``--grid-range nan`` are refused
-before any work starts instead of meaning something surprising.
+argparse turns the ``ArgumentTypeError`` these raise into ``argument --NAME: MESSAGE``, and
+``OneLineParser`` prints that as one line with exit 2, so ``--frames -1`` or ``--grid-range nan``
+are refused before any work starts instead of meaning something surprising.
 """
 from __future__ import annotations
 
@@ -11,16 +11,30 @@ import math
 from typing import Callable
 
 
-def count(minimum: int = 0) -> Callable[[str], int]:
-    """An integer >= ``minimum`` (0: "none" allowed, 1: at least one)."""
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``mocap fit: error: argument --frames: ...`` and exit 2
+    (the usage text is what ``--help`` is for)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
+
+
+def one_line(text: str) -> str:
+    """A message on one line (a path or a value may hold line breaks)."""
+    return " ".join(str(text).split("\n")).replace("\r", " ")
+
+
+def count(minimum: int = 0, maximum: int | None = None) -> Callable[[str], int]:
+    """An integer >= ``minimum`` (0: "none" allowed, 1: at least one), and <= ``maximum``."""
+    wanted = f"an integer >= {minimum}" + (f" and <= {maximum}" if maximum is not None else "")
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {value}")
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {text!r}") from None
+        if value < minimum or (maximum is not None and value > maximum):
+            raise argparse.ArgumentTypeError(f"expected {wanted}, got {value}")
         return value
 
     parse.__name__ = f"count>={minimum}"

@@ -27,6 +27,7 @@ import numpy as np
 from common.body import load_body_model
 from common.fitting import FitOptions
 from common.sequence import load_sequence
+from server.argtypes import count
 from server.cluster import LocalCluster
 from server.session import LocalSolver, load_records, run_fit
 
@@ -259,10 +260,10 @@ def format_table(r: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m server.bench_cluster", description=__doc__.split("\n\n")[0])
     p.add_argument("sequence", type=Path)
-    p.add_argument("--frames", type=int, default=None, help="first N frames (default all)")
-    p.add_argument("--clients", type=int, default=DEFAULT_CLIENTS)
-    p.add_argument("--iterations", type=int, default=FitOptions.max_iterations, help="rounds per frame")
-    p.add_argument("--repeats", type=int, default=DEFAULT_REPEATS, help="alternating runs of each mode")
+    p.add_argument("--frames", type=count(1), default=None, help="first N frames (default all)")
+    p.add_argument("--clients", type=count(1), default=DEFAULT_CLIENTS)
+    p.add_argument("--iterations", type=count(1), default=FitOptions.max_iterations, help="rounds per frame")
+    p.add_argument("--repeats", type=count(1), default=DEFAULT_REPEATS, help="alternating runs of each mode")
     p.add_argument("--no-xor", action="store_true", help="skip the single-process run without pre-rendering")
     p.add_argument("--json", type=Path, default=None, help="write the results here")
     args = p.parse_args(argv)

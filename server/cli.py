@@ -11,6 +11,8 @@ import importlib
 import os
 import sys
 
+from server.argtypes import OneLineParser
+
 EXIT_OK = 0
 EXIT_USAGE = 2  # bad input: missing/corrupt files, bad calibration, wrong arguments
 
@@ -25,16 +27,8 @@ def _client_entry(argv: list[str]) -> int:
     return EXIT_OK  # not reached
 
 
-class MocapParser(argparse.ArgumentParser):
-    """argparse with one-line errors: ``mocap fit: error: argument --frames: ...`` and exit 2
-    (the usage text is what ``--help`` is for)."""
-
-    def error(self, message: str):
-        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    parser = MocapParser(prog="mocap", description="Markerless multi-view silhouette motion capture.")
+    parser = OneLineParser(prog="mocap", description="Markerless multi-view silhouette motion capture.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     sub.required = True
     for name in COMMAND_MODULES:
@@ -61,15 +55,16 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # --help, or a bad option (already said in one line)
         return int(exc.code or EXIT_OK)
     from common.errors import UserError
+    from server.argtypes import one_line
 
     try:
         return int(args.func(args) or EXIT_OK)
     except UserError as exc:
-        print(f"mocap {args.command}: error: {exc}", file=sys.stderr)
+        print(f"mocap {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as exc:  # the disk, not the input: full, read-only, a folder where a file goes
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"mocap {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        print(f"mocap {args.command}: error: {one_line(where + str(exc.strerror or exc))}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print(f"mocap {args.command}: interrupted", file=sys.stderr)

@@ -18,24 +18,40 @@ Reliability (zguide's Paranoid Pirate, adapted):
    intervals is dropped and its chain queued again; clients do the same with the server and
    reconnect with backoff, then register again (a restarted server answers an unknown peer
    with ERROR "unregistered", which makes it register at once);
- - a chain not back within ``client_timeout`` seconds is queued again (another client or the
-   server takes it) and its client gets no new work until it answers;
+ - a chain not back within its deadline is queued again and its client gets no new work until
+   it answers. The deadline is ``DEADLINE_FACTOR`` times the median of the measured solve times
+   of that kind of job (round trips of accepted results, and the server's own solves), at least
+   ``DEADLINE_FLOOR``, at most ``client_timeout``, which is also the deadline before anything
+   is measured;
+ - a chain queued again (its client stalled, failed or left, or its result was refused) goes
+   to a client that has delivered accepted work, or the server solves it: a crowd of new peers
+   that never answer costs one deadline per round, not one per peer;
  - the first result for a chain wins; results are matched by (session, frame, iteration,
    request id, chain, sender) and everything else (late, duplicate, stale) is dropped;
+ - no result is used unchecked: the caller's thread scores its parameters once
+   (``score_job``, the energies ``solve_job`` reports); a result whose energies differ from
+   its claim, or that moved parameters outside its chain, is refused (``stats()["rejected"]``,
+   logged once per client), its chain queued again, and its sender gets no more work;
  - every message goes through ``common.protocol.decode``; bad ones are logged once per reason,
-   counted in ``stats()["dropped"]`` and dropped; ``MAXMSGSIZE`` bounds every frame (zmq
-   closes a connection that exceeds it: counted as ``disconnects``, zmq gives no reason);
+   counted in ``stats()["dropped"]`` and dropped; a message of more than ``MAX_PARTS`` frames
+   also makes the server forget its sender. ``MAXMSGSIZE`` is the largest message a client
+   sends (``MAX_CLIENT_MESSAGE_BYTES``): zmq closes a connection with a larger frame before
+   buffering it (counted as ``disconnects``, zmq gives no reason). zmq buffers every frame
+   of a message before it delivers the first, so only CURVE bounds what an unknown peer can
+   make the server hold (docs/cluster.md);
  - FRAME carries the body's fingerprint: a client with other body data or another actor scale
    fails the SOLVEs of that frame and gets no more work, rather than fit limbs of another body;
- - optional CURVE: ``curve_keys`` names a folder with ``server.key_secret`` and ``clients/``,
-   the public keys allowed to connect; other peers fail the handshake and get nothing.
+ - CURVE: ``curve_keys`` names a folder with ``server.key_secret`` and ``clients/``, the public
+   keys allowed to connect; other peers fail the handshake and get nothing. Without it only a
+   loopback or ipc address may be bound, unless ``insecure`` (``check_bind``).
 
 Threads: a broker thread owns the socket and does all I/O, heartbeats and time-outs; the
-caller's thread only queues work and waits for results (or solves a chain itself), so the
-clients hear from the server while it fits the torso and head.
+caller's thread queues work, checks results and waits for them (or solves a chain itself), so
+the clients hear from the server while it fits the torso and head.
 """
 from __future__ import annotations
 
+import ipaddress
 import logging
 import os
 import queue
@@ -44,11 +60,12 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
-from collections import deque
+from collections import defaultdict, deque
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
@@ -58,20 +75,30 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils.monitor import recv_monitor_message
 
-from common.body import BodyModel
+from common.body import CHAINS, LIMB_CHAINS, BodyModel
 from common.errors import UserError
-from common.fitting import ChainResult, FitOptions, FrameData, solve_job
+from common.fitting import (
+    HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, _limb_centre_segments, _stage_backends, redetects,
+    solve_job, with_spine_prior,
+)
 from common.packing import packbits_masks
 from common.protocol import (
-    MAX_MESSAGE_BYTES, Error, Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve, Welcome,
-    camera_specs, decode, encode,
+    MAX_CLIENT_MESSAGE_BYTES, MAX_PARTS, Error, Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve,
+    Welcome, camera_specs, decode, encode,
 )
+from server import argtypes
 
 DEFAULT_BIND = "tcp://*:5555"
 LOCAL_BIND = "tcp://127.0.0.1:*"  # a random free port on the loopback interface
 HEARTBEAT_INTERVAL = 1.0  # seconds between heartbeats, both ways
 HEARTBEAT_LIVENESS = 3  # silent intervals before a client counts as dead
-CLIENT_TIMEOUT = 10.0  # seconds a chain (or hop) may take on a client before it is queued again
+CLIENT_TIMEOUT = 10.0  # seconds a chain (or hop) may take on a client at most (see DEADLINE_FACTOR)
+# A chain's deadline: this many times the median measured solve of its kind. Honest solves of one
+# kind differ by the machine and the limb; a few times the median keeps a slower machine's work.
+DEADLINE_FACTOR = 4.0
+DEADLINE_FLOOR = 0.5  # seconds: a deadline no shorter, whatever the median (scheduling, network)
+SOLVE_TIMES_KEPT = 64  # measured solves per kind of job, the most recent; their median sets the deadline
+RECEIVE_HWM = 100  # messages queued per peer at most; a client sends a few between the server's reads
 MAX_SLEEP = 1.0  # seconds the broker sleeps at most; it wakes for messages, commands and deadlines
 SHUTDOWN_GRACE = 1.0  # seconds to wait for clients to acknowledge SHUTDOWN
 CLIENT_START_TIMEOUT = 60.0  # seconds for local clients to start and register
@@ -79,6 +106,7 @@ CLIENT_STOP_TIMEOUT = 5.0  # seconds a local client gets to exit after SIGTERM
 AUTH_EVENTS = {zmq.EVENT_HANDSHAKE_FAILED_AUTH: "unauthenticated",
                zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL: "handshake",
                zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL: "handshake"}
+LOOPBACK_NAMES = ("localhost",)
 
 log = logging.getLogger("server.cluster")
 
@@ -102,22 +130,58 @@ def terminate_on_sigterm():
 
 # ----------------------------------------------------------------------------- CURVE keys
 
+SECRET_KEY_MODE = 0o600  # secret key files: their owner alone reads them
+
+
 def create_curve_keys(directory: Path, clients: tuple[str, ...] = ("client",)) -> Path:
     """Make a key folder: server pair, ``clients/NAME.key`` (the allow-list) and, for the first
     client name, ``client.key_secret``, the pair ``python -m client --curve-keys DIR`` loads.
+    Secret key files are ``SECRET_KEY_MODE``: made in a private folder (mkdtemp's 0700), so
+    no other user can open one between its creation and its chmod.
 
     Deployments give clients a copy without ``server.key_secret``.
     """
     directory = Path(directory)
     allowed = directory / "clients"
     allowed.mkdir(parents=True, exist_ok=True)
-    zmq.auth.create_certificates(directory, "server")
-    for i, name in enumerate(clients):
-        public, secret = zmq.auth.create_certificates(directory, name)
-        shutil.move(public, allowed / f"{name}.key")
-        if i == 0 and name != "client":
-            shutil.move(secret, directory / "client.key_secret")
+    private = Path(tempfile.mkdtemp(prefix=".keys-", dir=directory))
+    try:
+        pairs = [("server", *zmq.auth.create_certificates(private, "server"))]
+        pairs += [(name, *zmq.auth.create_certificates(private, name)) for name in clients]
+        for i, (name, public, secret) in enumerate(pairs):
+            os.chmod(secret, SECRET_KEY_MODE)
+            if name == "server":
+                shutil.move(public, directory / "server.key")
+                shutil.move(secret, directory / "server.key_secret")
+                continue
+            shutil.move(public, allowed / f"{name}.key")
+            shutil.move(secret, directory / ("client.key_secret" if i == 1 else f"{name}.key_secret"))
+    finally:
+        shutil.rmtree(private, ignore_errors=True)
     return directory
+
+
+def check_bind(bind: str, curve_keys: Path | None, insecure: bool) -> bool:
+    """Without CURVE, only a loopback (127.0.0.0/8, ::1, localhost) or ipc/inproc address:
+    anyone who reaches a network address could send poses. ``insecure`` allows it; returns
+    whether it did (UserError where it is needed and not given)."""
+    if curve_keys is not None:
+        return False
+    scheme, _, rest = bind.partition("://")
+    if scheme in ("ipc", "inproc"):
+        return False
+    host = rest.rpartition(":")[0].strip("[]")
+    try:
+        local = host in LOOPBACK_NAMES or ipaddress.ip_address(host).is_loopback
+    except ValueError:  # "*", an interface or a host name
+        local = False
+    if local:
+        return False
+    if not insecure:
+        raise UserError(f"--bind {bind}: not a loopback address, and without --curve-keys any host that reaches "
+                        f"it could join and send results; give --curve-keys DIR (mocap keys), a loopback --bind "
+                        f"(tcp://127.0.0.1:5555), or --insecure on a network you trust")
+    return True
 
 
 def _server_keys(directory: Path) -> tuple[bytes, bytes, Path]:
@@ -150,6 +214,8 @@ class _ClientStats:
     last_seen: float = 0.0
     late_results: int = 0
     stalls: int = 0
+    accepted: int = 0              # results that passed the check and were used or still needed
+    rejected: int = 0              # results refused by the check
 
 
 @dataclass
@@ -168,7 +234,19 @@ class _Request:
     identity: bytes
     chain: str
     sent: float
+    kind: tuple                    # its kind of job (``_job_kind``): whose solve times set its deadline
     timed_out: bool = False
+
+
+@dataclass
+class _Claim:
+    """A client's result for a chain, not yet checked."""
+
+    result: ChainResult
+    identity: bytes
+    client_id: str
+    seconds: float                 # its round trip
+    kind: tuple
 
 
 @dataclass
@@ -182,8 +260,10 @@ class _Round:
     chains: list
     options: FitOptions
     wire_options: dict
-    results: dict = field(default_factory=dict)         # chain -> ChainResult, the first to arrive
+    results: dict = field(default_factory=dict)         # chain -> ChainResult, the first checked
+    claims: dict = field(default_factory=dict)          # chain -> _Claim, the first to arrive, unchecked
     pending: deque = field(default_factory=deque)        # chains nobody works on
+    resent: set = field(default_factory=set)             # of those, the ones queued again
     local: set = field(default_factory=set)              # chains the server is solving
     requests: dict = field(default_factory=dict)         # request id -> _Request
     dispatched: bool = False                             # the broker has handed out what it could
@@ -193,8 +273,68 @@ class _Round:
 
     def active(self, chain: str) -> bool:
         """Someone is still expected to deliver ``chain``."""
-        return (chain in self.results or chain in self.pending or chain in self.local
+        return (chain in self.results or chain in self.claims or chain in self.pending or chain in self.local
                 or any(r.chain == chain and not r.timed_out for r in self.requests.values()))
+
+
+def _job_kind(chain: str, iteration: int, options: FitOptions, wire_options: dict) -> tuple:
+    """Jobs whose solves take alike: hops, limb solves that search the limb's whole range, other
+    limb solves; each under its options (a first frame's wide search takes longer)."""
+    if chain in HOP_JOBS:
+        kind = "hop"
+    elif iteration == REDETECT_ROUND or (options.redetect_limbs and redetects(options.redetect_turn, chain, iteration)):
+        kind = "search"
+    else:
+        kind = "limb"
+    return kind, tuple(sorted(wire_options.items()))
+
+
+def score_job(frame: FrameData, job: str, start: np.ndarray, params: np.ndarray, options: FitOptions,
+              iteration: int) -> tuple[int, int | None]:
+    """(energy_before, energy): what ``solve_job`` reports for ``job`` solved from ``start``
+    to ``params`` (35,), one evaluation each, in the energy it was solved in. The XOR counts
+    are integers and deterministic, so an honest result matches exactly. ``energy`` is None for
+    a coarse-to-fine limb outside the re-detection round: its last (gl) stage places its windows
+    at the first stage's result, which the message does not carry.
+
+    The server dispatches limb chains and hops only (torso and head it fits itself)."""
+    if job in HOP_JOBS:
+        objective = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
+        before, after = (round(float(objective(p[None])[0])) for p in (start, params))
+        return before, after
+    if job not in LIMB_CHAINS:
+        raise ValueError(f"{job!r} is not a job the cluster dispatches")
+    moving = CHAINS[job].segments
+    if iteration == REDETECT_ROUND:  # ``redetect_limb``: the whole images, every stage the same energy
+        setup = replace(frame.full_setup(start), moving=moving, prerender=True)
+        energy = frame.energy("cpu" if options.energy == "coarse-to-fine" else options.energy, setup)
+        return int(energy(start)[0]), int(energy(params)[0])
+    backends = _stage_backends(options)
+    setup = replace(frame.window_setup(start, _limb_centre_segments(job), options.limb_window_px, options.prerender),
+                    moving=moving)
+    energy = frame.energy(backends[0], setup)
+    before = int(energy(start)[0])
+    return before, (int(round(float(energy(params)[0]))) if len(backends) == 1 else None)
+
+
+def check_result(frame: FrameData, result: ChainResult, start: np.ndarray, options: FitOptions,
+                 iteration: int) -> str | None:
+    """Why ``result`` of a job solved from ``start`` (35,) cannot be used, or None: its energies
+    are not those of its parameters (``score_job``), or a limb's result moved parameters that
+    are not its chain's (the solves hold them, so an honest result leaves them bit for bit)."""
+    params = np.asarray(result.params, dtype=np.float64)
+    if params.shape != start.shape or not np.all(np.isfinite(params)):
+        return f"parameters of shape {params.shape}, not {start.shape} finite numbers"
+    if result.chain not in HOP_JOBS:
+        others = np.ones(len(start), dtype=bool)
+        others[list(CHAINS[result.chain].params)] = False
+        if not np.array_equal(params[others], start[others]):
+            return f"parameters outside {result.chain} moved"
+    before, after = score_job(frame, result.chain, start, params, options, iteration)
+    if before != result.energy_before or (after is not None and after != result.energy):
+        return (f"claimed energies {result.energy_before} -> {result.energy}, its parameters score "
+                f"{before} -> {after if after is not None else '?'}")
+    return None
 
 
 def _chain_result(msg: Result) -> ChainResult:
@@ -211,7 +351,10 @@ class ClusterSolver:
 
     def __init__(self, model: BodyModel, options: FitOptions, bind: str = DEFAULT_BIND,
                  heartbeat_interval: float = HEARTBEAT_INTERVAL, client_timeout: float = CLIENT_TIMEOUT,
-                 curve_keys: Path | None = None):
+                 curve_keys: Path | None = None, insecure: bool = False):
+        if check_bind(bind, curve_keys, insecure):
+            log.warning("INSECURE: %s bound without CURVE: any host that reaches it can join and send results",
+                        bind)
         if not 0.001 <= heartbeat_interval <= 3600.0:
             raise UserError(f"--heartbeat must be in [0.001, 3600] seconds, got {heartbeat_interval}")
         if not client_timeout > 0:
@@ -228,14 +371,16 @@ class ClusterSolver:
         self._round: _Round | None = None
         self._frame: tuple[int, list] | None = None  # (frame, encoded FRAME)
         self._next_request = 0
-        self._peak_clients = 0
         self._clients_seen: set = set()
+        self._banned: set = set()  # client ids that sent a result that failed its check
         self._stats: dict[str, _ClientStats] = {}
-        self._counts = {"dropped": {}, "stalls": 0, "lost_clients": 0, "resent": 0, "local_chains": 0,
-                        "disconnects": 0}
+        self._solve_times: dict[tuple, deque] = defaultdict(lambda: deque(maxlen=SOLVE_TIMES_KEPT))
+        self._deadlines: dict[tuple, float] = {}  # kind of job -> seconds, from _solve_times
+        self._counts = {"dropped": {}, "rejected": 0, "stalls": 0, "lost_clients": 0, "resent": 0,
+                        "local_chains": 0, "disconnects": 0}
         # seconds: the caller's thread waiting for results, and encoding FRAMEs; the broker's I/O
         self._server = {"waiting_seconds": 0.0, "encode_seconds": 0.0, "io_seconds": 0.0,
-                        "local_compute_seconds": 0.0}
+                        "local_compute_seconds": 0.0, "check_seconds": 0.0}
         self._start_wall = self._start_cpu = None
         self._data: FrameData | None = None
         self._current_frame = 0
@@ -246,7 +391,8 @@ class ClusterSolver:
         try:
             self.sock = self.ctx.socket(zmq.ROUTER)
             self.sock.linger = 0
-            self.sock.setsockopt(zmq.MAXMSGSIZE, MAX_MESSAGE_BYTES)
+            self.sock.setsockopt(zmq.MAXMSGSIZE, MAX_CLIENT_MESSAGE_BYTES)
+            self.sock.rcvhwm = RECEIVE_HWM
             if curve_keys is not None:
                 public, secret, allowed = _server_keys(curve_keys)
                 self._auth = ThreadAuthenticator(self.ctx, log=logging.getLogger("server.cluster.auth"))
@@ -281,8 +427,9 @@ class ClusterSolver:
 
     @property
     def clients(self) -> int:
-        """The most clients registered at once during the run."""
-        return self._peak_clients
+        """The clients that delivered accepted work during the run."""
+        with self._lock:
+            return sum(s.accepted > 0 for s in self._stats.values())
 
     def client_count(self) -> int:
         with self._lock:
@@ -344,6 +491,7 @@ class ClusterSolver:
                 "cpu_seconds": time.process_time() - self._start_cpu if self._start_cpu is not None else 0.0,
                 "chains": self._counts["local_chains"],
                 "local_compute_seconds": srv["local_compute_seconds"],
+                "check_seconds": srv["check_seconds"],  # scoring the clients' results
             }]
             for name, s in sorted(self._stats.items()):
                 span = max(s.last_seen - s.first_seen, 0.0)
@@ -354,12 +502,18 @@ class ClusterSolver:
                     "waiting_seconds": max(span - s.compute_seconds - s.transfer_seconds, 0.0),
                     "bytes_sent": s.bytes_sent, "bytes_received": s.bytes_received,
                     "late_results": s.late_results, "stalls": s.stalls,
+                    "accepted": s.accepted, "rejected": s.rejected,
                 })
             return {"processes": processes, "session": self.session, "endpoint": self.endpoint,
                     "clients_seen": len(self._clients_seen), **self._copy_counts()}
 
+    def deadlines(self) -> list[float]:
+        """Seconds a chain may take on a client now, one per kind of job with measured solves."""
+        with self._lock:
+            return sorted(self._deadlines.values())
+
     def stats(self) -> dict:
-        """The counters alone: dropped (by reason), stalls, lost_clients, resent, local_chains, ..."""
+        """The counters alone: dropped (by reason), rejected, stalls, lost_clients, resent, local_chains, ..."""
         with self._lock:
             return self._copy_counts()
 
@@ -389,29 +543,65 @@ class ClusterSolver:
             pass
 
     def _collect(self, rnd: _Round) -> list:
-        """Wait for ``rnd``'s chains; solve locally those nobody else can take right now."""
+        """Wait for ``rnd``'s chains; check each client's result as it comes; solve locally
+        those nobody else can take right now."""
         while True:
             with self._lock:
                 t0 = time.perf_counter()
-                while not rnd.done() and not (rnd.dispatched and rnd.pending):
+                while not rnd.claims and not rnd.done() and not (rnd.dispatched and rnd.pending):
                     if not self._thread.is_alive():
                         raise RuntimeError("the cluster broker thread died")
                     self._lock.wait(MAX_SLEEP)
                 self._server["waiting_seconds"] += time.perf_counter() - t0
-                if rnd.done():
+                if rnd.claims:
+                    chain = next(iter(rnd.claims))
+                    claim = rnd.claims.pop(chain)
+                elif rnd.done():
                     if self._round is rnd:
                         self._round = None
                     return [rnd.results[c] for c in rnd.chains]
-                chain = rnd.pending.popleft()
-                rnd.local.add(chain)
+                else:
+                    chain, claim = rnd.pending.popleft(), None
+                    rnd.resent.discard(chain)
+                    rnd.local.add(chain)
+            if claim is not None:
+                self._check(rnd, chain, claim)
+                continue
             t0 = time.perf_counter()
             result = solve_job(self.model, self._data, chain, rnd.params, rnd.options, rnd.iteration, rnd.frame)
+            seconds = time.perf_counter() - t0
             with self._lock:
-                self._server["local_compute_seconds"] += time.perf_counter() - t0
+                self._server["local_compute_seconds"] += seconds
                 self._counts["local_chains"] += 1
+                self._measured(_job_kind(chain, rnd.iteration, rnd.options, rnd.wire_options), seconds)
                 rnd.local.discard(chain)
                 rnd.results.setdefault(chain, result)
                 self._lock.notify_all()
+
+    def _check(self, rnd: _Round, chain: str, claim: _Claim) -> None:
+        """Use ``claim`` if its energies are its parameters' (``check_result``); else refuse it,
+        queue its chain again and give its sender no more work."""
+        t0 = time.perf_counter()
+        problem = check_result(self._data, claim.result, rnd.params, rnd.options, rnd.iteration)
+        with self._lock:
+            self._server["check_seconds"] += time.perf_counter() - t0
+            stats = self._stats[claim.client_id]
+            if problem is None:
+                stats.accepted += 1
+                self._measured(claim.kind, claim.seconds)
+                rnd.results.setdefault(chain, claim.result)
+            else:
+                stats.rejected += 1
+                self._counts["rejected"] += 1
+                if claim.client_id not in self._banned:
+                    log.warning("client %s sent a result for %s of frame %d iteration %d that fails its check "
+                                "(%s): refused, and the client gets no more work", claim.client_id, chain,
+                                rnd.frame, rnd.iteration, problem)
+                self._ban(claim.client_id)
+                self._requeue_chain(rnd, chain)
+            self._lock.notify_all()
+        if problem is not None:
+            self._post(("assign",))  # the broker hands the chain out again
 
     # ------------------------------------------------------------------ broker thread
 
@@ -453,9 +643,18 @@ class ClusterSolver:
         deadlines = [next_heartbeat, time.monotonic() + MAX_SLEEP]
         deadlines += [p.expiry for p in self._peers.values()]
         if self._round is not None:
-            deadlines += [r.sent + self.client_timeout for r in self._round.requests.values()
+            deadlines += [r.sent + self._deadline(r.kind) for r in self._round.requests.values()
                           if not r.timed_out and r.chain not in self._round.results]
         return min(deadlines)
+
+    def _deadline(self, kind: tuple) -> float:
+        """Seconds a job of ``kind`` may take on a client (see DEADLINE_FACTOR)."""
+        return self._deadlines.get(kind, self.client_timeout)
+
+    def _measured(self, kind: tuple, seconds: float) -> None:
+        times = self._solve_times[kind]
+        times.append(seconds)
+        self._deadlines[kind] = min(self.client_timeout, max(DEADLINE_FLOOR, DEADLINE_FACTOR * float(np.median(times))))
 
     def _run_commands(self) -> bool:
         while True:
@@ -474,6 +673,8 @@ class ClusterSolver:
                 elif kind == "round":
                     self._assign()
                     command[1].dispatched = True
+                elif kind == "assign":
+                    self._assign()
                 elif kind == "shutdown":
                     for ident in list(self._peers):
                         self._send(ident, Shutdown(reason=command[1], session=self.session))
@@ -509,6 +710,9 @@ class ClusterSolver:
                 self._server["io_seconds"] += elapsed
                 if error is not None:
                     self._drop(error.reason, error.text, ident)
+                    if len(body) > MAX_PARTS and ident in self._peers:  # no client sends that: a flood
+                        self._ban(self._peers[ident].client_id)
+                        self._forget(ident, "sent a message of more frames than any")
                 else:
                     self._handle(ident, msg, sum(len(f) for f in body))
                     self._assign()  # before the caller's thread could take a freed chain itself
@@ -580,8 +784,10 @@ class ClusterSolver:
         stats = self._stats.setdefault(msg.client_id, _ClientStats(first_seen=time.perf_counter()))
         stats.last_seen = time.perf_counter()
         self._clients_seen.add(msg.client_id)
-        self._idle.append(ident)
-        self._peak_clients = max(self._peak_clients, len(self._peers))
+        if msg.client_id in self._banned:  # under a new connection: still no work
+            self._peers[ident].retired = True
+        else:
+            self._idle.append(ident)
         self._send(ident, Welcome(session=self.session, heartbeat_interval=self.heartbeat_interval))
         self._send_frame(self._peers[ident])
         log.info("client %s registered (%d connected)", msg.client_id, len(self._peers))
@@ -590,6 +796,9 @@ class ClusterSolver:
         rnd = self._round
         req = rnd.requests.get(msg.request) if rnd is not None else None
         stats = self._stats[peer.client_id]
+        if peer.client_id in self._banned:
+            self._drop("banned", f"result from {peer.client_id}, whose results are refused", peer.identity)
+            return
         if msg.request == peer.request or (req is not None and req.identity == peer.identity):
             stats.chains += 1  # work it was asked to do, whether or not the result is still needed
             stats.compute_seconds += msg.wall_seconds
@@ -608,13 +817,15 @@ class ClusterSolver:
                                    else f"result for {msg.chain}, request {msg.request} asked {req.chain}",
                        peer.identity)
             return
-        stats.transfer_seconds += max(time.monotonic() - req.sent - msg.wall_seconds, 0.0)
-        if msg.chain in rnd.results:
+        seconds = time.monotonic() - req.sent
+        stats.transfer_seconds += max(seconds - msg.wall_seconds, 0.0)
+        if msg.chain in rnd.results or msg.chain in rnd.claims:
             self._drop("duplicate", f"{msg.chain} of frame {msg.frame} arrived twice", peer.identity)
             return
-        rnd.results[msg.chain] = _chain_result(msg)
+        rnd.claims[msg.chain] = _Claim(_chain_result(msg), peer.identity, peer.client_id, seconds, req.kind)
         if msg.chain in rnd.pending:
             rnd.pending.remove(msg.chain)
+            rnd.resent.discard(msg.chain)
 
     def _on_error(self, peer: _Peer, msg: Error) -> None:
         if msg.code == "client_exit":
@@ -653,9 +864,24 @@ class ClusterSolver:
         if req is None:
             return
         req.timed_out = True
-        if not rnd.active(req.chain):
-            rnd.pending.appendleft(req.chain)
+        self._requeue_chain(rnd, req.chain)
+
+    def _requeue_chain(self, rnd: _Round, chain: str) -> None:
+        if not rnd.active(chain):
+            rnd.pending.appendleft(chain)
+            rnd.resent.add(chain)
             self._counts["resent"] += 1
+
+    def _ban(self, client_id: str) -> None:
+        """No more work for ``client_id``, under any connection; its current requests go back."""
+        self._banned.add(client_id)
+        for peer in self._peers.values():
+            if peer.client_id == client_id:
+                peer.retired = True
+                if peer.identity in self._idle:
+                    self._idle.remove(peer.identity)
+                if peer.request is not None:
+                    self._requeue(peer.request)
 
     def _check_peers(self, now: float) -> None:
         for ident, peer in list(self._peers.items()):
@@ -670,7 +896,8 @@ class ClusterSolver:
         if rnd is None:
             return
         for request, req in rnd.requests.items():
-            if req.timed_out or req.chain in rnd.results or now - req.sent <= self.client_timeout:
+            if (req.timed_out or req.chain in rnd.results or req.chain in rnd.claims
+                    or now - req.sent <= self._deadline(req.kind)):
                 continue
             peer = self._peers.get(req.identity)
             if peer is not None:
@@ -682,14 +909,23 @@ class ClusterSolver:
             self._requeue(request)
 
     def _assign(self) -> None:
-        """Hand queued chains (or hops) to idle clients, longest idle first."""
+        """Hand queued chains (or hops) to idle clients, longest idle first; a chain queued
+        again only to a client that has delivered accepted work (else the server solves it)."""
         rnd = self._round
         if rnd is None:
             return
-        while rnd.pending and self._idle:
-            ident = self._idle.pop(0)
+        for chain in list(rnd.pending):
+            proven = [i for i in self._idle if self._stats[self._peers[i].client_id].accepted]
+            candidates = proven if chain in rnd.resent else self._idle
+            if not candidates:
+                if not self._idle:
+                    return
+                continue
+            ident = candidates[0]
+            self._idle.remove(ident)
+            rnd.pending.remove(chain)
+            rnd.resent.discard(chain)
             peer = self._peers[ident]
-            chain = rnd.pending.popleft()
             request = self._next_request
             self._next_request += 1
             self._send_frame(peer)
@@ -697,7 +933,8 @@ class ClusterSolver:
                                     request=request, params=rnd.params.tolist(), chains=(chain,),
                                     options=rnd.wire_options))
             peer.request = request
-            rnd.requests[request] = _Request(ident, chain, time.monotonic())
+            rnd.requests[request] = _Request(ident, chain, time.monotonic(),
+                                             _job_kind(chain, rnd.iteration, rnd.options, rnd.wire_options))
 
     def _teardown(self) -> None:
         for name in ("_wake_tx", "_wake_rx", "monitor", "sock"):
@@ -786,13 +1023,18 @@ def stop_processes(procs: list, timeout: float) -> None:
 def add_cluster_arguments(p, server: bool) -> None:
     """Command-line flags of the cluster: ``mocap server`` (server=True) or ``mocap fit --clients``."""
     if server:
-        p.add_argument("--bind", default=DEFAULT_BIND, help=f"ROUTER address (default {DEFAULT_BIND})")
-        p.add_argument("--min-clients", type=int, default=1,
+        p.add_argument("--bind", default=DEFAULT_BIND, help=f"ROUTER address (default {DEFAULT_BIND}); without "
+                                                            f"--curve-keys only a loopback or ipc:// address")
+        p.add_argument("--min-clients", type=argtypes.count(0), default=1,
                        help="clients to wait for before the first frame (default 1; 0: start at once)")
         p.add_argument("--curve-keys", type=Path, default=None, metavar="DIR",
                        help="CURVE: DIR/server.key_secret, allowed client keys in DIR/clients/*.key")
-    p.add_argument("--client-timeout", type=float, default=CLIENT_TIMEOUT,
-                   help=f"seconds a chain or hop may take on a client before it is re-sent (default {CLIENT_TIMEOUT:g})")
-    p.add_argument("--heartbeat", type=float, default=HEARTBEAT_INTERVAL,
+        p.add_argument("--insecure", action="store_true",
+                       help="bind a network address without CURVE: any host that reaches it can join")
+    p.add_argument("--client-timeout", type=argtypes.seconds, default=CLIENT_TIMEOUT,
+                   help=f"seconds a chain or hop may take on a client at most before it is re-sent (default "
+                        f"{CLIENT_TIMEOUT:g}); once solves are measured, {DEADLINE_FACTOR:g} times their median, "
+                        f"at least {DEADLINE_FLOOR:g}")
+    p.add_argument("--heartbeat", type=argtypes.real(0.001, 3600.0), default=HEARTBEAT_INTERVAL,
                    help=f"heartbeat interval, seconds (default {HEARTBEAT_INTERVAL:g}); a peer silent for "
                         f"{HEARTBEAT_LIVENESS} intervals counts as gone")

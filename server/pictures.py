@@ -7,7 +7,9 @@
 - Views: the fitted mesh, flat-shaded per triangle and coloured per segment (left side warm,
   right side cool), on a floor grid, from any viewpoint (``common.camera.look_at``), with the
   true skeleton drawn over it where the sequence has truth.
-- ``sequence.gif``: one camera's overlay beside a 3D view, every frame (Pillow).
+- ``sequence.gif`` and ``sequence.mp4``: one camera's overlay beside a 3D view (Pillow; H.264
+  through imageio-ffmpeg's ffmpeg): the GIF subsampled to at most MAX_GIF_FRAMES, the video every
+  frame of the take at its frame rate.
 - Plots (matplotlib, Agg): energy, joint error per frame and per joint, time per frame and per
   chain.
 
@@ -16,7 +18,9 @@
 from __future__ import annotations
 
 import io
+import itertools
 import json
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,13 +39,15 @@ from server.session import SUMMARY_FILE, load_records
 
 PICTURES_DIR = "pictures"
 GIF_NAME = "sequence.gif"
+VIDEO_NAME = "sequence.mp4"
 MAX_OVERLAY_CAMERAS = 4      # cameras in a default overlay strip
 MAX_PICTURE_FRAMES = 4       # frames with an overlay strip and a 3D view by default
 MAX_GIF_FRAMES = 300         # longer sequences are subsampled in the GIF
 GIF_HEIGHT = 240             # pixels, each panel of the GIF
 CROP_MARGIN = 0.12           # cropped overlays: margin around the actor, fraction of its size
-CROP_ASPECT = 0.75           # cropped overlays: width / height
 CROP_MIN_FRACTION = 0.4      # cropped overlays: at least this fraction of the image height
+VIDEO_QUALITY = 7            # imageio-ffmpeg's 0-10 scale: small files, no visible blocks at these sizes
+VIDEO_BLOCK = 2              # H.264 in yuv420p needs even frame sizes: frames are padded to a multiple
 VIEW_SIZE = (480, 480)       # pixels, 3D views
 VIEW_DISTANCE_M = 4.0        # 3D view camera distance from the pelvis
 VIEW_FOV_DEG = 40.0
@@ -368,10 +374,11 @@ def hstack(images: list[np.ndarray], gap: int = 4) -> np.ndarray:
     return np.concatenate(parts, axis=1)
 
 
-def fit_height(img: np.ndarray, height: int) -> np.ndarray:
-    if img.shape[0] == height:
+def fit_height(img: np.ndarray, height: int, width: int | None = None) -> np.ndarray:
+    """(H, W, 3) -> ``height`` rows, the width scaled alike (or ``width``)."""
+    w = width or max(1, round(img.shape[1] * height / img.shape[0]))
+    if img.shape[:2] == (height, w):
         return img
-    w = max(1, round(img.shape[1] * height / img.shape[0]))
     return np.array(Image.fromarray(img).resize((w, height), Image.BILINEAR))
 
 
@@ -396,7 +403,8 @@ def overlay_strip(result: ResultData, painter: ModelPainter, frame: int, cameras
                   height: int | None = None, crop: bool = False) -> tuple[np.ndarray, dict]:
     """One frame's overlays for ``cameras`` side by side -> ((H, W, 3) uint8, {camera: XOR pixels}).
 
-    height: scale each picture to this many rows; crop: zoom each camera to the actor.
+    height: scale each picture to this many rows; crop: zoom each camera to the actor, keeping
+    the camera's own aspect ratio (each tile is shaped like its camera's image).
     """
     seq = _need_sequence(result)
     i = frame_index(result, frame)
@@ -409,10 +417,10 @@ def overlay_strip(result: ResultData, painter: ModelPainter, frame: int, cameras
         xor[cam.name] = int(np.count_nonzero(own ^ model_mask))
         pic = overlay_image(own, model_mask)
         if crop:
-            x0, y0, x1, y1 = crop_box([own, model_mask], CROP_ASPECT)
+            x0, y0, x1, y1 = crop_box([own, model_mask], cam.width / cam.height)
             pic = pic[y0:y1, x0:x1]
-        if height:
-            pic = fit_height(pic, height)
+        if height:  # a crop is the camera's shape to a pixel: every frame's tile the same size
+            pic = fit_height(pic, height, round(height * cam.width / cam.height) if crop else None)
         pics.append(_caption(pic, f"{cam.name}  frame {frame}  XOR {xor[cam.name]} px"))
     return hstack(pics), xor
 
@@ -438,21 +446,16 @@ def _need_sequence(result: ResultData) -> Sequence:
     return result.sequence
 
 
-def write_sequence_gif(result: ResultData, painter: ModelPainter, path, camera: int | None = None,
-                       progress=None) -> Path:
-    """Animated GIF: per frame one camera's overlay beside a 3D view that follows the actor.
-
-    Sequences longer than MAX_GIF_FRAMES are subsampled (the frame delay grows to match).
-    """
-    F = len(result.motion.frames)
-    step = max(1, int(np.ceil(F / MAX_GIF_FRAMES)))
-    chosen = range(0, F, step)
-    # one fixed viewing direction, the camera following the pelvis
+def sequence_frames(result: ResultData, painter: ModelPainter, indices, camera: int | None = None,
+                    progress=None) -> Iterator[np.ndarray]:
+    """Pictures of the frames at ``indices`` (into motion.frames), one at a time (a long take's
+    would not fit in memory together), each (H, W, 3) uint8 of one size: one camera's overlay
+    (cropped to the actor, the camera's aspect kept) beside a 3D view from one fixed direction
+    that follows the pelvis, under a caption."""
     joints = result.motion.fit_joints
     ground_z = 0.5 * (joints[..., 2].max() + max(joints[..., 2].min(), 0.0))
     size = (GIF_HEIGHT, GIF_HEIGHT)
-    frames = []
-    for n, i in enumerate(chosen):
+    for n, i in enumerate(indices):
         target = np.array([joints[i, 0, 0], joints[i, 0, 1], ground_z])
         cam = orbit_camera(target, -70.0, 12.0, size, distance_m=GIF_VIEW_DISTANCE_M)
         panels = [painter.view(result.motion.params[i], cam)]
@@ -462,14 +465,66 @@ def write_sequence_gif(result: ResultData, painter: ModelPainter, path, camera: 
             strip, _ = overlay_strip(result, painter, int(result.motion.frames[i]), [c], GIF_HEIGHT, crop=True)
             panels = [strip[16:], panels[0]]
             caption += f"  {result.sequence.studio[c].name}"
-        frames.append(_caption(hstack(panels), caption))
+        yield _caption(hstack(panels), caption)
         if progress:
-            progress(n + 1, len(chosen))
+            progress(n + 1, len(indices))
+
+
+def gif_step(frame_count: int) -> int:
+    """Every how many frames the GIF shows one (at most MAX_GIF_FRAMES)."""
+    return max(1, int(np.ceil(frame_count / MAX_GIF_FRAMES)))
+
+
+def save_gif(frames: list[np.ndarray], path, step: int, fps: float) -> Path:
+    """(H, W, 3) pictures, each ``step`` frames of a take at ``fps`` apart -> a looping GIF."""
     images = [Image.fromarray(f).quantize(colors=64, method=Image.Quantize.MEDIANCUT) for f in frames]
-    duration_ms = max(20, int(round(1000.0 * step / result.motion.fps)))
+    duration_ms = max(20, int(round(1000.0 * step / fps)))
     path = Path(path)
     images[0].save(path, save_all=True, append_images=images[1:], duration=duration_ms, loop=0, optimize=False)
     return path
+
+
+def save_video(frames: Iterable[np.ndarray], path, fps: float) -> Path:
+    """(H, W, 3) pictures of one size -> an H.264 MP4 at ``fps`` (yuv420p and the index at the
+    front, which browsers play from a data URI), padded white to even sizes."""
+    import imageio_ffmpeg
+
+    frames = iter(frames)
+    first = next(frames)
+    H, W = first.shape[:2]
+    Hp, Wp = -(-H // VIDEO_BLOCK) * VIDEO_BLOCK, -(-W // VIDEO_BLOCK) * VIDEO_BLOCK
+    path = Path(path)
+    writer = imageio_ffmpeg.write_frames(str(path), (Wp, Hp), fps=float(fps), codec="libx264", quality=VIDEO_QUALITY,
+                                         macro_block_size=VIDEO_BLOCK, output_params=["-movflags", "+faststart"])
+    writer.send(None)  # start ffmpeg
+    padded = np.full((Hp, Wp, 3), 255, np.uint8)
+    for f in itertools.chain([first], frames):
+        padded[:H, :W] = f
+        writer.send(padded.tobytes())
+    writer.close()
+    return path
+
+
+def write_sequence_animations(result: ResultData, painter: ModelPainter, gif, video, camera: int | None = None,
+                              progress=None) -> list[Path]:
+    """Animated GIF at ``gif`` and MP4 at ``video``: per frame one camera's overlay beside a 3D
+    view that follows the actor (``sequence_frames``).
+
+    The video has every frame at the take's frame rate; the GIF at most MAX_GIF_FRAMES of them
+    (longer takes are subsampled, the frame delay grows to match). Returns the written paths.
+    """
+    F, fps = len(result.motion.frames), result.motion.fps
+    step = gif_step(F)
+    kept = []
+
+    def keep_gif_frames(frames):  # the video takes every frame as it is drawn; the GIF keeps some
+        for i, f in enumerate(frames):
+            if i % step == 0:
+                kept.append(f)
+            yield f
+
+    save_video(keep_gif_frames(sequence_frames(result, painter, range(F), camera, progress)), video, fps)
+    return [save_gif(kept, gif, step, fps), Path(video)]
 
 
 # -------------------------------------------------------------------------------------- plots
@@ -603,7 +658,8 @@ def png_bytes(img: np.ndarray) -> bytes:
 
 def make_result_pictures(result_dir, sequence_dir=None, frames=None, cameras=None, gif: bool = True,
                          quiet: bool = True, fps: float | None = None) -> list[Path]:
-    """Writes RESULT/pictures/: plots, overlay strips and 3D views of chosen frames, sequence.gif.
+    """Writes RESULT/pictures/: plots, overlay strips and 3D views of chosen frames, and with
+    ``gif`` sequence.gif and sequence.mp4 (the slowest pictures: every frame of the take).
 
     frames: frame numbers (default: spread over the sequence, with the worst one);
     cameras: camera names or indices for the overlays (default: up to 4 spread over the studio).
@@ -633,6 +689,6 @@ def make_result_pictures(result_dir, sequence_dir=None, frames=None, cameras=Non
         written.append(path)
     if gif:
         bar = Progress("gif", len(result.motion.frames), enabled=False if quiet else None)
-        written.append(write_sequence_gif(result, painter, out_dir / GIF_NAME,
-                                          camera=cam_idx[0] if cam_idx else None, progress=bar))
+        written += write_sequence_animations(result, painter, out_dir / GIF_NAME, out_dir / VIDEO_NAME,
+                                             camera=cam_idx[0] if cam_idx else None, progress=bar)
     return written

@@ -167,7 +167,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
         if imp["offsets"]:
             command += ["--offset", *[f"{cam}={n}" for cam, n in imp["offsets"].items()]]
         steps.append(Step("import", (tuple(command),), (calibration, *videos.values(), *backgrounds.values()),
-                          (sequence / "images", sequence / "calibration.json", sequence / "sequence.json"),
+                          # not sequence.json: the segment step adds its record there
+                          (sequence / "images", sequence / "calibration.json"),
                           {"import": imp, "calibration": calib_settings}))
         method = config.get("segmentation", "method")
         steps.append(Step("segment", (("segment", str(sequence), "--method", method, "--overwrite"),),

@@ -1,15 +1,18 @@
 """RESULT/report.html: one self-contained page (no network) that shows what a fit did.
 
 The page holds inline CSS and JavaScript and its images as data URIs: the run summary, the
-plots, silhouette overlay strips of a few frames, 3D views of the fitted mesh, per-joint
-errors, and a 3D skeleton player (canvas 2D with its own perspective projection: play, pause,
-scrub, orbit by dragging, zoom with the wheel) of the fitted motion beside the truth where the
-sequence has one.
+plots, silhouette overlay strips of a few frames (each tile shaped like its camera's image),
+the take's overlay video (``pictures/sequence.mp4`` when ``mocap report`` made it, embedded),
+3D views of the fitted mesh, per-joint errors, the export commands with the import settings of
+Blender, OpenSim, EasyMocap and three.js, and a 3D skeleton player (canvas 2D with its own
+perspective projection: play, pause, scrub, orbit by dragging, zoom with the wheel) of the
+fitted motion beside the truth where the sequence has one.
 
 Hooks for automated checks: the page records any script error or console.error/warn in the
 ``data-errors`` / ``data-error-messages`` attributes of <html>; the player counts its draws in
 ``<body data-frames-drawn>``, the frame shown in ``data-frame`` and its canvas's page rectangle
-(CSS pixels) in ``data-canvas-rect``. ``report.html#frame=N`` opens paused at frame index N
+(CSS pixels) in ``data-canvas-rect``; the take's video, once decoded, its length in
+``data-video-duration`` (seconds). ``report.html#frame=N`` opens paused at frame index N
 (also ``yaw=DEG``, ``pitch=DEG``, ``play``).
 """
 from __future__ import annotations
@@ -23,17 +26,39 @@ from pathlib import Path
 import numpy as np
 
 from common.body import JOINT_NAMES
+from common.export import FORMATS, SUFFIXES
 from server.output import write_text
 from server.pictures import (
-    BONES, AGREE, EXTRA, MISSED, ModelPainter, ResultData, camera_indices, default_cameras,
-    default_frames, fit_height, worst_frame, load_result, make_plots, model_views, overlay_strip, png_bytes,
+    BONES, AGREE, EXTRA, GIF_NAME, MISSED, PICTURES_DIR, VIDEO_NAME, ModelPainter, ResultData, camera_indices,
+    default_cameras, default_frames, fit_height, worst_frame, load_result, make_plots, model_views, overlay_strip,
+    png_bytes,
 )
+from server.session import POSES_FILE
 from server.session import refinement_note, tracking_error_note
 
 REPORT_NAME = "report.html"
 STRIP_HEIGHT = 180     # pixels per camera picture in the overlay strips
 VIEW_PANEL = (360, 360)  # pixels per 3D view in the report
 MM = 1000.0
+VIDEO_EMBED_MAX_BYTES = 32 * 2 ** 20  # a longer take's video is linked rather than embedded
+# per export format: what opens it, and with which settings (docs/exports.md says more); {fps}
+# is the result's frame rate
+EXPORT_SETTINGS = {
+    "glb": "Blender: File > Import > glTF 2.0 with the defaults (glTF's +Y up becomes Blender's Z up: Blender's world "
+           "is then our z-up frame); set the scene to {fps} fps first (Blender keys glTF times at its scene rate). "
+           "three.js: GLTFLoader as it is (y up), play gltf.animations[0] with an AnimationMixer.",
+    "mot": "OpenSim: File > Load Motion, or opensim.TimeSeriesTable; inDegrees=yes, pelvis_t* in metres in OpenSim's "
+           "axes (X forward, Y up, Z right); the angles are this body model's, not an OpenSim model's coordinates.",
+    "trc": "OpenSim / Pose2Sim: metres, Y up, X forward; markers named as Pose2Sim's HALPE_26 skeleton (the 15 we "
+           "have), for its HALPE_26 scaling and inverse kinematics set-ups; no rotation needed.",
+    "keypoints3d": "EasyMocap: one file per frame, body25 order, confidence 0 for the points we do not fit; in the "
+                   "calibration's own world (metres), so EasyMocap's SMPL fit can use the same cameras.",
+    "bvh": "Blender: File > Import > Motion Capture (.bvh), Forward -Z, Up Y (the defaults), Scale 0.01 for metres, "
+           "Update Scene FPS; --rest tpose gives a T-pose rest for retargeting (the motion is the same).",
+    "c3d": "Mokka, ezc3d: our world as it is, Z up, millimetres.",
+    "json": "Any JSON reader: one frame per line, our world, Z up, metres.",
+    "csv": "Spreadsheets, pandas: our world, Z up, metres.",
+}
 
 
 def _data_uri(png: bytes) -> str:
@@ -143,6 +168,35 @@ def _swatch(rgb) -> str:
     return f'<span class="sw" style="background:rgb{tuple(rgb)}"></span>'
 
 
+def export_table(result: ResultData) -> str:
+    """The Exports section: per format its command, its file and how to open it."""
+    rows = "".join(
+        f"<tr><td><code>mocap export {_esc(result.path)} --format {f}</code></td>"
+        f"<td><code>motion{_esc(SUFFIXES[f])}</code></td><td>{_esc(EXPORT_SETTINGS[f].format(fps=f'{result.motion.fps:g}'))}"
+        f"</td></tr>" for f in FORMATS)
+    return (f'<p>Several at once: <code>--format glb,trc,mot</code> or <code>--format all</code>. Axes and units: '
+            f'docs/exports.md.</p><table class="exports"><tr><th>command</th><th>writes</th><th>open it with</th></tr>'
+            f'{rows}</table>')
+
+
+def video_html(result: ResultData) -> str:
+    """The take's overlay video, embedded when ``mocap report`` made it for this fit (no older
+    than poses.jsonl) and it is not too big to carry in the page; else a note."""
+    video = result.path / PICTURES_DIR / VIDEO_NAME
+    poses = result.path / POSES_FILE
+    if not video.exists() or video.stat().st_mtime < poses.stat().st_mtime:
+        return '<p class="note">No overlay video of this fit yet (<code>mocap report RESULT</code> without ' \
+               '<code>--no-gif</code> makes one).</p>'
+    size = video.stat().st_size
+    caption = (f"Every frame at {result.motion.fps:g} fps: {PICTURES_DIR}/{VIDEO_NAME}, beside "
+               f"{PICTURES_DIR}/{GIF_NAME}")
+    if size > VIDEO_EMBED_MAX_BYTES:
+        return f'<p><a href="{PICTURES_DIR}/{VIDEO_NAME}">{_esc(caption)}</a> ({size / 2 ** 20:.0f} MB, not embedded)</p>'
+    uri = "data:video/mp4;base64," + base64.b64encode(video.read_bytes()).decode("ascii")
+    return (f'<figure><video class="take" controls muted loop playsinline preload="auto" src="{uri}"></video>'
+            f'<figcaption>{_esc(caption)}</figcaption></figure>')
+
+
 def build_report(result: ResultData, frames=None, cameras=None) -> str:
     """The report page's HTML text."""
     painter = ModelPainter(result.motion.model)
@@ -176,8 +230,7 @@ def build_report(result: ResultData, frames=None, cameras=None) -> str:
     else:
         joint_html = '<p class="note">No ground truth for this sequence.</p>'
 
-    exports = "\n".join(f"<code>mocap export {_esc(result.path)} --format {f}</code><br>"
-                        for f in ("bvh", "c3d", "trc", "json", "csv"))
+    exports = export_table(result)
     generated = datetime.datetime.now().isoformat(timespec="seconds")
     replacements = {
         "__TITLE__": _esc(f"silhouette-mocap: {result.path.name}"),
@@ -186,6 +239,7 @@ def build_report(result: ResultData, frames=None, cameras=None) -> str:
         "__PLOTS__": plot_html,
         "__OVERLAYS__": overlay_html,
         "__VIEWS__": "\n".join(views),
+        "__VIDEO__": video_html(result),
         "__TRUTH_NOTE__": truth_note,
         "__JOINTS__": joint_html,
         "__EXPORTS__": exports,
@@ -254,6 +308,8 @@ PAGE = r"""<!DOCTYPE html>
   .plots { display: flex; flex-wrap: wrap; gap: 10px; }
   img.plot { max-width: 100%; border: 1px solid #ddd; background: #fff; }
   img.strip { max-width: 100%; border: 1px solid #ddd; }
+  video.take { max-width: 100%; border: 1px solid #ddd; background: #fff; }
+  table.exports td:last-child { max-width: 640px; }
   figure { margin: 0 0 10px; }
   figcaption { font-size: 12px; color: #555; }
   .legend { font-size: 12px; color: #444; }
@@ -296,6 +352,10 @@ PAGE = r"""<!DOCTYPE html>
   __OVERLAYS__
 </section>
 <section>
+  <h2>The take</h2>
+  __VIDEO__
+</section>
+<section>
   <h2>Fitted model</h2>
   <p class="legend">The rigid segment mesh at the fitted pose (left side warm, right side cool).__TRUTH_NOTE__</p>
   __VIEWS__
@@ -306,7 +366,7 @@ PAGE = r"""<!DOCTYPE html>
 </section>
 <section>
   <h2>Exports</h2>
-  <p>__EXPORTS__</p>
+  __EXPORTS__
 </section>
 </main>
 <script type="application/json" id="player-data">__DATA__</script>
@@ -493,6 +553,13 @@ PAGE = r"""<!DOCTYPE html>
   });
   draw();
   schedule();
+
+  // the take's video: its length once the browser has read it (a check that it decodes)
+  var take = document.querySelector("video.take");
+  function noteVideo() { document.body.setAttribute("data-video-duration", take.duration.toFixed(3)); }
+  if (take) {
+    if (take.readyState >= 1) noteVideo(); else take.addEventListener("loadedmetadata", noteVideo);
+  }
 })();
 </script>
 </body>

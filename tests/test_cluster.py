@@ -53,6 +53,7 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     if n >= len(LIMB_CHAINS):
         assert timing["local_chains"] == 0
     assert timing["dropped"] == {} and timing["resent"] == 0
+    assert timing["rejected"] == 0 and all(p["rejected"] == 0 for p in clients)  # honest results check
     for p in timing["processes"]:
         for k in ("compute_seconds", "waiting_seconds", "transfer_seconds"):
             assert p[k] >= 0.0
@@ -80,6 +81,7 @@ def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_pat
         solver.close(shutdown="done")
     assert cluster["frames"] == len(seq.frames) == 3
     np.testing.assert_array_equal(poses(tmp_path / "cluster"), poses(tmp_path / "single"))
+    assert cluster["timing"]["rejected"] == 0  # limb solves, searches and hops: honest results check
     assert [p["frames_replaced"] for p in cluster["refinement_passes"]] == \
         [p["frames_replaced"] for p in single["refinement_passes"]]
     assert [p["direction"] for p in cluster["refinement_passes"]] == ["backward", "forward"]

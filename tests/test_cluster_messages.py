@@ -13,7 +13,7 @@ import zmq.auth
 
 from common.fitting import FitOptions
 from common.packing import packbits_masks
-from common.protocol import (MAX_HEADER_BYTES, MAX_MESSAGE_BYTES, PROTOCOL_VERSION, Frame, Heartbeat, Register,
+from common.protocol import (MAX_CLIENT_MESSAGE_BYTES, MAX_HEADER_BYTES, PROTOCOL_VERSION, Frame, Heartbeat, Register,
                              camera_specs, encode)
 from common.camera import circle_studio
 from common.sequence import load_sequence
@@ -52,7 +52,7 @@ BAD_MESSAGES = {
     "frame_count": encode(Heartbeat()) + [b"an extra frame"],
     "byte_length": [frame_message()[0], frame_message()[1][:-1]],
     "non_finite": [pack(result_header(params=[math.nan] + PARAMS[1:]))],
-    "too_large": [pack({"v": PROTOCOL_VERSION, "type": "heartbeat", "pad": b"x" * (MAX_HEADER_BYTES + 1)})],
+    "too_large": encode(Heartbeat()) + [b"x", b"y"],  # more frames than any message has
     "unknown_type": [pack({"v": PROTOCOL_VERSION, "type": "pose_please", "session": "", "frame": 0,
                            "iteration": 0, "request": 0})],
     "bad_field": [pack(result_header(chain="tail"))],
@@ -96,19 +96,20 @@ def test_bad_messages_are_dropped_counted_logged_once(model, seq_path, reference
             for _ in range(2):
                 for frames in BAD_MESSAGES.values():
                     attacker.send_multipart(frames)
-            # over MAX_MESSAGE_BYTES in all, each frame under it: refused by decode
-            attacker.send_multipart([encode(Heartbeat())[0], b"\0" * (MAX_MESSAGE_BYTES // 2),
-                                     b"\0" * (MAX_MESSAGE_BYTES // 2)])
+            # many frames, each under the server's MAXMSGSIZE: refused by decode
+            attacker.send_multipart([encode(Heartbeat())[0]] + [b"\0" * MAX_CLIENT_MESSAGE_BYTES] * 20)
             wait_for(lambda: sum(solver.stats()["dropped"].values()) >= 2 * len(BAD_MESSAGES) + 1, 10,
                      "the server to read the bad messages")
             # a well-formed message from a peer that never registered is refused too, with an answer
             attacker.send_multipart(encode(Heartbeat(session="nobody")))
             reply = attacker.recv_multipart()
             assert b"unregistered" in reply[0]
-            # one frame over zmq's MAXMSGSIZE: zmq closes that connection; the others go on
+            # one frame over zmq's MAXMSGSIZE (a header over MAX_HEADER_BYTES too): zmq closes that
+            # connection; the others go on
             oversized = raw_dealer(ctx, solver.endpoint)
             disconnects = solver.stats()["disconnects"]
-            oversized.send_multipart([b"\0" * (MAX_MESSAGE_BYTES + 1)])
+            oversized.send_multipart([pack({"v": PROTOCOL_VERSION, "type": "heartbeat",
+                                            "pad": b"x" * (MAX_HEADER_BYTES + 1)})])
             wait_for(lambda: solver.stats()["disconnects"] > disconnects, 10, "zmq to drop the oversized peer")
             got = fit_one_frame(model, seq_path, solver, tmp_path)
             stats = solver.stats()

@@ -1,4 +1,6 @@
-"""Exports of fitted motion: BVH, C3D, TRC, JSON lines, CSV, read back to the same joints; mocap export."""
+"""Exports of fitted motion: glTF, BVH, C3D, OpenSim TRC and MOT, EasyMocap keypoints3d, JSON lines,
+CSV, read back to the same joints; mocap export. (Blender, OpenSim and three.js themselves:
+tools/interop_test.py, behind ``make interop-test``.)"""
 from __future__ import annotations
 
 import csv
@@ -12,17 +14,27 @@ from common.body import (
     JOINT_NAMES, P, PARAM_NAMES, SEGMENT_NAMES, clip_to_limits, forward_kinematics, joints_dict,
     load_body_model, rest_params,
 )
-from common.bvh import read_bvh
+from common.bvh import read_bvh, rest_positions
 from common.errors import UserError
 from common.export import (
-    BVH_JOINT_NAMES, BVH_UNITS_PER_M, FORMATS, SUFFIXES, TO_BVH, TO_OPENSIM, FittedMotion,
-    actor_from_joints, bvh_to_world_joints, export_motion, params_to_bvh,
+    BODY25_NAMES, BVH_JOINT_NAMES, BVH_UNITS_PER_M, FORMATS, MOT_COLUMNS, SUFFIXES, TO_BVH, TO_OPENSIM,
+    FittedMotion, actor_from_joints, bvh_to_world_joints, export_motion, params_to_bvh,
 )
 from server.cli import main as cli_main
 
+pytestmark = pytest.mark.timeout(120)
 ROUND_TRIP_M = 1e-4  # the issue's bar for BVH and C3D round trips
+INTEROP_M = 1e-3     # the issue's bar for what Blender and viewers read from our GLB
 FPS = 25.0
 FRAMES = 48
+# Pose2Sim's HALPE_26 skeleton (Pose2Sim/skeletons.py, perfanalytics/pose2sim): every marker name
+HALPE_26 = ("Hip", "RHip", "RKnee", "RAnkle", "RBigToe", "RSmallToe", "RHeel", "LHip", "LKnee", "LAnkle",
+            "LBigToe", "LSmallToe", "LHeel", "Neck", "Head", "Nose", "RShoulder", "RElbow", "RWrist",
+            "LShoulder", "LElbow", "LWrist")
+# EasyMocap's CONFIG['body25']['joint_names'] (easymocap/dataset/config.py, zju3dv/EasyMocap)
+EASYMOCAP_BODY25 = ("Nose", "Neck", "RShoulder", "RElbow", "RWrist", "LShoulder", "LElbow", "LWrist", "MidHip",
+                    "RHip", "RKnee", "RAnkle", "LHip", "LKnee", "LAnkle", "REye", "LEye", "REar", "LEar",
+                    "LBigToe", "LSmallToe", "LHeel", "RBigToe", "RSmallToe", "RHeel")
 
 
 def motion_params(model, frames: int = FRAMES, seed: int = 0) -> np.ndarray:
@@ -145,6 +157,28 @@ def test_bvh_roles_map_for_our_own_importer(tmp_path, motion):
     assert labels["spine_upper"] == "Chest" and labels["head_end"] == "Head/end"
 
 
+def test_bvh_tpose_rest_moves_the_same(tmp_path, motion):
+    """--rest tpose: arms straight out and legs straight down at rest, the same world joints in
+    every frame as the A-pose file."""
+    a = read_bvh(export_motion("bvh", tmp_path / "a.bvh", motion, bvh_rest="apose"))
+    t = read_bvh(export_motion("bvh", tmp_path / "t.bvh", motion, bvh_rest="tpose"))
+    assert t.names == a.names and t.num_frames == a.num_frames
+    err = np.abs(bvh_to_world_joints(t) - bvh_to_world_joints(a)).max()
+    assert err < 1e-6, err
+    assert np.abs(bvh_to_world_joints(t) - motion.joints).max() < ROUND_TRIP_M
+    rest, _ = rest_positions(t)  # BVH axes: y up, x to the actor's left
+    idx = {n: i for i, n in enumerate(t.names)}
+    for side, sign in (("Left", 1.0), ("Right", -1.0)):
+        arm = rest[idx[f"{side}Hand"]] - rest[idx[f"{side}Arm"]]
+        leg = rest[idx[f"{side}Foot"]] - rest[idx[f"{side}UpLeg"]]
+        np.testing.assert_allclose(arm / np.linalg.norm(arm), [sign, 0.0, 0.0], atol=1e-9)
+        np.testing.assert_allclose(leg / np.linalg.norm(leg), [0.0, -1.0, 0.0], atol=1e-9)
+    arest, _ = rest_positions(a)
+    np.testing.assert_allclose(rest[idx["Neck"]], arest[idx["Neck"]], atol=1e-9)  # the torso as it was
+    with pytest.raises(UserError, match="rest pose"):
+        export_motion("bvh", tmp_path / "x.bvh", motion, bvh_rest="sitting")
+
+
 def test_actor_segment_lengths_come_from_the_result():
     """A bigger actor, and one with a longer left shin: offsets follow the recorded joints."""
     base = load_body_model()
@@ -212,17 +246,133 @@ def read_trc(path: Path) -> tuple[dict, list[str], np.ndarray, np.ndarray]:
     return header, names, times, pts
 
 
-def test_trc_for_opensim(tmp_path, motion):
+def test_trc_for_opensim_with_pose2sim_markers(tmp_path, motion):
     path = export_motion("trc", tmp_path / "m.trc", motion)
     header, names, times, pts = read_trc(path)
-    assert header["DataRate"] == "25" and header["Units"] == "mm"
-    assert int(header["NumFrames"]) == FRAMES and int(header["NumMarkers"]) == len(JOINT_NAMES)
-    assert names == list(JOINT_NAMES)
+    assert header["DataRate"] == "25" and header["Units"] == "m"
+    assert path.read_text().splitlines()[0].endswith("\tm.trc")
+    assert set(names) <= set(HALPE_26) and len(names) == len(set(names)) == 15
+    assert {"Nose", "RBigToe", "LHeel"}.isdisjoint(names)  # not fitted: left out, not made up
+    assert int(header["NumFrames"]) == FRAMES and int(header["NumMarkers"]) == len(names)
     np.testing.assert_allclose(times, np.arange(FRAMES) / FPS, atol=1e-6)
-    world = (pts / 1000.0) @ TO_OPENSIM  # inverse of a rotation: its transpose
-    assert np.abs(world - motion.joints).max() < ROUND_TRIP_M
+    world = pts @ TO_OPENSIM  # inverse of a rotation: its transpose
+    J = {n: motion.joints[:, i] for i, n in enumerate(JOINT_NAMES)}
+    expected = {"RKnee": J["r_knee"], "LWrist": J["l_wrist"], "Head": J["head_top"],
+                "Hip": 0.5 * (J["l_hip"] + J["r_hip"]), "Neck": 0.5 * (J["l_shoulder"] + J["r_shoulder"])}
+    for name, want in expected.items():
+        assert np.abs(world[:, names.index(name)] - want).max() < ROUND_TRIP_M, name
+    assert np.all(pts[:, names.index("Head"), 1] > pts[:, names.index("Hip"), 1])  # OpenSim: Y up
+
+
+def read_mot(path: Path) -> tuple[dict, list[str], np.ndarray]:
+    """An OpenSim .mot -> header {key: value}, column labels, (F, C) values."""
+    lines = path.read_text().splitlines()
+    end = lines.index("endheader")
+    header = dict(line.split("=", 1) for line in lines[1:end] if "=" in line)
+    labels = lines[end + 1].split("\t")
+    return header, labels, np.array([[float(v) for v in line.split("\t")] for line in lines[end + 2:]])
+
+
+def test_mot_of_joint_angles_in_degrees(tmp_path, motion):
+    path = export_motion("mot", tmp_path / "m.mot", motion)
+    header, labels, table = read_mot(path)
+    assert path.read_text().splitlines()[0] == "m"  # OpenSim: the table's name comes first
+    assert header["version"] == "1" and header["inDegrees"] == "yes"
+    assert int(header["nRows"]) == FRAMES and int(header["nColumns"]) == len(labels) == 36
+    assert labels == ["time", *MOT_COLUMNS] and labels[4:] == list(PARAM_NAMES[3:])
+    np.testing.assert_allclose(table[:, 0], np.arange(FRAMES) / FPS, atol=1e-6)
+    np.testing.assert_allclose(np.radians(table[:, 4:]), motion.params[:, 3:], rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(table[:, 1:4] @ TO_OPENSIM, motion.params[:, 0:3], rtol=1e-7, atol=1e-9)
+    assert np.ptp(table[:, labels.index("root_heading")]) > 500.0  # 1.5 turns: degrees, unwrapped
+
+
+def test_keypoints3d_for_easymocap(tmp_path, motion):
+    folder = export_motion("keypoints3d", tmp_path / "kp", motion)
+    files = sorted(folder.iterdir())
+    assert [f.name for f in files] == [f"{int(f):06d}.json" for f in motion.frames]  # EasyMocap: frame number
+    assert BODY25_NAMES == EASYMOCAP_BODY25
+    doc = json.loads(files[3].read_text())
+    assert isinstance(doc, list) and len(doc) == 1 and set(doc[0]) == {"id", "keypoints3d"} and doc[0]["id"] == 0
+    kp = np.array(doc[0]["keypoints3d"])
+    assert kp.shape == (25, 4)
+    have = {n for n, c in zip(BODY25_NAMES, kp[:, 3]) if c > 0}
+    assert have == {"Neck", "RShoulder", "RElbow", "RWrist", "LShoulder", "LElbow", "LWrist", "MidHip", "RHip",
+                    "RKnee", "RAnkle", "LHip", "LKnee", "LAnkle"}
+    assert np.all(kp[kp[:, 3] == 0, :3] == 0)  # what we lack: confidence 0
+    J = {n: motion.joints[3, i] for i, n in enumerate(JOINT_NAMES)}
+    np.testing.assert_allclose(kp[BODY25_NAMES.index("LKnee"), :3], J["l_knee"], atol=1e-6)
+    np.testing.assert_allclose(kp[BODY25_NAMES.index("MidHip"), :3], 0.5 * (J["l_hip"] + J["r_hip"]), atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------- glTF
+
+@pytest.fixture(scope="module")
+def glb(tmp_path_factory, motion):
+    import pygltflib
+
+    path = export_motion("glb", tmp_path_factory.mktemp("glb") / "m.glb", motion)
+    return path, pygltflib.GLTF2.load(str(path))
+
+
+def test_glb_validates(glb):
+    """pygltflib's checks, and the Khronos rules a validator applies that matter for our file."""
+    import warnings
+
+    from pygltflib.validator import validate
+
+    from common.gltf import JOINT_NODE_NAMES, accessor_array
+
+    path, g = glb
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "provisional function"
+        validate(g)
+    assert path.read_bytes()[:4] == b"glTF" and g.asset.version == "2.0"
+    blob = g.binary_blob()
+    assert g.buffers[0].byteLength == len(blob)
+    for view in g.bufferViews:
+        assert view.byteOffset % 4 == 0 and view.byteOffset + view.byteLength <= len(blob)
+    prim = g.meshes[0].primitives[0]
+    pos = accessor_array(g, prim.attributes.POSITION)
+    acc = g.accessors[prim.attributes.POSITION]
+    np.testing.assert_allclose(acc.min, pos.min(axis=0))
+    np.testing.assert_allclose(acc.max, pos.max(axis=0))
+    assert accessor_array(g, prim.indices).max() < len(pos)
+    normals = accessor_array(g, prim.attributes.NORMAL)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-5)
+    weights = accessor_array(g, prim.attributes.WEIGHTS_0)
+    assert np.abs(weights.sum(axis=1, dtype=np.float32) - 1).max() < 2e-7 * 4  # glTF's tolerance
+    joints = accessor_array(g, prim.attributes.JOINTS_0)
+    assert np.all(joints[weights == 0] == 0) and joints.max() < len(g.skins[0].joints)
+    assert [g.nodes[j].name for j in g.skins[0].joints] == list(JOINT_NODE_NAMES)
+    times = accessor_array(g, g.animations[0].samplers[0].input)
+    assert np.all(np.diff(times) > 0) and g.accessors[g.animations[0].samplers[0].input].min == [0.0]
+    for ch in g.animations[0].channels:
+        if ch.target.path == "rotation":
+            q = accessor_array(g, g.animations[0].samplers[ch.sampler].output)
+            np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-6)
+            assert np.all(np.einsum("fi,fi->f", q[1:], q[:-1]) > 0)  # no flips between keys
+
+
+def test_glb_animation_reproduces_the_joints(glb, motion):
+    """Evaluated as a glTF viewer does, the animation's joint nodes are the fitted joints; the
+    skinned mesh is the body model's skinned surface; metres, y up, the frame rate kept."""
+    from common.body import forward_kinematics, skinned_vertices
+    from common.gltf import TO_GLTF, glb_joint_positions, glb_skinned_vertices
+
+    _, g = glb
+    times, joints = glb_joint_positions(g)
+    np.testing.assert_allclose(times, np.arange(FRAMES) / FPS, atol=1e-6)
+    assert g.animations[0].extras["fps"] == FPS
+    err = np.abs(joints - motion.joints).max()
+    assert err < INTEROP_M and err < 1e-6, err  # float32 in the file: micrometres
     head, pelvis = JOINT_NAMES.index("head_top"), JOINT_NAMES.index("pelvis")
-    assert np.all(pts[:, head, 1] > pts[:, pelvis, 1])  # OpenSim: Y up
+    gl = joints @ TO_GLTF.T
+    assert np.all(gl[:, head, 1] > gl[:, pelvis, 1] + 0.5)  # y up
+    pose = forward_kinematics(motion.model, motion.params[[0, 30]])
+    for k, frame in enumerate((0, 30)):
+        mesh = glb_skinned_vertices(g, frame)
+        # four influences instead of the model's up to five: a fraction of a millimetre
+        assert np.abs(mesh - skinned_vertices(motion.model, pose, k)).max() < INTEROP_M
 
 
 def test_json_lines_and_csv(tmp_path, motion):
@@ -256,9 +406,41 @@ def test_mocap_export_all_formats_json(tmp_path, result_dir, capsys):
     doc = json.loads(capsys.readouterr().out)
     assert [d["format"] for d in doc] == list(FORMATS)
     for d in doc:
-        assert Path(d["path"]) == out / f"motion{SUFFIXES[d['format']]}"
-        assert Path(d["path"]).stat().st_size == d["bytes"] > 0
+        path = Path(d["path"])
+        assert path == out / f"motion{SUFFIXES[d['format']]}"
+        size = sum(f.stat().st_size for f in path.iterdir()) if path.is_dir() else path.stat().st_size
+        assert size == d["bytes"] > 0
         assert d["frames"] == FRAMES and d["fps"] == 25.0
+    assert len(list((out / "motion_keypoints3d").iterdir())) == FRAMES
+    assert not list(out.glob(".*"))  # no partial files left
+    # again: every target exists, so nothing is replaced without --overwrite
+    assert cli_main(["export", str(result_dir), "--format", "all", "--out", str(out), "--fps", "25"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+
+
+def test_mocap_export_several_formats_and_rest(tmp_path, result_dir, capsys):
+    out = tmp_path / "some"
+    assert cli_main(["export", str(result_dir), "--format", "glb,trc", "--format", "bvh", "--rest", "tpose",
+                     "--out", str(out), "--fps", "25", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [d["format"] for d in doc] == ["glb", "trc", "bvh"] and doc[2]["rest"] == "tpose"
+    assert sorted(p.name for p in out.iterdir()) == ["motion.bvh", "motion.glb", "motion.trc"]
+    bvh = read_bvh(out / "motion.bvh")
+    rest, _ = rest_positions(bvh)
+    arm = rest[bvh.names.index("LeftHand")] - rest[bvh.names.index("LeftArm")]
+    assert abs(arm[1]) < 1e-6  # T-pose: the arm horizontal at rest
+    # a folder format: refused when there, replaced whole with --overwrite
+    kp = tmp_path / "kp"
+    assert cli_main(["export", str(result_dir), "--format", "keypoints3d", "--out", str(kp), "--fps", "25",
+                     "--quiet"]) == 0
+    (kp / "stale.json").write_text("[]")
+    assert cli_main(["export", str(result_dir), "--format", "keypoints3d", "--out", str(kp), "--fps", "25"]) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert cli_main(["export", str(result_dir), "--format", "keypoints3d", "--out", str(kp), "--fps", "25",
+                     "--overwrite", "--quiet"]) == 0
+    assert not (kp / "stale.json").exists() and len(list(kp.iterdir())) == FRAMES
+    assert cli_main(["export", str(result_dir), "--format", "glb,fbx", "--fps", "25"]) == 2
+    assert "unknown format fbx" in capsys.readouterr().err
 
 
 def test_mocap_export_one_format_quiet_and_default_path(result_dir, capsys):

@@ -113,7 +113,17 @@ def test_overlays_show_the_fit(result):
         assert good[name] < 0.3 * sil[c].sum()
     assert sum(bad.values()) > sum(good.values()) + 50
     small, _ = overlay_strip(result, painter, 0, cams, height=60, crop=True)
-    assert small.shape[0] == 60 + 16
+    assert small.shape == (60 + 16, 2 * 80 + 4, 3)  # cropped tiles keep the cameras' 4:3
+
+
+def test_cropped_tiles_are_shaped_like_their_camera():
+    """A portrait camera's tile is portrait, a landscape one's landscape, the actor inside both."""
+    for H, W in ((120, 160), (160, 90), (100, 100)):
+        m = np.zeros((H, W), bool)
+        m[H // 3:H // 3 + H // 3, W // 2 - 4:W // 2 + 4] = True  # a standing actor: tall and narrow
+        x0, y0, x1, y1 = crop_box([m], W / H)
+        assert (x1 - x0) / (y1 - y0) == pytest.approx(W / H, rel=0.05), (H, W)
+        assert x0 <= W // 2 - 4 and x1 >= W // 2 + 4 and y0 <= H // 3 and y1 >= 2 * (H // 3)
 
 
 def test_3d_view_from_any_side(result):
@@ -160,7 +170,7 @@ def test_make_result_pictures(result, sequence):
     paths = make_result_pictures(result.path, frames=[0, BENT], cameras=["cam2", "cam5"])
     names = {p.name for p in paths}
     assert {"joint_error.png", "energy.png", "timing.png", "overlay_000000.png", f"overlay_{BENT:06d}.png",
-            "model_000000.png", f"model_{BENT:06d}.png", "sequence.gif"} == names
+            "model_000000.png", f"model_{BENT:06d}.png", "sequence.gif", "sequence.mp4"} == names
     for p in paths:
         assert p.parent == result.path / "pictures" and p.stat().st_size > 0
     strip = Image.open(result.path / "pictures" / "overlay_000000.png")
@@ -168,6 +178,17 @@ def test_make_result_pictures(result, sequence):
     gif = Image.open(result.path / "pictures" / "sequence.gif")
     assert gif.n_frames == FRAMES
     assert gif.info["duration"] == pytest.approx(1000.0 / result.motion.fps, abs=10)  # GIF: 10 ms steps
+    # the video: every frame, at the take's rate, the GIF's pictures (H.264 pads to even sizes)
+    import imageio.v2 as imageio
+
+    with imageio.get_reader(result.path / "pictures" / "sequence.mp4", format="ffmpeg") as reader:
+        assert reader.get_meta_data()["fps"] == pytest.approx(result.motion.fps, rel=1e-3)
+        pictures = np.array([frame for frame in reader])
+    assert len(pictures) == FRAMES
+    gif.seek(0)
+    first = np.asarray(gif.convert("RGB"))
+    assert pictures.shape[1:] == (first.shape[0] + first.shape[0] % 2, first.shape[1] + first.shape[1] % 2, 3)
+    assert np.abs(pictures[0, :first.shape[0], :first.shape[1]].astype(int) - first).mean() < 12  # lossy, alike
 
 
 def test_bad_choices_are_user_errors(result):

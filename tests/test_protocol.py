@@ -9,7 +9,7 @@ from common import protocol
 from common.camera import circle_studio
 from common.packing import packbits_masks, packed_length
 from common.protocol import (CHAIN_NAMES, JOB_NAMES, MAX_CAMERAS, MAX_HEADER_BYTES, MAX_IMAGE_SIDE, MAX_INDEX,
-                             MAX_MESSAGE_BYTES, PARAM_COUNT, PROTOCOL_VERSION, REASONS, CameraSpec, Error,
+                             MAX_MESSAGE_BYTES, MAX_PARTS, PARAM_COUNT, PROTOCOL_VERSION, REASONS, CameraSpec, Error,
                              Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve, Welcome,
                              camera_specs, decode, encode)
 
@@ -159,11 +159,18 @@ def test_unknown_type(type_name):
 @pytest.mark.parametrize("msg, frames", [
     (SOLVE, lambda f: f + [b"extra"]),
     (FRAME, lambda f: f[:1]),
-    (FRAME, lambda f: f + [b""]),
-    (REGISTER, lambda f: f + [b"", b""]),
+    (REGISTER, lambda f: f + [b""]),
 ])
 def test_frame_count(msg, frames):
     rejects(frames(encode(msg)), "frame_count")
+
+
+@pytest.mark.parametrize("msg, extra", [(FRAME, 1), (REGISTER, 2), (Heartbeat(), 1000)])
+def test_more_frames_than_any_message_is_too_large(msg, extra):
+    """Refused before the header is read: a flood, whatever its frames hold."""
+    frames = encode(msg) + [b""] * extra
+    assert len(frames) > MAX_PARTS
+    rejects(frames, "too_large")
 
 
 def test_no_frames():

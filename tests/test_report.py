@@ -23,9 +23,11 @@ from PIL import Image
 
 from common.body import JOINT_NAMES
 from common.errors import UserError
+from common.export import FORMATS
 from server.cli import main as cli_main
 from server.commands import report as report_command
-from server.report import write_report
+from server.pictures import load_result
+from server.report import STRIP_HEIGHT, write_report
 
 FRAMES = 3
 CHROMIUM_NAMES = ("chromium", "chromium-browser")
@@ -67,7 +69,15 @@ def test_mocap_report_writes_page_and_pictures(fitted, capsys):
     doc = json.loads(capsys.readouterr().out)
     assert doc["report"] == str(res / "report.html") and Path(doc["report"]).stat().st_size > 10_000
     names = {Path(p).name for p in doc["pictures"]}
-    assert {"overlay_000000.png", "overlay_000002.png", "model_000002.png", "sequence.gif", "joint_error.png"} <= names
+    assert {"overlay_000000.png", "overlay_000002.png", "model_000002.png", "sequence.gif", "sequence.mp4",
+            "joint_error.png"} <= names
+    # the take's video, made with the pictures, is in the page; the exports say how to open them
+    text = Path(doc["report"]).read_text()
+    video = re.search(r'<video[^>]+src="data:video/mp4;base64,([^"]+)"', text)
+    assert video and base64.b64decode(video.group(1)) == (res / "pictures" / "sequence.mp4").read_bytes()
+    for fmt in FORMATS:
+        assert f"--format {fmt}</code>" in text
+    assert "Forward -Z, Up Y" in text and "HALPE_26" in text and "body25" in text
     assert mocap_report([str(res), "--quiet", "--no-pictures", "--out", str(res / "r2.html")]) == 0
     assert capsys.readouterr().out == "" and (res / "r2.html").exists()
     assert mocap_report([str(res), "--no-gif", "--no-pictures", "--overwrite"]) == 0
@@ -94,9 +104,13 @@ def test_page_is_self_contained(report):
     assert not re.search(r"<script[^>]+src=", text)
     images = re.findall(r'<img[^>]+src="([^"]+)"', text)
     assert len(images) >= 5  # plots, overlay strips, model views
+    sizes = []
     for src in images:
         assert src.startswith("data:image/png;base64,")
         Image.open(io.BytesIO(base64.b64decode(src.split(",", 1)[1]))).verify()
+        sizes.append(Image.open(io.BytesIO(base64.b64decode(src.split(",", 1)[1]))).size)
+    # overlay strips: 4 of the 5 cameras, each tile 4:3 as the cameras' 160x120 images
+    assert (4 * round(STRIP_HEIGHT * 4 / 3) + 3 * 4, STRIP_HEIGHT + 16) in sizes
 
 
 def test_player_data_is_the_fit(report, fitted):
@@ -128,7 +142,7 @@ def test_report_without_the_sequence(fitted, tmp_path, capsys):
     assert "energy.png" in pictures and "model_000000.png" in pictures
     assert not any(p.startswith("overlay") for p in pictures) and "joint_error.png" not in pictures
     text = (moved / "report.html").read_text()
-    assert "no overlays" in text and "no truth.jsonl" in text
+    assert "no overlays" in text and "no truth.jsonl" in text and "No overlay video" in text
     assert '"truth":null' in text
 
 
@@ -200,6 +214,20 @@ def test_page_loads_without_console_errors_and_plays(chromium, report, tmp_path)
     html_attrs, body, console = dump_dom(chromium, report, tmp_path, "#play", budget_ms=1000)
     assert "data-errors" not in html_attrs and console == []
     assert int(body["data-frames-drawn"]) >= 10
+
+
+@pytest.mark.timeout(INSTALL_TIMEOUT + 300)
+def test_take_video_decodes_in_chromium(chromium, fitted, tmp_path):
+    """The embedded MP4 (every frame at the take's rate) is one the browser reads."""
+    _, res = fitted
+    if not (res / "pictures" / "sequence.mp4").exists():  # the pictures test made it, unless run alone
+        assert mocap_report([str(res), "--quiet", "--overwrite"]) == 0
+    page = tmp_path / "report.html"
+    write_report(res, out=page)
+    html_attrs, body, console = dump_dom(chromium, page, tmp_path, "#frame=0", budget_ms=3000)
+    assert "data-errors" not in html_attrs and console == []
+    fps = load_result(res).motion.fps
+    assert float(body["data-video-duration"]) == pytest.approx(FRAMES / fps, abs=1.5 / fps)
 
 
 @pytest.mark.timeout(INSTALL_TIMEOUT + 300)

@@ -149,8 +149,11 @@ def test_params_from_toml(tmp_path):
 
 @pytest.mark.parametrize("text, match", [
     ("alpha_tol = 0.9\n", "unknown key 'alpha_tol' for method cheung"),
-    ("regions = 2.5\n", "regions: expected an integer"),
-    ("shadow_depth = 'deep'\n", "shadow_depth: expected a number"),
+    ("regions = 2.5\n", "regions: expected a whole number, got the number 2.5"),
+    ("shadow_depth = 'deep'\n", "shadow_depth: expected a finite number, got the text 'deep'"),
+    ("shadow_depth = inf\n", "shadow_depth: expected a finite number, got the number inf"),
+    ("thresholds = [[1.0, 2.0]]\n", r"thresholds\[0\]: expected a list of 3 numbers"),
+    ("max_hole_area = 1e400\n", "max_hole_area: expected a whole number, got the number inf"),
     ("shadow_depth = 1.5\n", "shadow_depth: must be in"),
     ("thresholds = [[1.0, 2.0, 0.1]]\n", "thresholds: needs one"),
     ("regions = \n", "not valid TOML"),

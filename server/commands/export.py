@@ -1,32 +1,58 @@
-"""``mocap export``: write a result folder's fitted motion as BVH, C3D, TRC, JSON lines or CSV.
+"""``mocap export``: write a result folder's fitted motion as glTF, OpenSim, EasyMocap, BVH, C3D, JSON lines or CSV.
 
-    mocap export RESULT --format bvh|c3d|trc|json|csv|all [--out PATH] [--sequence SEQ] [--fps FPS]
+    mocap export RESULT --format glb|mot|trc|keypoints3d|bvh|c3d|json|csv|all[,...] [--out PATH]
+                        [--rest apose|tpose] [--sequence SEQ] [--fps FPS]
 
-One format writes ``--out`` (default ``RESULT/motion.<ext>``); ``all`` writes every format into
-the folder ``--out`` (default RESULT). The frame rate comes from the sequence (summary.json
-names it; ``--sequence`` when it moved) or ``--fps``. Axis conventions: docs/exports.md.
+One format writes ``--out`` (default ``RESULT/motion.<ext>``; keypoints3d is a folder,
+``RESULT/motion_keypoints3d/``); several (``--format glb,trc`` or ``--format glb --format trc``)
+or ``all`` write into the folder ``--out`` (default RESULT). The frame rate comes from the
+sequence (summary.json names it; ``--sequence`` when it moved) or ``--fps``. Every target is
+checked before the first is written (existing ones only with ``--overwrite``), and each is
+written beside its name and renamed over it. Axis conventions: docs/exports.md.
 """
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
-from common.export import FORMATS, SUFFIXES, export_motion
+from common.errors import UserError
+from common.export import (
+    BVH_RESTS, DEFAULT_BVH_REST, FOLDER_FORMATS, FORMATS, SUFFIXES, export_motion,
+)
 from server.argtypes import real
-from server.output import add_overwrite_argument, check_file_target, check_folder_target, replace_file
+from server.output import (
+    add_overwrite_argument, check_file_target, check_folder_target, replace_file, staged_folder,
+)
 from server.pictures import load_result
 
 EXPORT_STEM = "motion"
+ALL = "all"
+
+
+def format_list(text: str) -> list[str]:
+    """--format's value: comma-separated names of FORMATS, or ``all``."""
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    unknown = [n for n in names if n not in FORMATS + (ALL,)]
+    if unknown or not names:
+        raise argparse.ArgumentTypeError(f"unknown format {', '.join(unknown) or repr(text)}; choose from "
+                                         f"{', '.join(FORMATS)} or {ALL} (several: comma-separated)")
+    return names
 
 
 def register(sub) -> None:
-    p = sub.add_parser("export", help="export fitted motion (BVH, C3D, TRC, JSON lines, CSV)",
-                       description="Export a result folder's fitted motion. Axis conventions: docs/exports.md.")
+    p = sub.add_parser("export", help="export fitted motion (glTF, OpenSim TRC/MOT, EasyMocap, BVH, C3D, JSON lines, CSV)",
+                       description="Export a result folder's fitted motion. Axis conventions and the settings for "
+                                   "Blender, OpenSim and three.js: docs/exports.md.")
     p.add_argument("result", type=Path, help="result folder (poses.jsonl from mocap fit)")
-    p.add_argument("--format", required=True, choices=FORMATS + ("all",),
-                   help="bvh (Blender), c3d, trc (OpenSim), json (JSON lines), csv, or all of them")
+    p.add_argument("--format", required=True, type=format_list, action="extend", metavar="|".join(FORMATS + (ALL,)),
+                   help="glb (glTF: Blender, three.js), mot and trc (OpenSim, Pose2Sim), keypoints3d (EasyMocap, a "
+                        "folder), bvh, c3d, json (JSON lines), csv, or all; several comma-separated or repeated")
     p.add_argument("--out", type=Path, default=None,
-                   help="file to write (default RESULT/motion.EXT); with --format all, a folder")
+                   help="file to write (default RESULT/motion.EXT); with several formats or all, a folder")
+    p.add_argument("--rest", choices=BVH_RESTS, default=DEFAULT_BVH_REST,
+                   help=f"the BVH's rest pose: the body model's A-pose or a T-pose for retargeting; the motion is the "
+                        f"same (default {DEFAULT_BVH_REST})")
     p.add_argument("--sequence", type=Path, default=None, help="the fitted sequence, if it moved since the fit")
     p.add_argument("--fps", type=real(0.0, exclusive_minimum=True), default=None,
                    help="frame rate (default: the sequence's)")
@@ -36,25 +62,48 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def _write(fmt: str, path: Path, motion, rest: str) -> None:
+    """One export, atomically: a file renamed over its name, a folder swapped in whole."""
+    if fmt in FOLDER_FORMATS:
+        with staged_folder(path) as staged:
+            export_motion(fmt, staged, motion, bvh_rest=rest)
+    else:
+        replace_file(path, lambda tmp: export_motion(fmt, tmp, motion, bvh_rest=rest, final_path=path))
+
+
+def _size(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.iterdir()) if path.is_dir() else path.stat().st_size
+
+
 def run(args) -> int:
+    formats = list(dict.fromkeys(FORMATS if ALL in args.format else args.format))
+    several = ALL in args.format or len(formats) > 1
     result = load_result(args.result, args.sequence, args.fps)
     motion = result.motion
-    if args.format == "all":
+    if several:
         folder = args.out or args.result
         check_folder_target(folder, (), overwrite=True)  # a file, or not writable: refused
         folder.mkdir(parents=True, exist_ok=True)
-        targets = [(f, folder / f"{EXPORT_STEM}{SUFFIXES[f]}") for f in FORMATS]
+        targets = [(f, folder / f"{EXPORT_STEM}{SUFFIXES[f]}") for f in formats]
     else:
-        targets = [(args.format, args.out or args.result / f"{EXPORT_STEM}{SUFFIXES[args.format]}")]
-    for _, path in targets:  # every target checked before the first is written
-        check_file_target(path, args.overwrite)
+        targets = [(formats[0], args.out or args.result / f"{EXPORT_STEM}{SUFFIXES[formats[0]]}")]
+    for fmt, path in targets:  # every target checked before the first is written
+        if fmt in FOLDER_FORMATS:
+            if not path.parent.is_dir():  # as for a file: no folders made on the way
+                raise UserError(f"--out {path}: folder {path.parent} does not exist")
+            check_folder_target(path, ("*",), overwrite=args.overwrite, what="export")
+        else:
+            check_file_target(path, args.overwrite)
     written = []
     for fmt, path in targets:
-        replace_file(path, lambda tmp: export_motion(fmt, tmp, motion))
-        written.append({"format": fmt, "path": str(path), "frames": len(motion.frames), "fps": motion.fps,
-                        "bytes": path.stat().st_size})
+        _write(fmt, path, motion, args.rest)
+        entry = {"format": fmt, "path": str(path), "frames": len(motion.frames), "fps": motion.fps,
+                 "bytes": _size(path)}
+        if fmt == "bvh":
+            entry["rest"] = args.rest
+        written.append(entry)
     if args.json:
-        print(json.dumps(written if args.format == "all" else written[0], indent=1))
+        print(json.dumps(written if several else written[0], indent=1))
     elif not args.quiet:
         for w in written:
             print(f"wrote {w['path']} ({w['format']}, {w['frames']} frames at {w['fps']:g} fps)")

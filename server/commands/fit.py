@@ -10,7 +10,7 @@ from common.body import load_body_model
 from common.errors import UserError
 from common.export import write_motion_bvh
 from common.fitting import ENERGY_BACKENDS, FitOptions
-from common.sequence import load_sequence
+from common.sequence import MAX_MASK_THRESHOLD, load_sequence
 from common.world import UP_CHOICES
 from server.argtypes import count, non_negative, real
 from server.cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
@@ -150,7 +150,7 @@ def add_world_arguments(p) -> None:
     p.add_argument("--up", choices=UP_CHOICES, default="auto",
                    help="the calibration world's up axis (default auto: from the cameras, which stand above "
                         "the floor); fitting runs z up, results are written in the calibration's frame")
-    p.add_argument("--mask-threshold", type=int, default=None, metavar="0-255",
+    p.add_argument("--mask-threshold", type=count(0, MAX_MASK_THRESHOLD - 1), default=None, metavar="0-255",
                    help="accept grey or colour images as silhouettes: pixels brighter than this are foreground")
     p.add_argument("--no-clean-masks", dest="clean_masks", action="store_false",
                    help="fit the masks as they are (default: blobs the other cameras do not support are dropped)")

@@ -20,13 +20,14 @@ counted before the output folder is made.
 """
 from __future__ import annotations
 
+import math
 import shutil
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from common.calibration import load_calibration, save_calibration, with_image_sizes
+from common.calibration import MAX_IMAGE_PIXELS, load_calibration, save_calibration, with_image_sizes
 from common.errors import InputFileError, UserError, print_warning
 from common.sequence import (DEFAULT_FPS, FRAME_NAME, IMAGE_SUFFIXES, check_size, frame_files, image_size,
                              read_image, write_sequence_meta)
@@ -125,9 +126,16 @@ class FrameSource:
         import imageio.v2 as imageio
         try:
             reader = imageio.get_reader(self.path, "ffmpeg")
-            self.fps = reader.get_meta_data().get("fps")
+            meta = reader.get_meta_data()
         except Exception as exc:  # imageio and ffmpeg raise many kinds for unreadable files
             raise InputFileError(self.path, f"{self.what}: not a readable video ({_short(exc)})") from None
+        fps = meta.get("fps")
+        # a container's rate may be missing or nonsense (0, inf): then --fps or the default decides
+        self.fps = float(fps) if isinstance(fps, (int, float)) and math.isfinite(fps) and fps > 0 else None
+        size = meta.get("size")
+        if size and len(size) == 2 and size[0] * size[1] > MAX_IMAGE_PIXELS:  # before any frame is decoded
+            raise InputFileError(self.path, f"{self.what}: frames of {size[0]}x{size[1]} pixels are over the limit "
+                                            f"of {MAX_IMAGE_PIXELS / 1e6:.0f} Mpx")
         frames = iter(reader)
         n = 0
         try:

@@ -49,12 +49,17 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    load_records(args.result)  # a result folder, readable, before its report's place is checked
+    frames = _int_list(args.frames, "--frames")
+    records = load_records(args.result)  # a result folder, readable, before its report's place is checked
+    fitted = [r["frame"] for r in records]
+    missing = [f for f in frames or () if f not in fitted]
+    if missing:
+        span = f"{fitted[0]}..{fitted[-1]}" if fitted else "none"
+        raise UserError(f"--frames: frame {missing[0]} was not fitted (frames fitted: {span})")
     check_file_target(args.out or args.result / REPORT_NAME, args.overwrite)
     if not args.no_pictures:
         check_folder_target(args.result / PICTURES_DIR, ("*",), option="pictures", overwrite=args.overwrite,
                             what="set of pictures")
-    frames = _int_list(args.frames, "--frames")
     cameras = _name_list(args.cameras)
     pictures = []
     if not args.no_pictures:

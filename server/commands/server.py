@@ -2,7 +2,8 @@
 
 Writes the same result folder as ``mocap fit``. On SIGTERM it stops within seconds, keeping
 the frames already written (continue with ``--resume``) and leaving the clients to reconnect
-to the next server; at the end of a run it tells the clients to exit.
+to the next server; at the end of a run it tells the clients to exit. A network address needs
+``--curve-keys`` (or ``--insecure``): see docs/cluster.md.
 """
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import sys
 
 from common.body import load_body_model
 from common.sequence import load_sequence
-from server.cluster import ClusterSolver, Terminated, add_cluster_arguments, terminate_on_sigterm
+from server.cluster import ClusterSolver, Terminated, add_cluster_arguments, check_bind, terminate_on_sigterm
 from server.commands.fit import add_fit_arguments, finish, options_from_args
 from server.progress import Progress
 from server.session import run_fit
@@ -28,6 +29,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="mocap server: %(message)s")
+    check_bind(args.bind, args.curve_keys, args.insecure)  # before the slow loading
     model = load_body_model()
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
                         clean_masks=args.clean_masks)
@@ -36,7 +38,8 @@ def run(args) -> int:
     bar = Progress("fit", total, enabled=None if not args.quiet else False)
     with terminate_on_sigterm():
         solver = ClusterSolver(model, options, bind=args.bind, heartbeat_interval=args.heartbeat,
-                               client_timeout=args.client_timeout, curve_keys=args.curve_keys)
+                               client_timeout=args.client_timeout, curve_keys=args.curve_keys,
+                               insecure=args.insecure)
         shutdown = None
         try:
             if args.min_clients > 0:
@@ -44,7 +47,7 @@ def run(args) -> int:
                                                          solver.endpoint)
                 solver.wait_for_clients(args.min_clients)
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
-                              max_frames=args.frames, progress=bar)
+                              max_frames=args.frames, progress=bar, overwrite=args.overwrite)
             finish(model, seq, args, summary)  # results on disk before the clients are released
             shutdown = "run finished"
         except Terminated:

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from common.errors import InputFileError
+from common.errors import InputFileError, UserError
 from common.sequence import FRAME_NAME, load_sequence
 from server.argtypes import count, real
 from server.commands.fit import add_world_arguments
@@ -65,6 +65,8 @@ def run(args) -> int:
     if not seq.has_silhouettes:
         raise InputFileError(seq.path / "silhouettes", "missing: make silhouettes first (mocap segment)")
     bounds = None if args.bounds is None else np.array(args.bounds).reshape(2, 3)
+    if bounds is not None and not np.all(bounds[0] < bounds[1]):
+        raise UserError(f"--bounds: expected X0 Y0 Z0 below X1 Y1 Z1, got {' '.join(f'{v:g}' for v in args.bounds)}")
     start = time.perf_counter()
     grid = SpotGrid.build(seq.studio, grid=args.grid, q=args.q, bounds=bounds, epsilon=args.epsilon)
     build_seconds = time.perf_counter() - start

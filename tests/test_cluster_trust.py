@@ -1,0 +1,325 @@
+"""Hostile peers: no result is used unchecked, floods and stalling crowds cost little, a network
+address needs CURVE, secret keys are private, and a client refused by CURVE says so. Each run
+still ends with the single-process poses."""
+import logging
+import stat
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+import zmq
+
+from common.body import LIMB_CHAINS
+from common.errors import UserError
+from common.fitting import FitOptions
+from common.protocol import (MAX_CLIENT_MESSAGE_BYTES, MAX_TEXT_CHARS, Error, Heartbeat, Register,
+                             Result, Solve, decode, encode)
+from common.sequence import load_sequence
+from server.cluster import (DEADLINE_FACTOR, DEADLINE_FLOOR, LOCAL_BIND, ClusterSolver, check_bind,
+                            create_curve_keys)
+from server.session import run_fit
+from test_cluster_support import (PY, ROOT, THREAD_HEARTBEAT, env, poses, records, reference_fit,
+                                  thread_workers, wait_for)
+
+TOLERANCE = 1e-9
+OPTIONS = FitOptions(refine_passes=0)  # tracking: what reference_fit fits
+BEAT = 0.25  # seconds between a fake peer's heartbeats: well inside the server's liveness
+
+
+@pytest.fixture(scope="module")
+def seq_path(small_sequence):
+    return small_sequence
+
+
+@pytest.fixture(scope="module")
+def reference(seq_path, tmp_path_factory):
+    return reference_fit(seq_path, tmp_path_factory.mktemp("trust") / "single")
+
+
+class FakePeers:
+    """``n`` raw DEALERs in one thread that register and heartbeat. ``answer(solve) -> Result``
+    makes them answer every SOLVE (None: they never answer). ``solves`` collects what they got."""
+
+    def __init__(self, endpoint: str, n: int, name: str, answer=None):
+        self.ctx = zmq.Context()
+        self.socks = []
+        for i in range(n):
+            s = self.ctx.socket(zmq.DEALER)
+            s.linger = 0
+            s.connect(endpoint)
+            s.send_multipart(encode(Register(client_id=f"{name}-{i}", cores=1, backends=("cpu",), version="0")))
+            self.socks.append(s)
+        self.answer, self.solves, self.session = answer, [], ""
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        poller = zmq.Poller()
+        for s in self.socks:
+            poller.register(s, zmq.POLLIN)
+        next_beat = 0.0
+        while not self._done.is_set():
+            if time.monotonic() >= next_beat:
+                for s in self.socks:
+                    s.send_multipart(encode(Heartbeat(session=self.session)), zmq.NOBLOCK)
+                next_beat = time.monotonic() + BEAT
+            for s, _ in poller.poll(20):
+                msg = decode(s.recv_multipart())
+                if hasattr(msg, "session") and msg.session:
+                    self.session = msg.session
+                if isinstance(msg, Solve):
+                    self.solves.append(msg)
+                    if self.answer is not None:
+                        s.send_multipart(encode(self.answer(msg)))
+
+    def close(self):
+        self._done.set()
+        self._thread.join(5)
+        self.ctx.destroy(linger=0)
+
+
+def random_result(rng):
+    def answer(msg: Solve) -> Result:
+        return Result(session=msg.session, frame=msg.frame, iteration=msg.iteration, request=msg.request,
+                      chain=msg.chains[0], params=rng.uniform(-1.0, 1.0, 35).tolist(), energy=0.0,
+                      energy_before=0.0, evaluations=1, iterations=1, cpu_seconds=0.0, wall_seconds=0.0)
+    return answer
+
+
+def fit(model, seq_path, out, solver, frames=None) -> dict:
+    return run_fit(model, load_sequence(seq_path), out, OPTIONS, solver, max_frames=frames)
+
+
+def check_complete(out, reference):
+    assert [r["frame"] for r in records(out)] == list(range(len(reference)))
+    assert np.abs(poses(out) - reference).max() <= TOLERANCE
+
+
+@pytest.mark.timeout(120)
+def test_poisoned_results_are_refused_and_the_sender_gets_no_more_work(model, seq_path, reference, tmp_path,
+                                                                       caplog):
+    caplog.set_level(logging.WARNING, logger="server.cluster")
+    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    liar = None
+    try:
+        liar = FakePeers(solver.endpoint, 1, "liar", random_result(np.random.default_rng(0)))
+        with thread_workers(model, solver.endpoint, 1):
+            solver.wait_for_clients(2, timeout=10)
+            summary = fit(model, seq_path, tmp_path, solver)
+    finally:
+        if liar:
+            liar.close()
+        solver.close(shutdown="done")
+    check_complete(tmp_path, reference)
+    timing = summary["timing"]
+    # every answer it gave was refused; the ban came before the first round ended
+    assert 1 <= timing["rejected"] <= len(liar.solves)
+    assert {(m.frame, m.iteration) for m in liar.solves} == {(0, 0)}
+    processes = {p["name"]: p for p in timing["processes"]}
+    assert processes["liar-0"]["rejected"] == timing["rejected"] and processes["liar-0"]["accepted"] == 0
+    assert processes["t1"]["rejected"] == 0 and processes["t1"]["accepted"] >= 1
+    assert summary["clients"] == 1  # the liar did no work
+    warnings = [r.getMessage() for r in caplog.records if "fails its check" in r.getMessage()]
+    assert len(warnings) == 1 and "liar-0" in warnings[0], warnings
+
+
+@pytest.mark.timeout(120)
+def test_a_flood_of_frames_is_dropped_and_its_sender_forgotten(model, seq_path, reference, tmp_path):
+    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    ctx = zmq.Context()
+    try:
+        with thread_workers(model, solver.endpoint, 1):
+            solver.wait_for_clients(1, timeout=10)
+            flood = ctx.socket(zmq.DEALER)
+            flood.linger = 0
+            flood.connect(solver.endpoint)
+            flood.send_multipart(encode(Register(client_id="flood", cores=1, backends=("cpu",), version="0")))
+            wait_for(lambda: solver.client_count() == 2, 10, "the flood peer to register")
+            # every frame as large as the server takes, more frames than any message has
+            part = b"\0" * MAX_CLIENT_MESSAGE_BYTES
+            flood.send_multipart([encode(Heartbeat())[0]] + [part] * 20)
+            wait_for(lambda: solver.stats()["dropped"].get("too_large"), 10, "the flood to be dropped")
+            assert solver.client_count() == 1  # forgotten
+            # one frame over the server's MAXMSGSIZE: zmq closes the connection before buffering it
+            big = ctx.socket(zmq.DEALER)
+            big.linger = 0
+            big.connect(solver.endpoint)
+            big.send_multipart([b"\0" * (MAX_CLIENT_MESSAGE_BYTES + 1)] * 3)
+            wait_for(lambda: solver.stats()["disconnects"] >= 1, 10, "zmq to drop the oversized peer")
+            summary = fit(model, seq_path, tmp_path, solver)
+    finally:
+        ctx.destroy(linger=0)
+        solver.close(shutdown="done")
+    check_complete(tmp_path, reference)
+    assert summary["timing"]["dropped"] == {"too_large": 1}
+
+
+def clean_seconds(model, seq_path, out) -> float:
+    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    try:
+        t0 = time.perf_counter()
+        fit(model, seq_path, out, solver)
+        return time.perf_counter() - t0
+    finally:
+        solver.close()
+
+
+STALL_CLIENT_TIMEOUT = 2.0  # seconds: the deadline until a solve has been measured
+
+
+@pytest.mark.timeout(180)
+def test_twenty_peers_that_never_answer_cost_little(model, seq_path, reference, tmp_path):
+    """Before: each round's chains went to fresh silent peers one timeout after another
+    (4 chains, 20 peers: 5 timeouts in the first round). Now a chain that timed out goes to a
+    client that delivered accepted work, or the server, and the deadline follows the measured
+    solves: the first round costs one ``client_timeout``, each later round that still finds
+    fresh silent peers a few median solves."""
+    clean = clean_seconds(model, seq_path, tmp_path / "clean")
+    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT,
+                           client_timeout=STALL_CLIENT_TIMEOUT)
+    crowd = None
+    try:
+        crowd = FakePeers(solver.endpoint, 20, "silent")
+        solver.wait_for_clients(20, timeout=10)
+        t0 = time.perf_counter()
+        summary = fit(model, seq_path, tmp_path / "out", solver)
+        stalled = time.perf_counter() - t0
+    finally:
+        if crowd:
+            crowd.close()
+        solver.close()
+    check_complete(tmp_path / "out", reference)
+    timing = summary["timing"]
+    assert timing["stalls"] == len(crowd.solves) == 20 and timing["lost_clients"] == 0
+    assert summary["clients"] == 0  # registered, but none did any work
+    # one client_timeout, then each round that finds 4 fresh silent peers one measured deadline
+    later_rounds = 20 // len(LIMB_CHAINS) - 1
+    deadline = max([DEADLINE_FLOOR, *solver.deadlines()])
+    assert stalled < 2 * (clean + later_rounds * deadline) + STALL_CLIENT_TIMEOUT, (stalled, clean, deadline)
+
+
+def test_the_deadline_follows_the_measured_solves(model):
+    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, client_timeout=3.0)
+    try:
+        kind = ("limb", ())
+        assert solver._deadline(kind) == 3.0  # nothing measured yet
+        for seconds in (0.01, 0.02, 0.03):
+            solver._measured(kind, seconds)
+        assert solver._deadline(kind) == DEADLINE_FLOOR
+        for seconds in (0.3, 0.3, 0.4, 0.5):
+            solver._measured(kind, seconds)
+        assert solver._deadline(kind) == pytest.approx(DEADLINE_FACTOR * 0.3)
+        for seconds in (5.0,) * 10:
+            solver._measured(kind, seconds)
+        assert solver._deadline(kind) == 3.0  # never above --client-timeout
+        assert solver._deadline(("hop", ())) == 3.0  # each kind of job on its own
+    finally:
+        solver.close()
+
+
+def test_the_largest_client_message_fits_the_servers_frame_limit():
+    text = "\U0001F600" * MAX_TEXT_CHARS  # 4 bytes each in UTF-8
+    big = Error(code="x" * 128, text=text, session="s" * 128, frame=2**63 - 1, iteration=2**63 - 1,
+                request=2**63 - 1)
+    register = Register(client_id="\U0001F600" * 128, cores=4096, version="\U0001F600" * 128,
+                        backends=tuple(f"{i:02d}" + "\U0001F600" * 126 for i in range(16)))
+    for msg in (big, register):
+        frames = encode(msg)
+        assert len(frames) == 1 and len(frames[0]) * 3 < MAX_CLIENT_MESSAGE_BYTES
+
+
+@pytest.mark.parametrize("bind", ["tcp://127.0.0.1:5555", "tcp://127.1.2.3:5555", "tcp://localhost:5555",
+                                  "tcp://[::1]:5555", "ipc:///tmp/mocap.sock", "inproc://mocap"])
+def test_loopback_and_ipc_need_no_keys(bind):
+    assert check_bind(bind, None, insecure=False) is False
+
+
+@pytest.mark.parametrize("bind", ["tcp://*:5555", "tcp://0.0.0.0:5555", "tcp://192.168.1.5:5555",
+                                  "tcp://eth0:5555", "tcp://server.example:5555", "tcp://[::]:5555"])
+def test_a_network_address_without_curve_is_refused_unless_insecure(bind, tmp_path):
+    with pytest.raises(UserError, match="--curve-keys"):
+        check_bind(bind, None, insecure=False)
+    assert check_bind(bind, None, insecure=True) is True
+    assert check_bind(bind, tmp_path, insecure=False) is False
+
+
+def test_mocap_server_refuses_a_network_bind_without_keys(seq_path, tmp_path, capsys):
+    from server.cli import main
+
+    assert main(["server", str(seq_path), "--out", str(tmp_path / "out"), "--bind", "tcp://*:5555"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--curve-keys" in err and "--insecure" in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_insecure_bind_is_logged_loudly(model, caplog, monkeypatch):
+    import server.cluster as cluster
+
+    # the check says a network address; the socket still binds the loopback (tests bind no other)
+    monkeypatch.setattr(cluster, "check_bind", lambda bind, keys, insecure: True)
+    caplog.set_level(logging.WARNING, logger="server.cluster")
+    ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, insecure=True).close()
+    assert any("INSECURE" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize("argv", [
+    ["--min-clients", "-1"], ["--client-timeout", "0"], ["--client-timeout", "nan"], ["--heartbeat", "-1"],
+    ["--heartbeat", "inf"],
+])
+def test_mocap_server_refuses_bad_numbers(seq_path, tmp_path, argv, capsys):
+    from server.cli import main
+
+    assert main(["server", str(seq_path), "--out", str(tmp_path / "out"), *argv]) == 2
+    assert argv[0] in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [
+    ["--reconnect-min", "-1"], ["--reconnect-max", "0"], ["--reconnect-min", "nan"],
+    ["--reconnect-min", "5", "--reconnect-max", "1"], ["--test-stall", "-1"], ["--test-stall-requests", "0"],
+])
+def test_mocap_client_refuses_bad_numbers(argv, capsys):
+    from client.__main__ import main
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--connect", "tcp://127.0.0.1:1", *argv])
+    assert exit_info.value.code == 2
+    assert argv[-2] in capsys.readouterr().err
+
+
+def secret_modes(directory):
+    return {p.name: stat.S_IMODE(p.stat().st_mode) for p in directory.rglob("*.key_secret")}
+
+
+def test_secret_key_files_are_private(tmp_path):
+    keys = create_curve_keys(tmp_path / "keys", ("a", "b"))
+    assert secret_modes(keys) == {"server.key_secret": 0o600, "client.key_secret": 0o600, "b.key_secret": 0o600}
+    assert sorted(p.name for p in (keys / "clients").iterdir()) == ["a.key", "b.key"]
+    assert (keys / "server.key").exists() and [p.name for p in keys.iterdir() if p.name.startswith(".")] == []
+
+
+def test_mocap_keys_writes_private_secret_keys(tmp_path):
+    from server.cli import main
+
+    assert main(["keys", str(tmp_path / "k")]) == 0
+    assert set(secret_modes(tmp_path / "k").values()) == {0o600}
+
+
+@pytest.mark.timeout(90)
+def test_a_client_refused_by_curve_says_so_and_exits(model, tmp_path):
+    keys = create_curve_keys(tmp_path / "keys")
+    stranger = create_curve_keys(tmp_path / "stranger")  # a pair the server does not know
+    (stranger / "server.key").write_bytes((keys / "server.key").read_bytes())
+    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, curve_keys=keys)
+    try:
+        proc = subprocess.run([PY, "-m", "client", "--connect", solver.endpoint, "--curve-keys", str(stranger),
+                               "--reconnect-min", "0.2", "--quiet"],
+                              cwd=ROOT, env=env(), capture_output=True, text=True, timeout=60)
+        assert solver.client_count() == 0
+    finally:
+        solver.close()
+    assert proc.returncode == 3, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]
+    assert "server refused the CURVE handshake" in last and "clients/ folder" in last, proc.stderr
