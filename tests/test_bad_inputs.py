@@ -7,6 +7,7 @@ import json
 import re
 import shutil
 import struct
+import sys
 import warnings
 import zlib
 from pathlib import Path
@@ -22,6 +23,9 @@ from common.camera import Studio, circle_studio
 from common.errors import InputFileError, UserError
 from common.sequence import image_size, load_sequence, read_image, read_mask, write_sequence_meta
 from server.cli import main
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+from reliability_inputs import set_field  # noqa: E402  one JSON field set to a value, as the bad-input run sets it
 
 DATA = Path(__file__).parent / "data"
 W, H = 32, 24
@@ -226,34 +230,25 @@ def _json_calibration(tmp_path: Path, edit) -> Path:
     return path
 
 
-def _set(*keys_value):
-    *keys, value = keys_value
-
-    def edit(doc):
-        node = doc
-        for key in keys[:-1]:
-            node = node[key]
-        node[keys[-1]] = value
-    return edit
 
 
 CALIBRATION_JSON = [
-    (_set("version", 99), ["calibration.json: version: version 99 is not supported"]),
-    (_set("version", "1"), ["version: version '1' is not supported"]),
-    (_set("cameras", 0, "width", 320.5), ["cam1.width: expected a whole number >= 1, got the number 320.5"]),
-    (_set("cameras", 0, "width", True), ["cam1.width: expected a whole number >= 1, got true"]),
-    (_set("cameras", 0, "height", 0), ["cam1.height: expected a whole number >= 1, got the number 0"]),
-    (_set("cameras", 0, "width", 10 ** 30), ["cam1.size: 1000000000000000000000000000000x24 pixels, more than"]),
-    (_set("cameras", 0, "name", 5), ["cameras[0].name: expected a non-empty text in quotes, got the number 5"]),
-    (_set("cameras", 0, "name", ""), ["cameras[0].name: expected a non-empty text in quotes"]),
-    (_set("cameras", 0, "K", 0, 0, float("nan")), ["cam1.K: contains NaN or infinity"]),
-    (_set("cameras", 0, "K", [[1, 0], [0, 1]]), ["cam1.K: expected shape (3, 3)"]),
-    (_set("cameras", 0, "dist", ["a"] * 5), ["cam1.dist: not numeric"]),
-    (_set("cameras", 0, "dist", [float("inf")] * 5), ["cam1.dist: contains NaN or infinity"]),
-    (_set("cameras", 0, "t", None), ["cam1.t: not numeric: None"]),
-    (_set("cameras", 0, "R", {"a": 1}), ["cam1.R: not numeric"]),
-    (_set("cameras", 0, "size_guessed", 1), ["cameras[0].size_guessed: expected true or false"]),
-    (_set("units", []), ["units: expected one of ['cm', 'm', 'mm'], got []"]),  # found by the fuzz suite
+    (set_field("version", 99), ["calibration.json: version: version 99 is not supported"]),
+    (set_field("version", "1"), ["version: version '1' is not supported"]),
+    (set_field("cameras", 0, "width", 320.5), ["cam1.width: expected a whole number >= 1, got the number 320.5"]),
+    (set_field("cameras", 0, "width", True), ["cam1.width: expected a whole number >= 1, got true"]),
+    (set_field("cameras", 0, "height", 0), ["cam1.height: expected a whole number >= 1, got the number 0"]),
+    (set_field("cameras", 0, "width", 10 ** 30), ["cam1.size: 1000000000000000000000000000000x24 pixels, more than"]),
+    (set_field("cameras", 0, "name", 5), ["cameras[0].name: expected a non-empty text in quotes, got the number 5"]),
+    (set_field("cameras", 0, "name", ""), ["cameras[0].name: expected a non-empty text in quotes"]),
+    (set_field("cameras", 0, "K", 0, 0, float("nan")), ["cam1.K: contains NaN or infinity"]),
+    (set_field("cameras", 0, "K", [[1, 0], [0, 1]]), ["cam1.K: expected shape (3, 3)"]),
+    (set_field("cameras", 0, "dist", ["a"] * 5), ["cam1.dist: not numeric"]),
+    (set_field("cameras", 0, "dist", [float("inf")] * 5), ["cam1.dist: contains NaN or infinity"]),
+    (set_field("cameras", 0, "t", None), ["cam1.t: not numeric: None"]),
+    (set_field("cameras", 0, "R", {"a": 1}), ["cam1.R: not numeric"]),
+    (set_field("cameras", 0, "size_guessed", 1), ["cameras[0].size_guessed: expected true or false"]),
+    (set_field("units", []), ["units: expected one of ['cm', 'm', 'mm'], got []"]),  # found by the fuzz suite
 ]
 
 

@@ -3,9 +3,10 @@ address needs CURVE, secret keys are private, and a client refused by CURVE says
 still ends with the single-process poses."""
 import logging
 import stat
+import sys
 import subprocess
-import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,17 +16,18 @@ from common.body import LIMB_CHAINS
 from common.errors import UserError
 from common.fitting import FitOptions
 from common.protocol import (MAX_CLIENT_MESSAGE_BYTES, MAX_TEXT_CHARS, Error, Heartbeat, Register,
-                             Result, Solve, decode, encode)
+                             Result, Solve, encode)
 from common.sequence import load_sequence
 from server.cluster import (DEADLINE_FACTOR, DEADLINE_FLOOR, LOCAL_BIND, ClusterSolver, check_bind,
                             create_curve_keys)
 from server.session import run_fit
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+from reliability_faults import FakePeers  # noqa: E402  the fault suite's fake peers, in tests too
 from test_cluster_support import (PY, ROOT, THREAD_HEARTBEAT, env, poses, records, reference_fit,
                                   thread_workers, wait_for)
 
 TOLERANCE = 1e-9
 OPTIONS = FitOptions(refine_passes=0)  # tracking: what reference_fit fits
-BEAT = 0.25  # seconds between a fake peer's heartbeats: well inside the server's liveness
 
 
 @pytest.fixture(scope="module")
@@ -36,49 +38,6 @@ def seq_path(small_sequence):
 @pytest.fixture(scope="module")
 def reference(seq_path, tmp_path_factory):
     return reference_fit(seq_path, tmp_path_factory.mktemp("trust") / "single")
-
-
-class FakePeers:
-    """``n`` raw DEALERs in one thread that register and heartbeat. ``answer(solve) -> Result``
-    makes them answer every SOLVE (None: they never answer). ``solves`` collects what they got."""
-
-    def __init__(self, endpoint: str, n: int, name: str, answer=None):
-        self.ctx = zmq.Context()
-        self.socks = []
-        for i in range(n):
-            s = self.ctx.socket(zmq.DEALER)
-            s.linger = 0
-            s.connect(endpoint)
-            s.send_multipart(encode(Register(client_id=f"{name}-{i}", cores=1, backends=("cpu",), version="0")))
-            self.socks.append(s)
-        self.answer, self.solves, self.session = answer, [], ""
-        self._done = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self):
-        poller = zmq.Poller()
-        for s in self.socks:
-            poller.register(s, zmq.POLLIN)
-        next_beat = 0.0
-        while not self._done.is_set():
-            if time.monotonic() >= next_beat:
-                for s in self.socks:
-                    s.send_multipart(encode(Heartbeat(session=self.session)), zmq.NOBLOCK)
-                next_beat = time.monotonic() + BEAT
-            for s, _ in poller.poll(20):
-                msg = decode(s.recv_multipart())
-                if hasattr(msg, "session") and msg.session:
-                    self.session = msg.session
-                if isinstance(msg, Solve):
-                    self.solves.append(msg)
-                    if self.answer is not None:
-                        s.send_multipart(encode(self.answer(msg)))
-
-    def close(self):
-        self._done.set()
-        self._thread.join(5)
-        self.ctx.destroy(linger=0)
 
 
 def random_result(rng):

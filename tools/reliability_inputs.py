@@ -197,7 +197,7 @@ def _json_edit(data: bytes, edit) -> bytes:
     return json.dumps(doc).encode()
 
 
-def _set(*keys_value):
+def set_field(*keys_value):
     *keys, value = keys_value
 
     def edit(doc):
@@ -228,21 +228,21 @@ def _sequence_cases(b: Base) -> list[Case]:
 
     files = {
         "sequence.json": {
-            "a list": b"[0, 1]", "fps text": _json_edit(meta, _set("fps", "fast")),
-            "fps 0": _json_edit(meta, _set("fps", 0)),
-            "fps negative": _json_edit(meta, _set("fps", -30)), "fps NaN": _json_edit(meta, _set("fps", float("nan"))),
-            "fps true": _json_edit(meta, _set("fps", True)), "frames text": _json_edit(meta, _set("frames", "0,1")),
-            "frame 1.5": _json_edit(meta, _set("frames", [0, 1.5])), "frame -1": _json_edit(meta, _set("frames", [-1])),
-            "frame twice": _json_edit(meta, _set("frames", [0, 0])),
-            "frames empty": _json_edit(meta, _set("frames", [])),
-            "camera a number": _json_edit(meta, _set("cameras", [1, 2, 3])), "not JSON": meta[:-3],
+            "a list": b"[0, 1]", "fps text": _json_edit(meta, set_field("fps", "fast")),
+            "fps 0": _json_edit(meta, set_field("fps", 0)),
+            "fps negative": _json_edit(meta, set_field("fps", -30)), "fps NaN": _json_edit(meta, set_field("fps", float("nan"))),
+            "fps true": _json_edit(meta, set_field("fps", True)), "frames text": _json_edit(meta, set_field("frames", "0,1")),
+            "frame 1.5": _json_edit(meta, set_field("frames", [0, 1.5])), "frame -1": _json_edit(meta, set_field("frames", [-1])),
+            "frame twice": _json_edit(meta, set_field("frames", [0, 0])),
+            "frames empty": _json_edit(meta, set_field("frames", [])),
+            "camera a number": _json_edit(meta, set_field("cameras", [1, 2, 3])), "not JSON": meta[:-3],
             "not UTF-8": meta.replace(b"fps", b"f\xffs"), "empty": b"", "a folder": None, "nested deep": deep,
         },
         "truth.jsonl": {
             "not UTF-8": truth.replace(b'"frame"', b'"fr\xe9me"'), "not JSON": first_truth + b"\n{\"frame\": 1,\n",
             "record a list": first_truth + b"\n[1, 2]\n", "frame missing": truth_line(no_key("frame")),
-            "frame 1.5": truth_line(_set("frame", 1.5)), "frame text": truth_line(_set("frame", "1")),
-            "params short": truth_line(_set("params", [0.0, 1.0])),
+            "frame 1.5": truth_line(set_field("frame", 1.5)), "frame text": truth_line(set_field("frame", "1")),
+            "params short": truth_line(set_field("params", [0.0, 1.0])),
             "params NaN": truth_line(lambda d: d["params"].__setitem__(0, float("nan"))),
             "joints a list": truth_line(lambda d: d.__setitem__("joints", list(d["joints"].values()))),
             "joint missing": truth_line(lambda d: d["joints"].pop(next(iter(d["joints"])))),
@@ -250,20 +250,20 @@ def _sequence_cases(b: Base) -> list[Case]:
             "a folder": None,
         },
         "calibration.json": {
-            "version 99": _json_edit(cal, _set("version", 99)), "version text": _json_edit(cal, _set("version", "1")),
-            "width 64.5": _json_edit(cal, _set("cameras", 0, "width", 64.5)),
-            "width 0": _json_edit(cal, _set("cameras", 0, "width", 0)),
-            "width true": _json_edit(cal, _set("cameras", 0, "width", True)),
+            "version 99": _json_edit(cal, set_field("version", 99)), "version text": _json_edit(cal, set_field("version", "1")),
+            "width 64.5": _json_edit(cal, set_field("cameras", 0, "width", 64.5)),
+            "width 0": _json_edit(cal, set_field("cameras", 0, "width", 0)),
+            "width true": _json_edit(cal, set_field("cameras", 0, "width", True)),
             "huge size": _json_edit(cal, lambda d: d["cameras"][0].update(width=10 ** 6, height=10 ** 6)),
-            "name a number": _json_edit(cal, _set("cameras", 0, "name", 5)),
+            "name a number": _json_edit(cal, set_field("cameras", 0, "name", 5)),
             "K NaN": _json_edit(cal, lambda d: d["cameras"][0]["K"][0].__setitem__(0, float("nan"))),
-            "K 2x2": _json_edit(cal, _set("cameras", 0, "K", [[1, 0], [0, 1]])),
-            "dist text": _json_edit(cal, _set("cameras", 0, "dist", ["a"] * 5)),
-            "R not a rotation": _json_edit(cal, _set("cameras", 0, "R", [[2, 0, 0], [0, 1, 0], [0, 0, 1]])),
-            "t null": _json_edit(cal, _set("cameras", 0, "t", None)),
-            "no cameras": _json_edit(cal, _set("cameras", [])),
-            "units furlong": _json_edit(cal, _set("units", "furlong")),
-            "format other": _json_edit(cal, _set("format", "x")),
+            "K 2x2": _json_edit(cal, set_field("cameras", 0, "K", [[1, 0], [0, 1]])),
+            "dist text": _json_edit(cal, set_field("cameras", 0, "dist", ["a"] * 5)),
+            "R not a rotation": _json_edit(cal, set_field("cameras", 0, "R", [[2, 0, 0], [0, 1, 0], [0, 0, 1]])),
+            "t null": _json_edit(cal, set_field("cameras", 0, "t", None)),
+            "no cameras": _json_edit(cal, set_field("cameras", [])),
+            "units furlong": _json_edit(cal, set_field("units", "furlong")),
+            "format other": _json_edit(cal, set_field("format", "x")),
             "not JSON": cal[:len(cal) // 2], "not UTF-8": cal.replace(b'"cam1"', b'"cam\xff"', 1), "empty": b"",
             "a folder": None, "a list": b"[]",
         },
@@ -278,7 +278,7 @@ def _sequence_cases(b: Base) -> list[Case]:
             name = f"{relpath.split('/')[0]} {what}"
             seq = b.spoiled_sequence(name, relpath, data)
             cases.append(Case(name, _fit(seq, seq.parent / "res"), str(seq / relpath)))
-    seq = b.spoiled_sequence("sequence.json unknown frame", "sequence.json", _json_edit(meta, _set("frames", [0, 99])))
+    seq = b.spoiled_sequence("sequence.json unknown frame", "sequence.json", _json_edit(meta, set_field("frames", [0, 99])))
     cases.append(Case("sequence.json unknown frame", _fit(seq, seq.parent / "res", "--frames", "2"), "000099.png"))
     seq = b.spoiled_sequence("silhouettes missing file", "silhouettes/cam3/000000.png", b"")
     (seq / "silhouettes" / "cam3" / "000000.png").unlink()
