@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 DEMO_DIR ?= demo
 DEMO_CLIP ?= common/data/clips/cmu_12_01_walk.bvh
 
-.PHONY: venv demo test test-all real-test batch-test bench reliability interop-test cluster cluster-test batch-cluster-test clean
+.PHONY: venv demo test test-all real-test batch-test bench reliability interop-test install-test cluster cluster-test batch-cluster-test clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -32,6 +32,10 @@ real-test: $(STAMP)
 # mocap run and mocap batch on real local Dask clusters (2 worker processes), a worker killed mid-batch.
 batch-test: $(STAMP)
 	$(PY) -m pytest -q tests/test_batch.py
+
+# The wheel, installed in a fresh venv outside the repository, runs `mocap demo` on its bundled data.
+install-test: $(STAMP)
+	$(PY) -m pytest -q tests/test_install.py
 
 bench: $(STAMP)
 	$(PY) -m server.cli bench all --out bench

@@ -49,6 +49,12 @@ FORMATS = ("glb", "mot", "trc", "keypoints3d", "bvh", "c3d", "json", "csv")
 SUFFIXES = {"glb": ".glb", "mot": ".mot", "trc": ".trc", "keypoints3d": "_keypoints3d", "bvh": ".bvh", "c3d": ".c3d",
             "json": ".jsonl", "csv": ".csv"}
 FOLDER_FORMATS = ("keypoints3d",)
+EXPORT_STEM = "motion"  # RESULT/motion.<suffix>: where mocap export writes by default
+
+
+def export_name(fmt: str) -> str:
+    """The default file (or folder) name of a format's export in a result folder."""
+    return f"{EXPORT_STEM}{SUFFIXES[fmt]}"
 BVH_RESTS = ("apose", "tpose")
 DEFAULT_BVH_REST = "apose"  # the body model's own rest, as BVH files of ours always had
 

@@ -18,7 +18,7 @@ EXIT_USAGE = 2  # bad input: missing/corrupt files, bad calibration, wrong argum
 
 COMMAND_MODULES = (
     "calib", "synth", "fit", "server", "keys", "bench", "segment", "import_video", "voxels", "live", "export",
-    "report", "run", "batch", "config",
+    "report", "run", "batch", "config", "demo",
 )
 
 

@@ -4,11 +4,10 @@ A bundled real CMU walk drives the body in the virtual studio (8 cameras, 320x24
 segmentation noise), the silhouettes are fitted, and the result folder gets the poses, BVH,
 pictures, plots and a report page. Prints a small table at the end.
 
-    python -m server.demo --out demo [--clip FILE.bvh] [--frames N] [--clients N]
+    mocap demo [--out demo] [--clip FILE.bvh] [--frames N] [--clients N]    (or python -m server.demo)
 """
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -16,20 +15,28 @@ from pathlib import Path
 from common.body import load_body_model
 from common.camera import circle_studio
 from common.synth import SynthOptions, synthesize
-from server.argtypes import count
+from server.argtypes import OneLineParser, count
 from server.commands.synth import DEFAULT_CLIP
 from server.output import staged_folder
 
 DEMO_FRAMES = 30
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m server.demo", description=__doc__.splitlines()[0])
-    ap.add_argument("--out", type=Path, default=Path("demo"))
-    ap.add_argument("--clip", type=Path, default=DEFAULT_CLIP)
+def add_demo_arguments(ap) -> None:
+    ap.add_argument("--out", type=Path, default=Path("demo"), help="the demo's own folder (made again each run)")
+    ap.add_argument("--clip", type=Path, default=DEFAULT_CLIP, help="BVH motion (default: the bundled CMU walk)")
     ap.add_argument("--frames", type=count(1), default=DEMO_FRAMES)
-    ap.add_argument("--clients", type=count(0), default=0)
-    args = ap.parse_args(argv)
+    ap.add_argument("--clients", type=count(0), default=0, help="local limb clients (default 0: one process)")
+
+
+def main(argv=None) -> int:
+    ap = OneLineParser(prog="python -m server.demo", description=__doc__.splitlines()[0])
+    add_demo_arguments(ap)
+    return run_demo(ap.parse_args(argv))
+
+
+def run_demo(args) -> int:
+    """The demo's three steps (``mocap demo``, ``make demo``)."""
     from server.cli import main as mocap
 
     seq, result = args.out / "sequence", args.out / "result"

@@ -28,8 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from common.errors import UserError
-from common.export import SUFFIXES
-from server.commands.export import EXPORT_STEM
+from common.export import export_name
 from server.config import CONFIG_FILE, Config, load_config
 from server.output import write_text
 
@@ -190,7 +189,7 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
                       (result / "poses.jsonl", result / "summary.json"), {"fit": fit, "calibration": calib_settings}))
     formats = config.get("export", "formats")
     steps.append(Step("export", tuple(("export", str(result), "--format", f, "--overwrite", "--quiet") for f in formats),
-                      (result / "poses.jsonl",), tuple(result / f"{EXPORT_STEM}{SUFFIXES[f]}" for f in formats),
+                      (result / "poses.jsonl",), tuple(result / export_name(f) for f in formats),
                       {"formats": formats}))
     report = config.section("report")
     if report["enabled"]:

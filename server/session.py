@@ -36,6 +36,7 @@ from common.fitting import (ARM_CHAINS, HOP_JOBS, ChainResult, FitOptions, Frame
                             arm_twist_alternative, fit_frame, full_energy, hop_fit, limb_alternatives,
                             lowest_energy, midway, powell, rotated_about_pelvis, solve_job, spot_grid, tilted_ahead)
 from common.postures import SEARCH_POSTURES, posture_params
+from common.export import FORMATS, export_name
 from common.sequence import Sequence
 from server.output import check_folder_target, write_text
 
@@ -45,7 +46,7 @@ RUN_FILE = "run.json"  # the settings of the run that wrote poses.jsonl, which -
 MOTION_FILE = "motion.bvh"
 RESULT_FILES = (POSES_FILE, SUMMARY_FILE, RUN_FILE, MOTION_FILE)
 # made from a result, so stale once it is replaced (mocap report, mocap export's default names)
-DERIVED_FILES = ("report.html", "pictures", "motion.c3d", "motion.trc", "motion.jsonl", "motion.csv")
+DERIVED_FILES = ("report.html", "pictures") + tuple(export_name(f) for f in FORMATS if export_name(f) != MOTION_FILE)
 # fewer views leave depth and the limbs' sides unresolved (tools/camera_count_accuracy.py,
 # docs/accuracy.md "Fewer cameras": a walk fits 95/908 mm mean/worst with 1 camera, 63/858 with 2,
 # 7/21 with 3)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from common.errors import UserError
 from common.export import (
-    BVH_RESTS, DEFAULT_BVH_REST, FOLDER_FORMATS, FORMATS, SUFFIXES, export_motion,
+    BVH_RESTS, DEFAULT_BVH_REST, FOLDER_FORMATS, FORMATS, export_motion, export_name,
 )
 from server.argtypes import real
 from server.output import (
@@ -26,7 +26,6 @@ from server.output import (
 )
 from server.pictures import load_result
 
-EXPORT_STEM = "motion"
 ALL = "all"
 
 
@@ -84,9 +83,9 @@ def run(args) -> int:
         folder = args.out or args.result
         check_folder_target(folder, (), overwrite=True)  # a file, or not writable: refused
         folder.mkdir(parents=True, exist_ok=True)
-        targets = [(f, folder / f"{EXPORT_STEM}{SUFFIXES[f]}") for f in formats]
+        targets = [(f, folder / export_name(f)) for f in formats]
     else:
-        targets = [(formats[0], args.out or args.result / f"{EXPORT_STEM}{SUFFIXES[formats[0]]}")]
+        targets = [(formats[0], args.out or args.result / export_name(formats[0]))]
     for fmt, path in targets:  # every target checked before the first is written
         if fmt in FOLDER_FORMATS:
             if not path.parent.is_dir():  # as for a file: no folders made on the way
