@@ -193,12 +193,12 @@ def camera_indices(studio: Studio, cameras) -> list[int]:
     for c in cameras:
         if isinstance(c, (int, np.integer)):
             if not 0 <= c < len(studio):
-                raise UserError(f"camera index {c} outside 0..{len(studio) - 1}")
+                raise UserError(f"--cameras: camera index {c} outside 0..{len(studio) - 1}")
             out.append(int(c))
         elif c in studio.names:
             out.append(studio.names.index(c))
         else:
-            raise UserError(f"unknown camera {c!r}; the studio has {', '.join(studio.names)}")
+            raise UserError(f"--cameras: unknown camera {c!r}; the studio has {', '.join(studio.names)}")
     return out
 
 
