@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 DEMO_DIR ?= demo
 DEMO_CLIP ?= common/data/clips/cmu_12_01_walk.bvh
 
-.PHONY: venv demo test test-all real-test batch-test bench reliability interop-test install-test cluster cluster-test batch-cluster-test clean
+.PHONY: venv demo test test-all test-slow real-test batch-test bench reliability interop-test install-test cluster cluster-test batch-cluster-test clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -24,6 +24,11 @@ test: $(STAMP)
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q tests
+
+# The slow tests that no other target runs (whole first-frame searches, the video chain, ...).
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow tests --ignore=tests/test_real_take.py --ignore=tests/test_batch.py \
+		--ignore=tests/test_install.py
 
 # The real seated take of ../shared, end to end with the project's commands (skips without it).
 real-test: $(STAMP)

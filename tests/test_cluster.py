@@ -116,6 +116,7 @@ def test_two_hypotheses_same_poses_as_single_process(model, seq_path, tmp_path):
     np.testing.assert_array_equal(poses(tmp_path / "cluster"), poses(tmp_path / "single"))
 
 
+@pytest.mark.slow  # whole first-frame searches: make test-slow
 @pytest.mark.timeout(240)
 def test_automatic_start_same_poses_as_single_process(model, seq_path, tmp_path, monkeypatch):
     """The first frame's search fits several starts with wide options, then refines with the

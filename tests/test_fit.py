@@ -849,6 +849,7 @@ def test_a_limb_lost_between_frames_is_found_again(model, five_frames, tmp_path)
     assert errors.max() < 50.0, errors
 
 
+@pytest.mark.slow  # whole first-frame searches: make test-slow
 @pytest.mark.timeout(300)
 def test_init_auto_ignores_the_truth_and_is_scored_by_it(five_frames, tmp_path):
     """--init auto starts from the voxels even though the sequence has truth, which then only
@@ -902,6 +903,7 @@ def test_voxel_starts_cover_four_headings_upright_and_bent_and_head_down(model, 
     assert min(np.linalg.norm(s[:2] - truth[:2]) for s in starts) < 0.2
 
 
+@pytest.mark.slow  # whole first-frame searches: make test-slow
 @pytest.mark.timeout(300)
 def test_a_head_down_actor_is_found_from_the_voxels(model):
     """A cartwheel's star, head down: the upright and bent-forward starts end about 0.9 m off

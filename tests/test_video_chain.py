@@ -28,6 +28,7 @@ def _encode(folder, path, fps=30):
     imageio.imwrite(path, np.stack(frames), fps=fps, codec="libx264", quality=10, macro_block_size=8)
 
 
+@pytest.mark.slow  # whole first-frame searches: make test-slow
 @pytest.mark.timeout(600)
 def test_videos_to_poses(tmp_path):
     seq = tmp_path / "studio"
