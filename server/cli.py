@@ -58,6 +58,12 @@ def main(argv: list[str] | None = None) -> int:
     from server.argtypes import one_line
 
     try:
+        if getattr(args, "config", None) is not None and hasattr(args, "command_parser"):
+            # a Config.toml's values become the command's defaults; the options given still win
+            from server.config import fit_option_defaults
+
+            args.command_parser.set_defaults(**fit_option_defaults(args.config))
+            args = parser.parse_args(argv)
         return int(args.func(args) or EXIT_OK)
     except UserError as exc:
         print(f"mocap {args.command}: error: {one_line(exc)}", file=sys.stderr)

@@ -171,3 +171,29 @@ def load_config(files: list[Path]) -> Config:
             for key, value in read_config_file(path).items():
                 values[key], sources[key] = value, str(path)
     return Config(values, sources)
+
+
+# [section] key -> mocap fit's option (dest), and how a file's value becomes the option's value
+FIT_OPTION_DESTS = {
+    ("fit", "frames"): ("frames", lambda v: v or None), ("fit", "energy"): ("energy", None),
+    ("fit", "iterations"): ("iterations", None), ("fit", "turn_hypotheses"): ("turn_hypotheses", None),
+    ("fit", "polish_iterations"): ("polish_iterations", None), ("fit", "refine_passes"): ("refine_passes", None),
+    ("fit", "refine_search"): ("refine_search", None), ("fit", "refine_hops"): ("refine_hops", None),
+    ("fit", "init"): ("init", lambda v: v or None), ("fit", "actor_height"): ("actor_height", None),
+    ("fit", "clean_masks"): ("clean_masks", None),
+    ("calibration", "units"): ("units", lambda v: v or None), ("calibration", "up"): ("up", None),
+}
+
+
+def fit_option_defaults(path: Path) -> dict:
+    """{option dest: value} for the [fit] and [calibration] keys a Config.toml sets (``mocap fit
+    --config``: they replace the built-in defaults, flags given on the command line win)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(path, "missing (--config names a Config.toml)")
+    out = {}
+    for key, value in read_config_file(path).items():
+        if key in FIT_OPTION_DESTS:
+            dest, convert = FIT_OPTION_DESTS[key]
+            out[dest] = convert(value) if convert else value
+    return out

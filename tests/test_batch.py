@@ -214,3 +214,20 @@ def test_a_worker_killed_mid_batch_loses_no_frame(tmp_path, model, small_studio)
         assert take["status"] == "done", take
         records = [json.loads(line) for line in (root / take["name"] / "result" / "poses.jsonl").read_text().splitlines()]
         assert [r["frame"] for r in records] == list(range(frames))  # every frame, once
+
+
+def test_fit_config_file_sets_defaults_and_flags_win(tmp_path, small_sequence, capsys):
+    config = tmp_path / "Config.toml"
+    config.write_text('[fit]\niterations = 1\nrefine_passes = 0\nturn_hypotheses = 0\n\n[calibration]\nup = "+z"\n')
+    out = tmp_path / "res"
+    assert main(["fit", str(small_sequence), "--out", str(out), "--config", str(config), "--quiet", "--frames", "1"]) == 0
+    run = json.loads((out / "run.json").read_text())
+    assert (run["options"]["max_iterations"], run["options"]["refine_passes"], run["world_up"]) == (1, 0, "+z")
+    assert main(["fit", str(small_sequence), "--out", str(out), "--config", str(config), "--quiet", "--frames", "1",
+                 "--overwrite", "--iterations", "2"]) == 0
+    assert json.loads((out / "run.json").read_text())["options"]["max_iterations"] == 2
+    config.write_text("[fit]\niteration = 1\n")
+    capsys.readouterr()
+    assert main(["fit", str(small_sequence), "--out", str(tmp_path / "other"), "--config", str(config)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(config) in err and "unknown key 'iteration'" in err

@@ -24,6 +24,10 @@ INIT_CHOICES = ("auto", "truth", "standing")
 
 def add_fit_arguments(p) -> None:
     p.add_argument("sequence", type=Path, help="sequence folder (calibration.json + silhouettes/)")
+    p.add_argument("--config", type=Path, default=None, metavar="Config.toml",
+                   help="defaults from this file's [fit] and [calibration] sections (see mocap config keys); "
+                        "options given here win")
+    p.set_defaults(command_parser=p)  # server.cli re-parses with the file's values as defaults
     p.add_argument("--out", type=Path, required=True, help="result folder")
     p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
     p.add_argument("--frames", type=count(1), default=None, help="fit only the first N frames")
