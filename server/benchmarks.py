@@ -335,3 +335,27 @@ def print_init_table(rows: list[dict]) -> None:
               f"{r['first_frame_seconds']:5.1f}")
     ok = sum(r["first_frame_ok"] for r in rows)
     print(f"first frame <= {INIT_TARGET_MM:.0f} mm: {ok} of {len(rows)}")
+
+
+def preset_rows(seq: Path, frames: int, workdir: Path, presets=None) -> list[dict]:
+    """``mocap fit --preset P`` for each preset on the same frames: wall seconds per frame (with the
+    first frame and the refinement) and the joint error, from one run each."""
+    from server.cli import main as mocap
+    from server.config import PRESETS
+
+    rows = []
+    for name in presets or PRESETS:
+        out = workdir / f"preset-{name}"
+        code = mocap(["fit", str(seq), "--out", str(out), "--preset", name, "--frames", str(frames), "--quiet",
+                      "--overwrite"])
+        if code:
+            raise UserError(f"bench presets: mocap fit --preset {name} failed ({code})")
+        summary = json.loads((out / "summary.json").read_text())
+        rows.append({"preset": name, "frames": summary["frames"],
+                     "wall_seconds_per_frame": summary["wall_seconds"] / summary["frames"],
+                     "tracking_seconds_per_frame": summary["seconds_per_frame"],
+                     "refine_seconds_per_frame": summary["refine_seconds_per_frame"],
+                     "mean_joint_error_mm": summary.get("mean_joint_error_mm"),
+                     "max_joint_error_mm": summary.get("max_joint_error_mm"),
+                     "options": summary["options"]})
+    return rows

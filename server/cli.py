@@ -58,11 +58,11 @@ def main(argv: list[str] | None = None) -> int:
     from server.argtypes import one_line
 
     try:
-        if getattr(args, "config", None) is not None and hasattr(args, "command_parser"):
-            # a Config.toml's values become the command's defaults; the options given still win
+        if hasattr(args, "command_parser") and (args.config is not None or args.preset is not None):
+            # a preset's and a Config.toml's values become the command's defaults; options given win
             from server.config import fit_option_defaults
 
-            args.command_parser.set_defaults(**fit_option_defaults(args.config))
+            args.command_parser.set_defaults(**fit_option_defaults(args.preset, args.config))
             args = parser.parse_args(argv)
         return int(args.func(args) or EXIT_OK)
     except UserError as exc:

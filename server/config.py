@@ -185,15 +185,31 @@ FIT_OPTION_DESTS = {
 }
 
 
-def fit_option_defaults(path: Path) -> dict:
-    """{option dest: value} for the [fit] and [calibration] keys a Config.toml sets (``mocap fit
-    --config``: they replace the built-in defaults, flags given on the command line win)."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputFileError(path, "missing (--config names a Config.toml)")
+# Named speed settings ([fit] keys over the defaults); `mocap bench presets` measures each.
+PRESETS = {
+    "fast": {"turn_hypotheses": 0, "polish_iterations": 0, "refine_passes": 0},  # online: one fit a frame
+    "default": {},
+    "best": {"refine_passes": 2, "refine_search": True, "refine_hops": 60},  # offline work
+}
+
+
+def _as_option_defaults(values: dict) -> dict:
+    """{(section, key): value} -> {mocap fit's option dest: its value}."""
     out = {}
-    for key, value in read_config_file(path).items():
+    for key, value in values.items():
         if key in FIT_OPTION_DESTS:
             dest, convert = FIT_OPTION_DESTS[key]
             out[dest] = convert(value) if convert else value
     return out
+
+
+def fit_option_defaults(preset: str | None, path: Path | None) -> dict:
+    """{option dest: value} that replace ``mocap fit``'s built-in defaults: a preset's, then the
+    [fit] and [calibration] keys of a Config.toml (``--config``); options given still win."""
+    values = {("fit", k): v for k, v in PRESETS[preset or "default"].items()}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise InputFileError(path, "missing (--config names a Config.toml)")
+        values.update(read_config_file(path))
+    return _as_option_defaults(values)

@@ -231,3 +231,21 @@ def test_fit_config_file_sets_defaults_and_flags_win(tmp_path, small_sequence, c
     assert main(["fit", str(small_sequence), "--out", str(tmp_path / "other"), "--config", str(config)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(config) in err and "unknown key 'iteration'" in err
+
+
+def test_presets_under_the_config_file_under_the_options(tmp_path, small_sequence):
+    from server.config import PRESETS
+
+    def options_of(*extra):
+        out = tmp_path / f"res{len(list(tmp_path.iterdir()))}"
+        assert main(["fit", str(small_sequence), "--out", str(out), "--quiet", "--frames", "1", "--iterations", "1",
+                     *extra]) == 0
+        return json.loads((out / "run.json").read_text())["options"]
+
+    fast = options_of("--preset", "fast")
+    assert {k: fast[k] for k in PRESETS["fast"]} == PRESETS["fast"]
+    assert options_of("--preset", "fast", "--refine-passes", "1")["refine_passes"] == 1
+    config = tmp_path / "Config.toml"
+    config.write_text("[fit]\npolish_iterations = 1\n")
+    both = options_of("--preset", "fast", "--config", str(config))
+    assert (both["polish_iterations"], both["turn_hypotheses"]) == (1, 0)

@@ -13,7 +13,7 @@ BENCH_CLIP_FRAMES = 20  # frames of the bundled walk used for fitting benchmarks
 
 
 def register(sub) -> None:
-    p = sub.add_parser("bench", help="benchmarks (energy, fit, cluster, hops, segment, voxels, batch, all)")
+    p = sub.add_parser("bench", help="benchmarks (energy, fit, cluster, hops, presets, segment, voxels, batch, all)")
     bsub = p.add_subparsers(dest="bench", metavar="WHAT")
     bsub.required = True
     e = bsub.add_parser("energy", help="XOR energy evaluations per second (paper Table 1)")
@@ -69,6 +69,12 @@ def register(sub) -> None:
     ini.add_argument("--refine-search", action="store_true", help="both runs as mocap fit --refine-search")
     ini.add_argument("--refine-hops", type=count(0), default=0, metavar="N", help="both runs as mocap fit --refine-hops")
     ini.add_argument("--json", type=Path, default=None)
+    pr = bsub.add_parser("presets", help="mocap fit --preset fast|default|best on the same frames: time and error")
+    pr.add_argument("sequence", type=Path, nargs="?", default=None,
+                    help="sequence folder (default: synthesise the bundled walk)")
+    pr.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES)
+    pr.add_argument("--presets", default=None, help="comma-separated (default: all)")
+    pr.add_argument("--json", type=Path, default=None)
     bb = bsub.add_parser("batch", help="mocap batch against a serial loop of mocap run, on the same takes")
     bb.add_argument("--takes", type=count(1), default=4)
     bb.add_argument("--frames", type=count(1), default=20, help="frames per take")
@@ -172,6 +178,12 @@ def run(args) -> int:
             benchmarks.write_json(args.json, rows)
         benchmarks.print_init_table(rows)
         return 0
+    if args.bench == "presets":
+        with tempfile.TemporaryDirectory() as tmp:
+            seq = args.sequence or bench_sequence(args.frames, Path(tmp))
+            chosen = [v for v in args.presets.split(",") if v] if args.presets else None
+            _emit(benchmarks.preset_rows(seq, args.frames, Path(tmp), chosen), args.json)
+        return 0
     if args.bench == "batch":
         from server.bench_batch import bench_batch
 
@@ -212,6 +224,9 @@ def run_all(out: Path, frames: int) -> int:
             pass
         benchmarks.write_json(out / "fit.json", fit)
         print(json.dumps(fit, indent=1))
+        presets = benchmarks.preset_rows(seq, frames, Path(tmp))
+        benchmarks.write_json(out / "presets.json", presets)
+        print(json.dumps(presets, indent=1))
     for name, module, func in (("segment", "common.segmentation", "bench_segmentation"),
                                ("voxels", "common.voxels", "bench_voxels"),
                                ("batch", "server.bench_batch", "bench_batch")):

@@ -14,6 +14,7 @@ from common.sequence import MAX_MASK_THRESHOLD, load_sequence
 from common.world import UP_CHOICES
 from server.argtypes import count, non_negative, real
 from server.cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
+from server.config import PRESETS
 from server.progress import Progress
 from server.output import add_overwrite_argument, check_folder_target, replace_file
 from server.session import (MOTION_FILE, POSES_FILE, RESULT_FILES, LocalSolver, choose_actor_scale, load_records, read_done_frames,
@@ -27,7 +28,10 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--config", type=Path, default=None, metavar="Config.toml",
                    help="defaults from this file's [fit] and [calibration] sections (see mocap config keys); "
                         "options given here win")
-    p.set_defaults(command_parser=p)  # server.cli re-parses with the file's values as defaults
+    p.add_argument("--preset", choices=tuple(PRESETS), default=None,
+                   help="fast (online: one fit a frame, no refinement), default, or best (offline: two "
+                        "refinement passes with limb search and 60 hops); the file and options given win")
+    p.set_defaults(command_parser=p)  # server.cli re-parses with the preset's and file's values as defaults
     p.add_argument("--out", type=Path, required=True, help="result folder")
     p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
     p.add_argument("--frames", type=count(1), default=None, help="fit only the first N frames")
