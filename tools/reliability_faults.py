@@ -188,17 +188,22 @@ def _wait_for(predicate, timeout: float, what: str) -> None:
 # ----------------------------------------------------------------------------- cases
 # each returns (survived, outcome)
 
-def poisoned_results(ctx: _Context) -> tuple[bool, str]:
+def _fit_beside_one_peer(ctx: _Context, case: str, name: str, answer=None) -> tuple[dict, Path]:
+    """A run with one honest client process and one fake peer ``name`` (answering with ``answer``)."""
     solver = ctx.solver()
-    liar = FakePeers(solver.endpoint, 1, "liar", random_answers())
-    good = _client(solver.endpoint, "good", ctx.work_dir / "poisoned-good.log")
+    peer = FakePeers(solver.endpoint, 1, name, answer)
+    good = _client(solver.endpoint, "good", ctx.work_dir / f"{case}-good.log")
     try:
         solver.wait_for_clients(2, SUBPROCESS_TIMEOUT)
-        summary, out = ctx.fit(solver, "poisoned")
+        return ctx.fit(solver, case)
     finally:
-        liar.close()
+        peer.close()
         solver.close(shutdown="done")
         _stop([good])
+
+
+def poisoned_results(ctx: _Context) -> tuple[bool, str]:
+    summary, out = _fit_beside_one_peer(ctx, "poisoned", "liar", random_answers())
     problem = ctx.complete(out)
     rejected = summary["timing"]["rejected"]
     liar_accepted = next(p["accepted"] for p in summary["timing"]["processes"] if p["name"] == "liar-0")
@@ -265,16 +270,7 @@ def stalling_peers(ctx: _Context) -> tuple[bool, str]:
 
 
 def fake_client(ctx: _Context) -> tuple[bool, str]:
-    solver = ctx.solver()
-    fake = FakePeers(solver.endpoint, 1, "fake")
-    good = _client(solver.endpoint, "good", ctx.work_dir / "fake-good.log")
-    try:
-        solver.wait_for_clients(2, SUBPROCESS_TIMEOUT)
-        summary, out = ctx.fit(solver, "fake")
-    finally:
-        fake.close()
-        solver.close(shutdown="done")
-        _stop([good])
+    summary, out = _fit_beside_one_peer(ctx, "fake", "fake")
     problem = ctx.complete(out)
     ok = problem is None and summary["clients"] == 1
     return ok, (problem or f"a registered client that never works: summary counts {summary['clients']} client "
