@@ -19,7 +19,7 @@ EXIT_REFUSED = 3
 
 def build_parser() -> argparse.ArgumentParser:
     from client.worker import RECONNECT_MAX, RECONNECT_MIN
-    from server.argtypes import OneLineParser, count, non_negative, seconds
+    from common.argtypes import OneLineParser, count, non_negative, seconds
 
     p = OneLineParser(prog="mocap client", description="Limb-fitting client of a mocap server.")
     p.add_argument("--connect", required=True, help="server address, e.g. tcp://HOST:5555")

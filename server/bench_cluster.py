@@ -27,7 +27,7 @@ import numpy as np
 from common.body import load_body_model
 from common.fitting import FitOptions
 from common.sequence import load_sequence
-from server.argtypes import count
+from common.argtypes import count
 from server.cluster import LocalCluster
 from server.session import LocalSolver, load_records, run_fit
 

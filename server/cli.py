@@ -11,7 +11,7 @@ import importlib
 import os
 import sys
 
-from server.argtypes import OneLineParser
+from common.argtypes import OneLineParser
 
 EXIT_OK = 0
 EXIT_USAGE = 2  # bad input: missing/corrupt files, bad calibration, wrong arguments
@@ -55,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # --help, or a bad option (already said in one line)
         return int(exc.code or EXIT_OK)
     from common.errors import UserError
-    from server.argtypes import one_line
+    from common.argtypes import one_line
 
     try:
         if hasattr(args, "command_parser") and (args.config is not None or args.preset is not None):

@@ -75,6 +75,7 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils.monitor import recv_monitor_message
 
+from common import argtypes
 from common.body import CHAINS, LIMB_CHAINS, BodyModel
 from common.errors import UserError
 from common.fitting import (
@@ -86,7 +87,6 @@ from common.protocol import (
     MAX_CLIENT_MESSAGE_BYTES, MAX_PARTS, Error, Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve,
     Welcome, camera_specs, decode, encode,
 )
-from server import argtypes
 
 DEFAULT_BIND = "tcp://*:5555"
 LOCAL_BIND = "tcp://127.0.0.1:*"  # a random free port on the loopback interface

@@ -15,7 +15,7 @@ from pathlib import Path
 from common.body import load_body_model
 from common.camera import circle_studio
 from common.synth import SynthOptions, synthesize
-from server.argtypes import OneLineParser, count
+from common.argtypes import OneLineParser, count
 from server.commands.synth import DEFAULT_CLIP
 from server.output import staged_folder
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from server.argtypes import count
+from common.argtypes import count
 from server.batch import BATCH_FILE, run_batch, summary_table
 
 EXIT_SOME_FAILED = 1

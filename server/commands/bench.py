@@ -7,7 +7,7 @@ import tempfile
 from pathlib import Path
 
 from common.errors import UserError
-from server.argtypes import count, non_negative, real
+from common.argtypes import count, non_negative, real
 
 BENCH_CLIP_FRAMES = 20  # frames of the bundled walk used for fitting benchmarks
 

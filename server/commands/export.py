@@ -20,7 +20,7 @@ from common.errors import UserError
 from common.export import (
     BVH_RESTS, DEFAULT_BVH_REST, FOLDER_FORMATS, FORMATS, export_motion, export_name,
 )
-from server.argtypes import real
+from common.argtypes import real
 from server.output import (
     add_overwrite_argument, check_file_target, check_folder_target, replace_file, staged_folder,
 )

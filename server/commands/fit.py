@@ -12,7 +12,7 @@ from common.export import write_motion_bvh
 from common.fitting import ENERGY_BACKENDS, FitOptions
 from common.sequence import MAX_MASK_THRESHOLD, load_sequence
 from common.world import UP_CHOICES
-from server.argtypes import count, non_negative, real
+from common.argtypes import count, non_negative, real
 from server.cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.config import PRESETS
 from server.progress import Progress

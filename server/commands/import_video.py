@@ -31,7 +31,7 @@ from common.calibration import MAX_IMAGE_PIXELS, load_calibration, save_calibrat
 from common.errors import InputFileError, UserError, print_warning
 from common.sequence import (DEFAULT_FPS, FRAME_NAME, IMAGE_SUFFIXES, check_size, frame_files, image_size,
                              read_image, write_sequence_meta)
-from server.argtypes import count, real
+from common.argtypes import count, real
 from server.output import add_overwrite_argument, check_folder_target, staged_folder
 
 # what an earlier import (or segment) left in a sequence folder; a calibration.json there may be

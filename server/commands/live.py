@@ -26,7 +26,7 @@ import numpy as np
 from common.ellipsoid_fit import SHELL_NAMES, fit_ellipsoids
 from common.errors import InputFileError
 from common.sequence import load_sequence, read_image
-from server.argtypes import count, non_negative
+from common.argtypes import count, non_negative
 from server.commands.fit import add_world_arguments
 from common.voxels import SpotGrid, surface_voxels
 

@@ -9,7 +9,7 @@ import json
 from pathlib import Path
 
 from common.errors import UserError
-from server.argtypes import real
+from common.argtypes import real
 from server.output import add_overwrite_argument, check_file_target, check_folder_target
 from server.pictures import PICTURES_DIR, make_result_pictures
 from server.report import REPORT_NAME, write_report

@@ -17,7 +17,7 @@ from common.errors import InputFileError, UserError
 from common.postures import POSTURES
 from common.synth import (MAX_DISTORTION_K1, NOISE_MODELS, PROPS, RING_FOV_DEG, SURFACES, UP_AXES, SynthOptions,
                           synth_studio, synthesize)
-from server.argtypes import count, real
+from common.argtypes import count, real
 from server.output import add_overwrite_argument, check_folder_target, staged_folder
 from server.progress import Progress
 

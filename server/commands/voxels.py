@@ -18,7 +18,7 @@ from PIL import Image, ImageDraw
 
 from common.errors import InputFileError, UserError
 from common.sequence import FRAME_NAME, load_sequence
-from server.argtypes import count, real
+from common.argtypes import count, real
 from server.commands.fit import add_world_arguments
 from server.output import add_overwrite_argument, check_folder_target, staged_folder, write_text
 from common.voxels import SpotGrid, save_voxels
