@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     name = f"client {args.client_id}" if args.client_id else "client"
     logging.basicConfig(level=level, format=f"{name}: %(message)s")
     from common.body import load_body_model
-    from common.energy import compile_kernels
+    from common.objective import compile_kernels
     from client.worker import REFUSED, CurveKeys, Worker
 
     try:

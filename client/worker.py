@@ -1,5 +1,5 @@
 """The limb worker: a DEALER that registers with the server and solves the chains it is sent
-(and a refinement's hops, ``common.fitting.solve_job``).
+(and hops and whole fits, ``common.search.solve_job``).
 
 Flow (one connection)::
 
@@ -47,7 +47,8 @@ from zmq.utils.monitor import recv_monitor_message
 
 from common.body import BodyModel
 from common.camera import Studio
-from common.fitting import FitOptions, FrameData, solve_job
+from common.fitting import FitOptions, FrameData
+from common.search import solve_job
 from common.protocol import (
     MAX_MESSAGE_BYTES, Error, Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve, Welcome,
     decode, encode,

@@ -440,34 +440,3 @@ class CpuEnergy:
     def render(self, params: np.ndarray) -> np.ndarray:
         """(35,) -> (K, h, w) bool: the model's silhouette windows (moving and static parts)."""
         return self._render(params, self.moving) | self.static_mask
-
-
-ENERGY_BACKENDS = {"cpu": CpuEnergy, "volume": VolumeEnergy}
-
-
-def make_energy(backend: str, model: BodyModel, setup: EnergySetup):
-    if backend == "gl":
-        from common.energy_gl import GlEnergy
-
-        return GlEnergy(model, setup)
-    try:
-        return ENERGY_BACKENDS[backend](model, setup)
-    except KeyError:
-        raise ValueError(f"unknown energy backend {backend!r}; expected cpu, gl or volume") from None
-
-
-def compile_kernels() -> None:
-    """Compile (or load from numba's cache) the energies' compiled kernels now, by building and
-    evaluating a tiny pre-rendered energy and a Powell solve on it: a client does this before it
-    takes work, so that its first solve is not many seconds late (the server would hand that
-    limb to another client)."""
-    from common.body import load_body_model, rest_params
-    from common.camera import circle_studio
-    from common.powell_cpu import powell_cpu
-
-    model = load_body_model()
-    studio = circle_studio(1, 16, 16)
-    setup = EnergySetup(studio, (Window(0, 0, 16, 16),), np.zeros((1, 16, 16), dtype=bool), (4,), rest_params(model))
-    energy = CpuEnergy(model, setup)
-    energy(rest_params(model))
-    powell_cpu(energy, rest_params(model), [11], np.array([0.1]), 0.1, 1e-4, 10)

@@ -1,6 +1,6 @@
 """Hierarchical pose fitting (Theobalt et al. 2003, section 3), shared by server and clients.
 
-Per frame, from the previous frame's pose:
+One fit (``fit_rounds``) from a start pose:
  1. torso (root + spine) by Powell's method on the half-resolution energy;
  2. the four limbs, each by a grid search then Powell in 128x128 windows, followed by its
     hand or foot in 64x64 windows; and the head in 64x64 windows. Every limb and the head
@@ -8,16 +8,14 @@ Per frame, from the previous frame's pose:
     them and the result does not depend on who solved it or in which order;
  3. repeat until the full energy stops improving or an iteration cap.
 
-``solve_job`` is the unit of work a client does (a chain's ``solve_chain``, or one hop of a
-refinement's ``hop_fit``); ``fit_frame`` is the server's loop, with the limb solves handed to
-a ``dispatch`` callable (local by default).
+A chain's solve (``solve_chain``), a limb's search over its whole range (``search_limb``) and a
+hop of basin hopping (``hop``) are the units of work below a fit; which starts are fitted, and
+in what order, is ``common.search``.
 """
 from __future__ import annotations
 
 import time
-from collections import OrderedDict
-from dataclasses import dataclass, field, replace
-from functools import cached_property
+from dataclasses import dataclass, replace
 from itertools import product
 from typing import Callable
 
@@ -25,20 +23,15 @@ import numpy as np
 
 from common.body import (
     CHAINS, LIMB_CHAINS, LIMB_PARTS, P, PARAM_LIMITS, BodyModel, clip_to_limits, forward_kinematics,
-    hold_limbs_in_world, matrix_to_rotvec, rest_params, rotvec_to_matrix,
+    hold_limbs_in_world,
 )
 from common import optimize
-from common.camera import Camera, Studio, distort_normalized
-from common.energy import (
-    ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window, centred_window, cut_window, make_energy,
-)
-from common.packing import clear_padding, downsample_masks, pad_stack
+from common.energy import ARM_WINDOW, SMALL_WINDOW, CpuEnergy
+from common.frame import FrameData
+from common.objective import HeldLimbs, SpinePrior, with_spine_prior
 from common.powell_cpu import powell_cpu
-from common.retarget import heading_tilt, nearest_turn
 
-HALF = 0.5  # torso works at half resolution (paper: 160x120 of 320x240)
 ENERGY_BACKENDS = ("cpu", "gl", "coarse-to-fine", "volume")
-VOLUME_GRID = 64  # voxels per side for the volume energy's SPOT reconstruction
 
 
 @dataclass(frozen=True)
@@ -68,7 +61,6 @@ class FitOptions:
     torso_grid_range_rad: float = 0.2
     redetect_limbs: bool = True         # search limbs over their whole range (lost limbs)
     redetect_turn: str = "final"        # which limbs when: see REDETECT_TURNS
-    hypotheses: int = 1                 # 2: fit each frame with both first-round torso schedules, keep the better
     turn_hypotheses: int = 2            # also fit from the start turned by -+1..n turn steps about the vertical
     turn_step_rad: float = 0.15
     polish_iterations: int = 2          # further rounds for the best hypothesis, while the energy still falls
@@ -83,8 +75,6 @@ class FitOptions:
             raise ValueError("grid_steps must be odd and >= 1")
         if self.redetect_turn not in REDETECT_TURNS:
             raise ValueError(f"redetect_turn must be one of {REDETECT_TURNS}, got {self.redetect_turn!r}")
-        if not 1 <= self.hypotheses <= len(SCHEDULES):
-            raise ValueError(f"hypotheses must be 1..{len(SCHEDULES)}, got {self.hypotheses}")
         if not 1 <= self.max_iterations < REDETECT_ROUND:
             raise ValueError(f"max_iterations must be 1..{REDETECT_ROUND - 1}, got {self.max_iterations}")
         if self.polish_iterations < 0:
@@ -130,146 +120,16 @@ class ChainResult:
     cpu_seconds: float
 
 
-@dataclass
+@dataclass(frozen=True)
 class FrameResult:
-    params: np.ndarray
+    """A fit of one frame: its pose, full-resolution XOR energy, and what it cost."""
+
+    params: np.ndarray        # (35,)
     energy: int
     iterations: int
-    evaluations: int
-    chains: list = field(default_factory=list)  # ChainResult of every solve, in order
-    wall_seconds: float = 0.0
-
-
-_UNDISTORT_MAPS: dict = {}
-_SPOT_GRIDS: OrderedDict = OrderedDict()  # lookup tables per studio and box, the most recent kept
-SPOT_GRIDS_KEPT = 4  # each about 20 MB (64^3, 8 cameras); an actor crossing the studio needs a few
-
-
-def undistort_map(cam: Camera) -> np.ndarray:
-    """(H, W) flat indices into the distorted image for each pixel of the ideal pinhole image."""
-    key = (cam.K.tobytes(), cam.dist.tobytes(), cam.width, cam.height)
-    if key not in _UNDISTORT_MAPS:
-        v, u = np.mgrid[0:cam.height, 0:cam.width].astype(np.float64)
-        fx, s_, cx, fy, cy = cam.K[0, 0], cam.K[0, 1], cam.K[0, 2], cam.K[1, 1], cam.K[1, 2]
-        y = (v - cy) / fy
-        x = (u - cx - s_ * y) / fx
-        xd, yd = distort_normalized(x, y, cam.dist)
-        ud = np.rint(fx * xd + s_ * yd + cx).astype(np.int64)
-        vd = np.rint(fy * yd + cy).astype(np.int64)
-        inside = (ud >= 0) & (ud < cam.width) & (vd >= 0) & (vd < cam.height)
-        _UNDISTORT_MAPS[key] = np.where(inside, vd * cam.width + ud, -1)
-    return _UNDISTORT_MAPS[key]
-
-
-def undistort_masks(studio: Studio, masks: np.ndarray) -> tuple[Studio, np.ndarray]:
-    """Silhouettes resampled into ideal pinhole images (same K, no distortion), and that studio.
-
-    masks: (K, H, W) bool, the padded stack (``packing.pad_stack``) -> the same shape.
-    Fitting works in undistorted images so that every energy backend projects with plain
-    pinhole cameras and agrees; a mask is resampled once per frame (nearest pixel).
-    """
-    if not any(c.has_distortion for c in studio):
-        return studio, masks
-    cams, out = [], []
-    for cam, mask in zip(studio, masks):
-        mask = mask[:cam.height, :cam.width]
-        if cam.has_distortion:
-            idx = undistort_map(cam)
-            mask = np.where(idx >= 0, mask.reshape(-1)[np.maximum(idx, 0)], False)
-            cam = replace(cam, dist=np.zeros_like(cam.dist))
-        cams.append(cam)
-        out.append(mask)
-    return Studio(tuple(cams), studio.source), pad_stack(out)
-
-
-def spot_grid(studio: Studio, masks: np.ndarray, grid: int):
-    """SPOT lookup tables for a box around the actor; built once per studio and box."""
-    from common.voxels import SpotGrid, actor_bounds
-
-    bounds = actor_bounds(studio, masks)
-    key = (grid, bounds.tobytes(), tuple((c.name, c.K.tobytes(), c.R.tobytes(), c.t.tobytes()) for c in studio))
-    if key not in _SPOT_GRIDS:
-        _SPOT_GRIDS[key] = SpotGrid.build(studio, grid=grid, q=2, bounds=bounds)
-        while len(_SPOT_GRIDS) > SPOT_GRIDS_KEPT:
-            _SPOT_GRIDS.popitem(last=False)
-    _SPOT_GRIDS.move_to_end(key)
-    return _SPOT_GRIDS[key]
-
-
-class FrameData:
-    """One frame's input silhouettes (undistorted) at full and half resolution, and its studio.
-
-    masks: (K, H, W) bool, camera k's silhouette at [:h_k, :w_k] with (w_k, h_k) its image
-    size and H, W the largest (cameras of one size: the plain stack; of different sizes: the
-    padded stack of ``packing.pad_stack``). Pixels beyond a camera's image are cleared here,
-    once per frame, and no energy counts them.
-    """
-
-    def __init__(self, model: BodyModel, studio: Studio, masks: np.ndarray):
-        self.model = model
-        masks = np.asarray(masks, dtype=bool)
-        if masks.ndim != 3 or masks.shape[0] != len(studio):
-            raise ValueError(f"expected (K, H, W) silhouettes of {len(studio)} cameras, got shape {masks.shape}")
-        H, W = studio.padded_shape
-        if masks.shape[1:] != (H, W):
-            raise ValueError(f"silhouettes are {masks.shape[2]}x{masks.shape[1]}, the calibration's largest "
-                             f"camera width and height {W}x{H}")
-        masks = clear_padding(masks, studio.sizes)
-        self.original_studio = studio
-        studio, masks = undistort_masks(studio, masks)
-        self.studio = studio
-        self.masks = masks
-        self._whole_image_energies: dict = {}  # half -> energy (see whole_image_energy)
-
-    @cached_property
-    def half_studio(self) -> Studio:
-        """The studio at half resolution (image sizes rounded down, as the masks are)."""
-        return Studio(tuple(replace(c.scaled(HALF), width=c.width // 2, height=c.height // 2) for c in self.studio))
-
-    @cached_property
-    def half_masks(self) -> np.ndarray:
-        """(K, H // 2, W // 2) bool, camera k's at [:h_k // 2, :w_k // 2] (cleared beyond)."""
-        return clear_padding(downsample_masks(self.masks, 2), self.half_studio.sizes)
-
-    @cached_property
-    def surface_points(self) -> np.ndarray:
-        """(n, 3) centres of the frame's SPOT surface voxels (for the volume energy)."""
-        return spot_grid(self.studio, self.masks, VOLUME_GRID).reconstruct(self.masks).surface_points()
-
-    def full_setup(self, params: np.ndarray, half: bool = False) -> EnergySetup:
-        studio = self.half_studio if half else self.studio
-        masks = self.half_masks if half else self.masks
-        windows = tuple(Window(0, 0, c.width, c.height) for c in studio)
-        return EnergySetup(studio, windows, masks, tuple(range(16)), np.asarray(params), prerender=False)
-
-    def whole_image_energy(self, half: bool = False):
-        """The ``cpu`` energy of the whole images with every segment moving. Nothing is
-        pre-rendered, so it does not depend on a pose: built once per frame and resolution
-        (its prefix sums over 8 full images cost more than a few evaluations)."""
-        if half not in self._whole_image_energies:
-            setup = self.full_setup(rest_params(self.model), half=half)
-            self._whole_image_energies[half] = make_energy("cpu", self.model, setup)
-        return self._whole_image_energies[half]
-
-    def energy(self, backend: str, setup: EnergySetup):
-        """The ``backend`` energy of ``setup`` for this frame (the volume energy is over its voxels)."""
-        if backend == "volume":  # one energy over the whole body's voxels: no windows
-            setup = replace(setup, volume_points=self.surface_points)
-        return make_energy(backend, self.model, setup)
-
-    def window_setup(self, params: np.ndarray, segments, size: int, prerender: bool) -> EnergySetup:
-        """Windows of ``size`` centred on the projected centre of ``segments`` at ``params``."""
-        pose = forward_kinematics(self.model, params)
-        R, o = pose.rotations[0, list(segments)], pose.origins[0, list(segments)]
-        # the mean of the parts' ellipsoid centres: the middle of the bones, not the joints
-        centre = (np.einsum("sij,sj->si", R, self.model.ellipsoid_centres[list(segments)]) + o).mean(axis=0)
-        windows, cuts = [], []
-        for cam, mask in zip(self.studio, self.masks):
-            w = centred_window(cam.project(centre), size)
-            windows.append(w)
-            cuts.append(cut_window(mask[:cam.height, :cam.width], w))
-        return EnergySetup(self.studio, tuple(windows), np.stack(cuts), tuple(segments), np.asarray(params),
-                           prerender=prerender)
+    evaluations: int          # of every solve spent on it, dropped fits too
+    chains: tuple = ()        # ChainResult of every solve this process saw, in order
+    variant: str = "track"    # the fit options it was fitted with (``common.search.VARIANTS``)
 
 
 def _limb_centre_segments(chain: str) -> tuple:
@@ -327,46 +187,6 @@ def grid_search(energy, x0: np.ndarray, indices, steps: int, half_range: float, 
 
 # ------------------------------------------------------------------------ chain solves
 
-@dataclass(frozen=True)
-class SpinePrior:
-    """The torso energy plus a soft prior against twisting the spine: ``weight`` silhouette
-    pixels per rad^2 of the chest's twist against the pelvis.
-
-    A round pelvis and abdomen make the twist between pelvis and chest almost invisible in
-    silhouettes: without a prior the pelvis heading drifts, traded against spine twist and
-    hip rotations. The prior keeps that trade-off where the anatomy puts it.
-    """
-
-    energy: Callable
-    weight: float
-
-    def __post_init__(self):
-        if not self.weight > 0:  # the compiled Powell adds the prior only for a positive weight
-            raise ValueError(f"the spine twist prior's weight must be positive, got {self.weight}")
-
-    def __call__(self, params: np.ndarray) -> np.ndarray:
-        p = np.atleast_2d(params)
-        return self.energy(p) + self.weight * p[:, P["spine_z"]] ** 2
-
-
-def with_spine_prior(energy, weight: float):
-    """``energy`` with the spine twist prior of ``weight`` (itself where the weight is 0)."""
-    return SpinePrior(energy, weight) if weight > 0 else energy
-
-
-@dataclass(frozen=True)
-class HeldLimbs:
-    """The torso's candidates completed: the limbs held in the world orientation they have at
-    the reference pose (``hold_limbs_in_world``), then clipped into the joint limits."""
-
-    model: BodyModel
-    reference_rotations: np.ndarray  # (16, 3, 3) the reference pose's segment rotations
-
-    def __call__(self, candidates: np.ndarray) -> np.ndarray:
-        """(B, 35) -> (B, 35)"""
-        return clip_to_limits(hold_limbs_in_world(self.model, candidates, None, self.reference_rotations))
-
-
 def _clock():
     return time.perf_counter(), time.process_time()
 
@@ -376,7 +196,7 @@ def _stage_backends(options: FitOptions) -> tuple:
 
 
 def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarray,
-                options: FitOptions, iteration: int = 0, position_only: bool = False) -> ChainResult:
+                options: FitOptions, iteration: int = 0) -> ChainResult:
     """Optimize one chain's parameters with every other parameter held at ``params``."""
     wall0, cpu0 = _clock()
     x = np.array(params, dtype=np.float64)
@@ -392,10 +212,8 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             idx = CHAINS["torso"].params
             steps = np.array([options.torso_step_m] * 3 + [options.torso_step_rad] * 6)
             hold = HeldLimbs(model, forward_kinematics(model, x).rotations[0])
-            if position_only:
-                idx, steps = idx[:3], steps[:3]
             n = 0
-            if options.torso_grid_steps > 1 and not position_only:
+            if options.torso_grid_steps > 1:
                 # the pelvis heading against the spine twist is the torso's flattest valley:
                 # search it on a grid first, as the paper does for the limbs
                 x, _, n = grid_search(energy, x, (P["root_heading"], P["spine_z"]), options.torso_grid_steps,
@@ -561,97 +379,19 @@ def distinct_rows(joints: np.ndarray, count: int, taken: np.ndarray | None = Non
     return out
 
 
-LIMB_ALTERNATIVES = 2  # per limb: other basins refitted after a first frame's search
-
-
-def limb_alternatives(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions,
-                      count: int = LIMB_ALTERNATIVES) -> list[np.ndarray]:
-    """(35,) poses: x with one limb moved into up to ``count`` of its other basins, the lowest
-    energy first. Given a wrong torso the true limb can explain the images worse than a wrong
-    one (a forearm folded into its upper arm's silhouette, when it lies in front of the
-    trunk); fitted again as a whole, the true limb wins (``server.session.search_frame``)."""
-    found, _, _ = search_limb(model, frame, chain, x, options, REDETECT_STARTS_FIRST_FRAME, one_per_basin=True)
-    found.sort(key=lambda ey: ey[0])
-    poses = np.array([y for _, y in found]).reshape(-1, len(x))
-    keep = distinct_rows(limb_joints(model, chain, poses), count, taken=limb_joints(model, chain, x))
-    return [poses[k] for k in keep]
-
-
-# A nearly straight arm's twist about the upper arm hardly shows in silhouettes, and in the
-# wrong twist the elbow cannot bend the way the forearm goes, so it stays straight: the arm sits
-# in a basin of its own that neither its grid nor its other basins (``limb_alternatives``, which
-# tell basins apart by the elbow and wrist) reach. The dance (05_10) frames 15-16: the right
-# shoulder's twist 2 rad off, the elbow at its straight limit, the wrist 60 mm off.
-ARM_CHAINS = ("left_arm", "right_arm")
-ARM_TWISTS = 7                  # turns about the upper arm tried, 360 / (ARM_TWISTS + 1) degrees apart
-ARM_TWIST_MAX_ELBOW_RAD = 0.5   # arms bent less than this are tried
-ARM_TWIST_ELBOW_RAD = 0.3       # each turned start bent at least this much
-
-
-def arm_twists(model: BodyModel, chain: str, params: np.ndarray) -> np.ndarray:
-    """(ARM_TWISTS, 35) ``params`` with ``chain``'s upper arm turned about its own axis by
-    k * 2 pi / (ARM_TWISTS + 1), k = 1..ARM_TWISTS (the elbow stays where it is), and the elbow
-    bent at least ARM_TWIST_ELBOW_RAD, within the joint limits."""
-    shoulder, elbow = list(CHAINS[chain].params[:3]), CHAINS[chain].params[3]
-    upper_arm, forearm = CHAINS[chain].segments[:2]  # a segment's joint is where it starts
-    axis = model.joint_rest[forearm] - model.joint_rest[upper_arm]
-    axis = axis / np.linalg.norm(axis)  # the rest pose's upper arm, in the shoulder's frame
-    angles = np.arange(1, ARM_TWISTS + 1) * (2.0 * np.pi / (ARM_TWISTS + 1))
-    turned = rotvec_to_matrix(np.asarray(params)[shoulder]) @ rotvec_to_matrix(angles[:, None] * axis)
-    out = np.repeat(np.asarray(params, dtype=np.float64)[None], ARM_TWISTS, axis=0)
-    out[:, shoulder] = matrix_to_rotvec(turned)
-    out[:, elbow] = np.maximum(out[:, elbow], ARM_TWIST_ELBOW_RAD)
-    return clip_to_limits(out)
-
-
-def shoulder_turn_rad(params: np.ndarray, other: np.ndarray, chain: str) -> float:
-    """The angle between the shoulder rotations of ``chain``'s arm in two poses (35,), radians."""
-    shoulder = list(CHAINS[chain].params[:3])
-    relative = rotvec_to_matrix(np.asarray(params)[shoulder]).T @ rotvec_to_matrix(np.asarray(other)[shoulder])
-    return float(np.linalg.norm(matrix_to_rotvec(relative)))
-
-
-def arm_twist_alternative(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions,
-                          neighbour: np.ndarray | None = None) -> np.ndarray | None:
-    """(35,) ``x`` with ``chain``'s arm solved (``solve_chain`` without its grid) from each of
-    its ``arm_twists``, the lowest, where that is below the arm solved from ``x`` itself; None
-    where none is, or where the arm is bent ARM_TWIST_MAX_ELBOW_RAD or more (its twist shows).
-    Given the ``neighbour`` frame's fit (35,), only the solved arms whose shoulder rotation is
-    nearer the neighbour's than ``x``'s count: an arm does not turn half a turn between
-    frames, and a wrong twist can have less energy (walk frame 12: 15,404 against 15,473 for
-    the arm as tracked, 62 mm off at the wrist against 26)."""
-    if x[CHAINS[chain].params[3]] >= ARM_TWIST_MAX_ELBOW_RAD:
-        return None
-    local = replace(options, grid_steps=1)  # the turned starts are the grid; a 3^4 grid each costs 4x
-    turned = [solve_chain(model, frame, chain, y, local, iteration=1) for y in arm_twists(model, chain, x)]
-    if neighbour is not None:
-        away = shoulder_turn_rad(x, neighbour, chain)
-        turned = [r for r in turned if shoulder_turn_rad(r.params, neighbour, chain) < away]
-    if not turned:
-        return None
-    lowest = min(turned, key=lambda r: r.energy)
-    own = solve_chain(model, frame, chain, x, local, iteration=1)
-    return lowest.params if lowest.energy < own.energy else None
-
 
 def full_energy(model: BodyModel, frame: FrameData, params: np.ndarray) -> int:
     """Whole-body XOR energy at full resolution (the convergence test and the reported energy)."""
     return int(frame.whole_image_energy()(params)[0])
 
 
-# dispatch(jobs, params, iteration) starts the limb solves (or a refinement's hops, HOP_JOBS)
-# and returns a function that waits for and returns their ChainResults (in the order
-# of ``jobs``); the server solves the head in between, so a cluster's clients and the server
-# work at the same time.
-Dispatch = Callable[[list, np.ndarray, int], Callable[[], list]]
+# dispatch(jobs, params, iteration, options=None) starts ``jobs`` (limb chains, hops or whole
+# fits, ``common.search.solve_job``) and returns a function that waits for and returns their
+# ChainResults in the order of ``jobs``. ``params`` is one (35,) start for all jobs or one per
+# job; ``options`` the FitOptions for all jobs, one per job, or None for the frame's own. The
+# server solves the head in between, so a cluster's clients and the server work at once.
+Dispatch = Callable[..., Callable[[], list]]
 
-
-def solve_locally(model: BodyModel, frame: FrameData, options: FitOptions, frame_number: int = 0) -> Dispatch:
-    """Dispatch in this process: each job by ``solve_job``, in order."""
-    def dispatch(jobs: list, params: np.ndarray, iteration: int):
-        return lambda: [solve_job(model, frame, j, params, options, iteration, frame_number) for j in jobs]
-
-    return dispatch
 
 
 # Basin hopping (``hop_fit``): each hop moves one chain by a random step, then fits the body.
@@ -691,8 +431,9 @@ def hop(model: BodyModel, frame: FrameData, params: np.ndarray, options: FitOpti
     return ChainResult(job, x, before, after, n + 2, 1, wall1 - wall0, cpu1 - cpu0)
 
 
-def hop_fit(params: np.ndarray, options: FitOptions, dispatch: Dispatch, side_by_side: int = 1) -> FrameResult:
-    """Basin hopping from ``params`` (35,): ``options.refine_hops`` hops (``hop``), one after
+def hop_fit(params: np.ndarray, hops: int, options: FitOptions, dispatch: Dispatch,
+            side_by_side: int = 1) -> FrameResult:
+    """Basin hopping from ``params`` (35,): ``hops`` hops (``hop``), one after
     another, each from the best pose so far; a hop with a lower objective (XOR energy plus the
     spine prior, what each hop's Powell minimises) becomes the best.
     ``dispatch`` runs the hops with ``options``, ``side_by_side`` (1..len(HOP_JOBS)) at once,
@@ -700,8 +441,7 @@ def hop_fit(params: np.ndarray, options: FitOptions, dispatch: Dispatch, side_by
     them is lower, the next round starts after it and the hops beyond it are dropped: they
     started from a pose that is no longer the best. So the result is that of the hops one
     after another, however many run side by side; a cluster gains where hops fail, as most
-    do once the first few have found the valley. ``dispatch`` must run the hops with these
-    ``options`` (``solve_job`` reads the hop count from them). Returns the best (``params``
+    do once the first few have found the valley. Returns the best (``params``
     where no hop was lower) with its objective as ``energy`` (callers that compare it with other
     fits take its ``full_energy``); its ``evaluations`` are those of the hops one after
     another, its ``chains`` every hop's ChainResult, dropped ones too.
@@ -712,15 +452,15 @@ def hop_fit(params: np.ndarray, options: FitOptions, dispatch: Dispatch, side_by
     to the truth, yet neither a chain's own search nor Powell over all 35 parameters from the
     fit moves down it; a hop from a moved leg does. A whole-image evaluation costs tens of
     microseconds, so a hop of a few thousand evaluations costs about 0.1 s."""
-    if options.refine_hops < 1:
-        raise ValueError(f"hop_fit needs refine_hops >= 1, got {options.refine_hops}")
+    if hops < 1:
+        raise ValueError(f"hop_fit needs hops >= 1, got {hops}")
     if not 1 <= side_by_side <= len(HOP_JOBS):
         raise ValueError(f"side_by_side must be 1..{len(HOP_JOBS)}, got {side_by_side}")
     best, best_energy = np.array(params, dtype=np.float64), None
-    hops, evaluations, done = [], 0, 0
-    while done < options.refine_hops:
-        results = dispatch(list(HOP_JOBS[:min(side_by_side, options.refine_hops - done)]), best, done)()
-        hops += results
+    tried, evaluations, done = [], 0, 0
+    while done < hops:
+        results = dispatch(list(HOP_JOBS[:min(side_by_side, hops - done)]), best, done, options)()
+        tried += results
         if best_energy is None:
             best_energy = results[0].energy_before
         lower = next((k for k, r in enumerate(results) if r.energy < best_energy), None)
@@ -729,20 +469,7 @@ def hop_fit(params: np.ndarray, options: FitOptions, dispatch: Dispatch, side_by
         kept = results if lower is None else results[:lower + 1]
         evaluations += sum(r.evaluations for r in kept)
         done += len(kept)
-    return FrameResult(best, int(best_energy), options.refine_hops, evaluations, hops)
-
-
-def solve_job(model: BodyModel, frame: FrameData, job: str, params: np.ndarray, options: FitOptions,
-              iteration: int = 0, frame_number: int = 0) -> ChainResult:
-    """A client's unit of work: a chain's solve (``solve_chain``), or a hop of ``hop_fit``: job
-    HOP_JOBS[k] is hop number ``iteration`` + k, seeded by ``frame_number`` (so the same pose
-    wherever it runs)."""
-    if job not in HOP_JOBS:
-        return solve_chain(model, frame, job, params, options, iteration=iteration)
-    index = iteration + HOP_JOBS.index(job)
-    if index >= options.refine_hops:
-        raise ValueError(f"{job} of round {iteration} is hop {index}; refine_hops={options.refine_hops} has no such hop")
-    return hop(model, frame, params, options, index, frame_number, job)
+    return FrameResult(best, int(best_energy), hops, evaluations, tuple(tried))
 
 
 def merge_chains(params: np.ndarray, results: list) -> np.ndarray:
@@ -754,162 +481,31 @@ def merge_chains(params: np.ndarray, results: list) -> np.ndarray:
     return out
 
 
-SCHEDULES = ("held", "position-first")  # the first round's torso: all 9 parameters, or the root position
-# A hypothesis whose energy after a round is this fraction above the best so far is not fitted
-# on: over walk, dance and basketball it saved 4% of the evaluations at the same accuracy; at
-# 1% it saved 13%, but the dance lost an arm.
-ABANDON_MARGIN = 0.03
-
-
-def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: FitOptions,
-              dispatch: Dispatch | None = None, extra_starts: tuple = ()) -> FrameResult:
-    """Fit one frame from ``start`` (the previous frame's pose). ``dispatch`` solves limb chains.
-
-    The frame is fitted from several hypotheses and the one of lowest full energy is kept (the
-    first on a tie):
-    - the start, with the first round's torso fitted in all 9 parameters;
-    - with ``options.hypotheses`` = 2, the start again, with only the root position fitted in
-      the first round. The limbs start where they were in the previous frame, so in the first
-      round they pull the torso towards last frame's pose: turning the pelvis to meet a swinging
-      thigh is the walk's typical error; moving only the root first avoids it, but lags behind
-      a turning dancer;
-    - with ``options.turn_hypotheses`` = n > 0, the start turned about the vertical by -d, +d,
-      -2d, +2d, ... up to n turn steps d = ``options.turn_step_rad``, the whole body with it.
-      The pelvis heading is the torso's flattest valley: a tracked pose can sit turned from the
-      truth with the hips twisted back to keep the legs in place, a coordinated minimum that the
-      torso-then-limbs hierarchy cannot leave, since neither the torso nor a limb alone can undo
-      it. Refitting from turned starts can.
-    - each of ``extra_starts`` (35,), e.g. ``tilted_ahead``'s.
-    Every hypothesis is fitted to the end unless its first round leaves it ABANDON_MARGIN above
-    the best so far: choosing the best after the first round (to save time) lost an arm on the
-    dance clip. The best then gets up to ``options.polish_iterations`` more rounds while its
-    energy still falls: two rounds stop short of the minimum (a walk frame fitted again from
-    its own result lost 0.4-1.1% of its energy and 1-4 mm of error). With
-    ``options.redetect_turn`` "final", the limbs are then re-detected against the best
-    (``_redetect_and_refit``).
-    """
-    wall0 = time.perf_counter()
-    dispatch = dispatch or solve_locally(model, frame, options)
-    hypotheses = [(start, schedule == "position-first") for schedule in SCHEDULES[:options.hypotheses]]
-    hypotheses += [(turned(start, sign * step * options.turn_step_rad), False)
-                   for step in range(1, options.turn_hypotheses + 1) for sign in (-1, 1)]
-    hypotheses += [(np.asarray(x, dtype=np.float64), False) for x in extra_starts]
-    results = []
-    for x, position_first in hypotheses:
-        # a hypothesis far above the best so far after its first round is not fitted on
-        give_up = min(r.energy for r in results) * (1.0 + ABANDON_MARGIN) if results else None
-        results.append(_fit_schedule(model, frame, x, options, dispatch, position_first, give_up_above=give_up))
-    best = lowest_energy(results)
-    if options.polish_iterations:
-        polished = _fit_schedule(model, frame, best.params, options, dispatch, False, options.polish_iterations)
-        best = lowest_energy([best, polished])
-    if options.redetect_limbs and options.redetect_turn == "final":
-        best = _redetect_and_refit(model, frame, best, options, dispatch)
-    best.wall_seconds = time.perf_counter() - wall0
-    return best
-
-
-def _redetect_and_refit(model: BodyModel, frame: FrameData, best: FrameResult, options: FitOptions,
-                        dispatch: Dispatch) -> FrameResult:
-    """Every limb searched over its whole range against the fitted pose (side by side, on the
-    clients); if any is found elsewhere, the frame fitted again from there, the lower energy
-    kept. A limb that moved faster than the local search (a basketball player's forearm swing)
-    is found in the frame it is lost."""
-    found = dispatch(list(LIMB_CHAINS), best.params, REDETECT_ROUND)()
-    moved = [r for r in found if r.energy < r.energy_before]
-    refits = [_fit_schedule(model, frame, merge_chains(best.params, moved), options, dispatch, False)] if moved else []
-    chains = [*best.chains, *found, *(c for r in refits for c in r.chains)]
-    evaluations = best.evaluations + sum(r.evaluations for r in [*found, *refits])
-    best = min([best, *refits], key=lambda r: r.energy)
-    best.chains, best.evaluations = chains, evaluations
-    return best
-
-
-def turned(params: np.ndarray, angle: float) -> np.ndarray:
-    """(35,) the same pose turned by ``angle`` (rad) about the vertical through the pelvis."""
-    out = np.array(params, dtype=np.float64)
-    out[P["root_heading"]] += angle
-    return out
-
-
-def rotated_about_pelvis(model: BodyModel, params: np.ndarray, axis: int, angle: float) -> np.ndarray:
-    """(35,) the same pose with the whole body rotated by ``angle`` (rad) about the pelvis's own
-    axis ``axis`` (0: towards its left, 1: its back, 2: up its spine) through the root joint,
-    the limbs carried along; the heading kept within pi of the pose's own."""
-    x = np.array(params, dtype=np.float64)
-    R = forward_kinematics(model, x, segments=(0,)).rotations[0, 0]
-    heading, tilt = heading_tilt((R @ rotvec_to_matrix(angle * np.eye(3)[axis]))[None])
-    x[P["root_heading"]] = nearest_turn(heading[0], x[P["root_heading"]])
-    x[[P["root_tilt_x"], P["root_tilt_y"]]] = tilt[0]
-    return x
-
-
-def midway(before: np.ndarray, after: np.ndarray) -> np.ndarray:
-    """(35,) the pose halfway between two poses (35,) parameter by parameter, within the joint
-    limits: a frame's start between its neighbours' fits."""
-    return clip_to_limits((np.asarray(before, dtype=np.float64) + np.asarray(after, dtype=np.float64)) / 2.0)
-
-
-TILT_MOVING_RAD = 0.03  # pelvis tilt change per frame above which a tilted-ahead start is tried
-TILT_AHEAD_RAD = 0.25   # how far ahead of the last tilt that start is
-
-
-def tilted_ahead(params: np.ndarray, params_before: np.ndarray | None) -> tuple:
-    """() or a 1-tuple of (35,): ``params`` with the pelvis tilted TILT_AHEAD_RAD further along
-    the way its tilt moved since ``params_before`` (the frame before), when it moved by at
-    least TILT_MOVING_RAD. The turn hypotheses turn about the vertical only; a dancer bending
-    the pelvis far forward or sideways (a penche) outruns the fit's tilt, which then trails
-    further every frame."""
-    if params_before is None:
-        return ()
-    tilt = [P["root_tilt_x"], P["root_tilt_y"]]
-    moved = np.asarray(params, dtype=np.float64)[tilt] - np.asarray(params_before, dtype=np.float64)[tilt]
-    size = float(np.linalg.norm(moved))
-    if size < TILT_MOVING_RAD:
-        return ()
-    ahead = clip_to_limits(np.array(params, dtype=np.float64))
-    ahead[tilt] = np.clip(ahead[tilt] + TILT_AHEAD_RAD * moved / size, PARAM_LIMITS[tilt, 0], PARAM_LIMITS[tilt, 1])
-    return (ahead,)
-
-
-def lowest_energy(results: list, score: Callable | None = None) -> FrameResult:
-    """The FrameResult of lowest energy (or lowest ``score(result)``; the first on a tie), now
-    carrying the chain solves and evaluations of every one of ``results``, in order: what was
-    spent to choose it."""
-    chains = [c for r in results for c in r.chains]
-    evaluations = sum(r.evaluations for r in results)
-    best = min(results, key=score or (lambda r: r.energy))
-    best.chains, best.evaluations = chains, evaluations
-    return best
-
-
-def _fit_schedule(model: BodyModel, frame: FrameData, start: np.ndarray, options: FitOptions,
-                  dispatch: Dispatch, position_first: bool, rounds: int | None = None,
-                  give_up_above: float | None = None) -> FrameResult:
+def fit_rounds(model: BodyModel, frame: FrameData, start: np.ndarray, options: FitOptions,
+               dispatch: Dispatch) -> FrameResult:
+    """One hierarchical fit from ``start`` (35,): rounds of torso, then the four limbs side by
+    side (``dispatch``, against the torso's result: Jacobi) and the head, until a round lowers
+    the full energy by less than ``options.min_improvement`` or ``options.max_iterations``
+    rounds. A round whose energy is higher is not taken. Re-detecting one limb per round
+    (``redetect_turn`` "round") gives every limb its round before the fit may stop."""
     x = np.array(start, dtype=np.float64)
     best = full_energy(model, frame, x)
-    result = FrameResult(x, best, 0, 0)
-    # re-detecting one limb per round: every limb gets its round before the fit may stop
+    chains, evaluations, rounds = [], 0, 0
     rounds_needed = len(LIMB_CHAINS) if options.redetect_limbs and options.redetect_turn == "round" else 1
-    for it in range(rounds or options.max_iterations):
-        torso = solve_chain(model, frame, "torso", x, options, position_only=position_first and it == 0)
-        after_torso = torso.params
+    for it in range(options.max_iterations):
+        torso = solve_chain(model, frame, "torso", x, options)
         # the limbs go out first so that clients work while the server fits the head
-        collect_limbs = dispatch(list(LIMB_CHAINS), after_torso, it)
-        head = solve_chain(model, frame, "head", after_torso, options)
-        limb_results = collect_limbs()
-        x_new = merge_chains(after_torso, [*limb_results, head])
+        collect_limbs = dispatch(list(LIMB_CHAINS), torso.params, it, options)
+        head = solve_chain(model, frame, "head", torso.params, options)
+        limbs = collect_limbs()
+        x_new = merge_chains(torso.params, [*limbs, head])
         e_new = full_energy(model, frame, x_new)
-        result.chains.extend([torso, *limb_results, head])
-        result.evaluations += torso.evaluations + head.evaluations + sum(r.evaluations for r in limb_results)
-        result.iterations = it + 1
+        chains += [torso, *limbs, head]
+        evaluations += torso.evaluations + head.evaluations + sum(r.evaluations for r in limbs)
+        rounds = it + 1
         improved = best - e_new
         if e_new <= best:
             x, best = x_new, e_new
-        if (improved < options.min_improvement * max(best, 1) and not (position_first and it == 0)
-                and it + 1 >= rounds_needed):
+        if improved < options.min_improvement * max(best, 1) and rounds >= rounds_needed:
             break
-        if give_up_above is not None and best > give_up_above and not (position_first and it == 0):
-            break
-    result.params, result.energy = x, best
-    return result
+    return FrameResult(x, best, rounds, evaluations, tuple(chains))

@@ -11,7 +11,7 @@ a -0.0 that np.clip would make +0.0 at a bound of exactly 0; no joint limit is 0
 The objective of a solve: the candidate's chain parameters put into the full pose; for the
 torso, the limbs held in their world orientation (``body.hold_limbs_in_world``) and the pose
 clipped into the joint limits; the ``cpu`` energy (``energy.pose_energies``); plus, for the
-torso, the spine twist prior (``fitting.SpinePrior``).
+torso, the spine twist prior (``common.objective.SpinePrior``).
 """
 from __future__ import annotations
 

@@ -32,13 +32,15 @@ import numpy as np
 from common.camera import Camera, CalibrationError, Studio, make_camera
 from common.packing import clear_padding, packed_length, padded_shape, unpackbits_masks
 
-PROTOCOL_VERSION = 3  # 2: hops (HOP_JOB_NAMES) beside the chains; 3: cameras of different sizes
+PROTOCOL_VERSION = 4  # 2: hops (HOP_JOB_NAMES) beside the chains; 3: cameras of different sizes; 4: whole fits
 PARAM_COUNT = 35  # pose parameters of the body model
 CHAIN_NAMES = ("torso", "head", "left_arm", "right_arm", "left_leg", "right_leg")
 # the hops of a refinement's round (common.fitting.HOP_JOBS): sent and answered as chains are;
 # job k of a Solve with iteration i is hop number i + k
 HOP_JOB_NAMES = ("hop0", "hop1", "hop2", "hop3")
-JOB_NAMES = CHAIN_NAMES + HOP_JOB_NAMES
+# whole fits of a round of starts (common.search.FIT_JOBS), each Solve with its own start
+FIT_JOB_NAMES = tuple(f"fit{k}" for k in range(16))
+JOB_NAMES = CHAIN_NAMES + HOP_JOB_NAMES + FIT_JOB_NAMES
 
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024  # all frames of one message; also a client's zmq.MAXMSGSIZE
 # The largest message a client sends is an Error of MAX_TEXT_CHARS 4-byte characters, 16.7 KB
@@ -322,7 +324,8 @@ class Frame:
 @dataclass(frozen=True, kw_only=True)
 class Solve:
     """Server -> client, per iteration: fit ``chains`` starting from the full pose ``params``
-    (chains of CHAIN_NAMES, or hops of HOP_JOB_NAMES: job k is hop number ``iteration`` + k).
+    (chains of CHAIN_NAMES, hops of HOP_JOB_NAMES: job k is hop number ``iteration`` + k, or a
+    whole fit from ``params``, FIT_JOB_NAMES).
 
     ``options`` holds plain scalars (bool, int, float, str) such as grid steps or the energy
     backend; the solver refuses names it does not know.

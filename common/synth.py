@@ -14,7 +14,7 @@ A real-like studio adds what real takes have and the body model cannot explain:
 
 - lens distortion (``synth_studio(distortion=k1)``): strong barrel distortion, k1 with
   k2 = DISTORTION_K2_PER_K1 * k1, applied in the renderer exactly as ``Camera.project`` applies
-  it, so ``common.fitting.undistort_masks`` with the written calibration undoes it;
+  it, so ``common.frame.undistort_masks`` with the written calibration undoes it;
 - a static prop (``SynthOptions.prop``): a chair under the actor's pelvis or a box beside the
   actor, made of axis-aligned boxes in the prop's frame (``prop_boxes``), their faces
   tessellated finely (``box_mesh``) so that per-vertex distortion stays exact enough, and

@@ -5,11 +5,11 @@ beside the paper's Table 2 (Theobalt et al. 2003, sequence A).
 
 Rows: single process without pre-rendering (the paper's XOR), single process (XORPR), server
 + N clients on this machine (distributed), and the critical-path speed-up a cluster of one
-server and four limb machines would get: per iteration the server fits the torso, then the
-head while the four limbs are fitted in parallel, so the critical path is
-torso + head + slowest limb (``critical_path_speedup``; ``..._overlapped`` counts
-torso + max(head, slowest limb)), against the sum of all chains, from the single-process run's
-per-chain CPU seconds. Per-process compute / waiting / transfer seconds come from the solvers.
+server and four client machines would get: the server's own work (torso, head, energy checks)
+one after another, each round's jobs (limb solves, hops, whole fits of a round's starts) side by
+side on the five machines (``critical_path``), against everything one after another, from the
+single-process run's CPU seconds. Per-process compute / waiting / transfer seconds come from the
+solvers.
 """
 from __future__ import annotations
 
@@ -29,7 +29,8 @@ from common.fitting import FitOptions
 from common.sequence import load_sequence
 from common.argtypes import count
 from server.cluster import LocalCluster
-from server.session import LocalSolver, load_records, run_fit
+from server.results import load_records
+from server.session import LocalSolver, run_fit
 
 PAPER_TABLE2 = {  # seconds per frame, sequence A; 1.8 GHz Xeon + GeForce3 per machine
     "single_xor_seconds_per_frame": 7.98,
@@ -41,14 +42,15 @@ DEFAULT_REPEATS = 2  # alternating single / distributed runs; each frame's best 
 
 
 class _PhaseClock:
-    """Wraps a single-process solver and times, per iteration, the caller's thread between the
-    solver's calls: torso (up to ``solve``, with the full-energy check before it) and head
-    (``solve`` to ``collect``); the limbs' own CPU seconds come from their ChainResults."""
+    """Wraps a single-process solver and times, per dispatch round, the caller's thread: its own
+    work before the round ("before": the torso, energy checks, proposals), its work while the
+    round's jobs would run elsewhere ("during": the head), and each job's CPU seconds (limb
+    solves, hops, whole fits: from their ChainResults)."""
 
-    def __init__(self, inner):  # tracking only: a refinement's hop rounds would count as iterations
+    def __init__(self, inner):
         self.inner = inner
         self.mode, self.clients = inner.mode, inner.clients
-        self.iterations: list[dict] = []  # {"frame", "torso", "head", "limbs": {chain: cpu}}
+        self.rounds: list[dict] = []  # {"frame", "before", "during", "jobs": [cpu seconds]}
         self._mark = time.thread_time()
         self._frame = None
 
@@ -57,16 +59,16 @@ class _PhaseClock:
         self.inner.begin_frame(frame, data, start, options)
         self._mark = time.thread_time()
 
-    def solve(self, chains, params, iteration):
-        entry = {"frame": self._frame, "torso": time.thread_time() - self._mark}
+    def solve(self, jobs, params, iteration, options=None):
+        entry = {"frame": self._frame, "before": time.thread_time() - self._mark}
         self._mark = time.thread_time()
-        collect = self.inner.solve(chains, params, iteration)
+        collect = self.inner.solve(jobs, params, iteration, options)
 
         def timed_collect():
-            entry["head"] = time.thread_time() - self._mark
+            entry["during"] = time.thread_time() - self._mark
             results = collect()
-            entry["limbs"] = {r.chain: r.cpu_seconds for r in results}
-            self.iterations.append(entry)
+            entry["jobs"] = [r.cpu_seconds for r in results]
+            self.rounds.append(entry)
             self._mark = time.thread_time()
             return results
 
@@ -82,26 +84,41 @@ class _PhaseClock:
         self.inner.close()
 
 
-def critical_path(iterations: list[dict]) -> dict:
-    """Per-frame serial and critical-path seconds from per-iteration chain CPU seconds."""
-    serial, critical, overlapped, per_chain = {}, {}, {}, {}
-    for it in iterations:
-        f, limbs = it["frame"], it["limbs"]
-        slowest = max(limbs.values())
-        serial[f] = serial.get(f, 0.0) + it["torso"] + it["head"] + sum(limbs.values())
-        critical[f] = critical.get(f, 0.0) + it["torso"] + it["head"] + slowest
-        overlapped[f] = overlapped.get(f, 0.0) + it["torso"] + max(it["head"], slowest)
-        for chain, cpu in [("torso", it["torso"]), ("head", it["head"]), *limbs.items()]:
-            per_chain[chain] = per_chain.get(chain, 0.0) + cpu
+CRITICAL_PATH_MACHINES = 5  # the paper's cluster: the server and four clients
+
+
+def makespan(seconds: list[float], machines: int) -> float:
+    """Seconds until ``machines`` finish jobs of these lengths, each taken by the first free
+    machine, longest first (LPT scheduling)."""
+    free = [0.0] * machines
+    for t in sorted(seconds, reverse=True):
+        k = int(np.argmin(free))
+        free[k] += t
+    return max(free) if seconds else 0.0
+
+
+def critical_path(rounds: list[dict], machines: int = CRITICAL_PATH_MACHINES) -> dict:
+    """Per-frame serial and critical-path seconds from per-round CPU seconds: one process does
+    everything one after another; ``machines`` do the server's own work in order and each
+    round's jobs side by side (``makespan``). ``..._overlapped`` also runs the server's work
+    during a round (the head) beside the jobs."""
+    serial, critical, overlapped = {}, {}, {}
+    for r in rounds:
+        f, jobs = r["frame"], r["jobs"]
+        spread = makespan(jobs, machines)
+        serial[f] = serial.get(f, 0.0) + r["before"] + r["during"] + sum(jobs)
+        critical[f] = critical.get(f, 0.0) + r["before"] + r["during"] + spread
+        overlapped[f] = overlapped.get(f, 0.0) + r["before"] + max(r["during"], spread)
     frames = max(len(serial), 1)
     total_serial, total_critical = sum(serial.values()), sum(critical.values())
     return {
-        "serial_chain_seconds_per_frame": total_serial / frames,
+        "critical_path_machines": machines,
+        "serial_seconds_per_frame": total_serial / frames,
         "critical_path_seconds_per_frame": total_critical / frames,
         "critical_path_speedup": total_serial / total_critical if total_critical else None,
         "critical_path_speedup_overlapped": (total_serial / sum(overlapped.values())
                                              if overlapped else None),
-        "chain_cpu_seconds_per_frame": {c: v / frames for c, v in per_chain.items()},
+        "jobs_per_round": float(np.mean([len(r["jobs"]) for r in rounds])) if rounds else None,
     }
 
 
@@ -173,7 +190,7 @@ def bench_cluster(sequence, frames: int | None = None, clients: int = DEFAULT_CL
         "distributed_seconds_per_frame": _best_per_frame([run["seconds"] for run in clusters]),
         "runs_seconds_per_frame": {"single": [float(run["seconds"].mean()) for run in singles],
                                    "distributed": [float(run["seconds"].mean()) for run in clusters]},
-        **critical_path(fastest_single["clock"].iterations),
+        **critical_path(fastest_single["clock"].rounds),
         "processes": {"single": _per_frame(fastest_single["processes"], n),
                       "distributed": _per_frame(fastest_cluster["processes"], n)},
         "cluster_counters": {k: v for k, v in fastest_cluster["summary"]["timing"].items()
@@ -241,8 +258,9 @@ def format_table(r: dict) -> str:
     ]
     w0, w1 = max(len(a) for a, _, _ in rows), max(len(b) for _, b, _ in rows)
     lines = [f"{a.ljust(w0)}  {b.ljust(w1)}  {c}" for a, b, c in rows]
-    lines += ["", "chain CPU s/frame (single): " + ", ".join(
-        f"{c} {v:.3f}" for c, v in r["chain_cpu_seconds_per_frame"].items())]
+    lines += ["", f"serial {s(r['serial_seconds_per_frame'])} s/frame, critical path "
+                  f"{s(r['critical_path_seconds_per_frame'])} on {r['critical_path_machines']} machines, "
+                  f"{r['jobs_per_round']:.1f} jobs per round"]
     lines += ["", f"{'process'.ljust(16)} {'compute':>8} {'waiting':>8} {'transfer':>8}  s/frame"]
     for mode in ("single", "distributed"):
         for p in r["processes"][mode]:
@@ -268,7 +286,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=None, help="write the results here")
     args = p.parse_args(argv)
     result = bench_cluster(args.sequence, args.frames, args.clients,
-                           FitOptions(max_iterations=args.iterations), xor=not args.no_xor, repeats=args.repeats)
+                           FitOptions(max_iterations=args.iterations, refine_passes=0), xor=not args.no_xor,
+                           repeats=args.repeats)
     print(format_table(result))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -79,9 +79,10 @@ from common import argtypes
 from common.body import CHAINS, LIMB_CHAINS, BodyModel
 from common.errors import UserError
 from common.fitting import (
-    HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, _limb_centre_segments, _stage_backends, redetects,
-    solve_job, with_spine_prior,
+    HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, _limb_centre_segments, _stage_backends, full_energy,
+    redetects, with_spine_prior,
 )
+from common.search import FIT_JOBS, job_options, job_starts, solve_job
 from common.packing import packbits_masks
 from common.protocol import (
     MAX_CLIENT_MESSAGE_BYTES, MAX_PARTS, Error, Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve,
@@ -251,15 +252,16 @@ class _Claim:
 
 @dataclass
 class _Round:
-    """One dispatch: the limb chains of one iteration of one frame, or a round of hops (the
-    "chains" are then hop jobs, common.fitting.HOP_JOBS)."""
+    """One dispatch: the limb chains of one iteration of one frame, a round of hops or a round of
+    whole fits (the "chains" are then jobs of common.fitting.HOP_JOBS or common.search.FIT_JOBS),
+    each job with its own start and options."""
 
     frame: int
     iteration: int
-    params: np.ndarray
     chains: list
-    options: FitOptions
-    wire_options: dict
+    starts: dict                                         # chain -> (35,) its start
+    options: dict                                        # chain -> FitOptions
+    wire_options: dict                                   # chain -> options.to_wire()
     results: dict = field(default_factory=dict)         # chain -> ChainResult, the first checked
     claims: dict = field(default_factory=dict)          # chain -> _Claim, the first to arrive, unchecked
     pending: deque = field(default_factory=deque)        # chains nobody works on
@@ -276,11 +278,16 @@ class _Round:
         return (chain in self.results or chain in self.claims or chain in self.pending or chain in self.local
                 or any(r.chain == chain and not r.timed_out for r in self.requests.values()))
 
+    def kind(self, chain: str) -> tuple:
+        return _job_kind(chain, self.iteration, self.options[chain], self.wire_options[chain])
+
 
 def _job_kind(chain: str, iteration: int, options: FitOptions, wire_options: dict) -> tuple:
-    """Jobs whose solves take alike: hops, limb solves that search the limb's whole range, other
-    limb solves; each under its options (a first frame's wide search takes longer)."""
-    if chain in HOP_JOBS:
+    """Jobs whose solves take alike: whole fits, hops, limb solves that search the limb's whole
+    range, other limb solves; each under its options (a first frame's wide search takes longer)."""
+    if chain in FIT_JOBS:
+        kind = "fit"
+    elif chain in HOP_JOBS:
         kind = "hop"
     elif iteration == REDETECT_ROUND or (options.redetect_limbs and redetects(options.redetect_turn, chain, iteration)):
         kind = "search"
@@ -297,7 +304,9 @@ def score_job(frame: FrameData, job: str, start: np.ndarray, params: np.ndarray,
     a coarse-to-fine limb outside the re-detection round: its last (gl) stage places its windows
     at the first stage's result, which the message does not carry.
 
-    The server dispatches limb chains and hops only (torso and head it fits itself)."""
+    The server dispatches limb chains, hops and whole fits only (torso and head it fits itself)."""
+    if job in FIT_JOBS:
+        return full_energy(frame.model, frame, start), full_energy(frame.model, frame, params)
     if job in HOP_JOBS:
         objective = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
         before, after = (round(float(objective(p[None])[0])) for p in (start, params))
@@ -325,7 +334,7 @@ def check_result(frame: FrameData, result: ChainResult, start: np.ndarray, optio
     params = np.asarray(result.params, dtype=np.float64)
     if params.shape != start.shape or not np.all(np.isfinite(params)):
         return f"parameters of shape {params.shape}, not {start.shape} finite numbers"
-    if result.chain not in HOP_JOBS:
+    if result.chain in LIMB_CHAINS:
         others = np.ones(len(start), dtype=bool)
         others[list(CHAINS[result.chain].params)] = False
         if not np.array_equal(params[others], start[others]):
@@ -363,7 +372,6 @@ class ClusterSolver:
         self.heartbeat_interval, self.client_timeout = heartbeat_interval, client_timeout
         self.session = secrets.token_hex(8)
         self._frame_options = options  # each frame's own, from begin_frame
-        self._wire_options = options.to_wire()
         self._lock = threading.Condition()
         self._commands: queue.Queue = queue.Queue()
         self._peers: dict[bytes, _Peer] = {}
@@ -458,7 +466,7 @@ class ClusterSolver:
         if self._start_wall is None:
             self._start_wall, self._start_cpu = t0, time.process_time()
         self._data, self._current_frame = data, int(frame)
-        self._frame_options, self._wire_options = options, options.to_wire()
+        self._frame_options = options
         msg = Frame(session=self.session, frame=int(frame), cameras=camera_specs(data.studio),
                     silhouettes=packbits_masks(data.masks), previous_params=np.asarray(start).tolist(),
                     body_fingerprint=self.model.fingerprint)
@@ -467,9 +475,11 @@ class ClusterSolver:
             self._server["encode_seconds"] += time.perf_counter() - t0
         self._post(("frame", int(frame), parts))
 
-    def solve(self, chains: list, params: np.ndarray, iteration: int) -> Callable[[], list]:
-        rnd = _Round(self._current_frame, int(iteration), np.array(params, dtype=np.float64), list(chains),
-                     self._frame_options, self._wire_options)
+    def solve(self, chains: list, params, iteration: int, options=None) -> Callable[[], list]:
+        chains = list(chains)
+        opts = job_options(options, self._frame_options, len(chains))
+        rnd = _Round(self._current_frame, int(iteration), chains, dict(zip(chains, job_starts(params, len(chains)))),
+                     dict(zip(chains, opts)), {c: o.to_wire() for c, o in zip(chains, opts)})
         rnd.pending.extend(rnd.chains)
         with self._lock:
             self._round = rnd
@@ -568,12 +578,13 @@ class ClusterSolver:
                 self._check(rnd, chain, claim)
                 continue
             t0 = time.perf_counter()
-            result = solve_job(self.model, self._data, chain, rnd.params, rnd.options, rnd.iteration, rnd.frame)
+            result = solve_job(self.model, self._data, chain, rnd.starts[chain], rnd.options[chain], rnd.iteration,
+                               rnd.frame)
             seconds = time.perf_counter() - t0
             with self._lock:
                 self._server["local_compute_seconds"] += seconds
                 self._counts["local_chains"] += 1
-                self._measured(_job_kind(chain, rnd.iteration, rnd.options, rnd.wire_options), seconds)
+                self._measured(rnd.kind(chain), seconds)
                 rnd.local.discard(chain)
                 rnd.results.setdefault(chain, result)
                 self._lock.notify_all()
@@ -582,7 +593,7 @@ class ClusterSolver:
         """Use ``claim`` if its energies are its parameters' (``check_result``); else refuse it,
         queue its chain again and give its sender no more work."""
         t0 = time.perf_counter()
-        problem = check_result(self._data, claim.result, rnd.params, rnd.options, rnd.iteration)
+        problem = check_result(self._data, claim.result, rnd.starts[chain], rnd.options[chain], rnd.iteration)
         with self._lock:
             self._server["check_seconds"] += time.perf_counter() - t0
             stats = self._stats[claim.client_id]
@@ -930,11 +941,10 @@ class ClusterSolver:
             self._next_request += 1
             self._send_frame(peer)
             self._send(ident, Solve(session=self.session, frame=rnd.frame, iteration=rnd.iteration,
-                                    request=request, params=rnd.params.tolist(), chains=(chain,),
-                                    options=rnd.wire_options))
+                                    request=request, params=rnd.starts[chain].tolist(), chains=(chain,),
+                                    options=rnd.wire_options[chain]))
             peer.request = request
-            rnd.requests[request] = _Request(ident, chain, time.monotonic(),
-                                             _job_kind(chain, rnd.iteration, rnd.options, rnd.wire_options))
+            rnd.requests[request] = _Request(ident, chain, time.monotonic(), rnd.kind(chain))
 
     def _teardown(self) -> None:
         for name in ("_wake_tx", "_wake_rx", "monitor", "sock"):

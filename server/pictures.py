@@ -35,7 +35,7 @@ from common.errors import InputFileError, UserError
 from common.export import FittedMotion
 from common.sequence import Sequence, load_sequence
 from server.progress import Progress
-from server.session import SUMMARY_FILE, load_records
+from server.results import SUMMARY_FILE, load_records
 
 PICTURES_DIR = "pictures"
 GIF_NAME = "sequence.gif"

@@ -33,7 +33,7 @@ from server.pictures import (
     default_cameras, default_frames, fit_height, worst_frame, load_result, make_plots, model_views, overlay_strip,
     png_bytes,
 )
-from server.session import POSES_FILE
+from server.results import POSES_FILE
 from server.session import refinement_note, tracking_error_note
 
 REPORT_NAME = "report.html"

@@ -19,7 +19,7 @@ def test_fit_rows_time_tracking_and_the_refinement_from_one_run(tmp_path, monkey
     assert not list(scratch.iterdir())  # each run's result folder is removed
     by_mode = {r["mode"]: r for r in rows}
     assert list(by_mode) == ["single_xorpr", "single_xorpr_refined", "single_xor", "single_xorpr_no_turn_hypotheses",
-                             "single_xorpr_no_polish", "single_xorpr_2_hypotheses"]
+                             "single_xorpr_no_polish"]
     for r in rows:
         assert set(r) >= {"mode", "energy_backend", "seconds_per_frame", "paper_seconds_per_frame"}
         assert r["seconds_per_frame"] > 0 and r["frames"] == 2
@@ -50,7 +50,7 @@ def test_the_restart_tracks_the_last_frames_from_the_truth_of_the_first_of_them(
     frames that the last 20 are compared with), tracked with the options' tracking and no
     refinement."""
     from server import benchmarks
-    from server.session import load_records
+    from server.results import load_records
 
     seq, truth = small_loaded
     options = FitOptions(max_iterations=1, turn_hypotheses=0, refine_passes=1, refine_hops=2)

@@ -28,8 +28,10 @@ def reference(seq_path, tmp_path_factory):
 
 
 @pytest.mark.timeout(60)
-@pytest.mark.parametrize("n", [1, 2, 4, 6])
+@pytest.mark.parametrize("n", [0, 1, 2, 4, 6])
 def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
+    """Tracking's jobs (the limbs of a round, the whole fits of its starts, the limbs'
+    re-detection) handed to any number of clients, or none: the single-process poses."""
     options = FitOptions(refine_passes=0)
     solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     try:
@@ -47,11 +49,12 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     clients = [p for p in timing["processes"] if p["role"] == "client"]
     assert len(clients) == n
     limb_solves = sum(s["chain"] in LIMB_CHAINS for r in records(tmp_path) for s in r["solves"])
-    assert limb_solves >= sum(r["iterations"] for r in records(tmp_path)) * len(LIMB_CHAINS)
-    # every limb solve was done by a client or by the server; with 4+ clients all by clients
-    assert sum(p["chains"] for p in clients) + timing["local_chains"] == limb_solves
+    whole_fits = sum(r["whole_fits"] for r in records(tmp_path))
+    assert limb_solves >= len(LIMB_CHAINS) and whole_fits >= 3 * EQUAL_FRAMES  # the start and its two turns
+    # every job was done by a client or by the server, most by clients where there are some
+    assert sum(p["chains"] for p in clients) + timing["local_chains"] == limb_solves + whole_fits
     if n >= len(LIMB_CHAINS):
-        assert timing["local_chains"] == 0
+        assert timing["local_chains"] <= whole_fits
     assert timing["dropped"] == {} and timing["resent"] == 0
     assert timing["rejected"] == 0 and all(p["rejected"] == 0 for p in clients)  # honest results check
     for p in timing["processes"]:
@@ -98,24 +101,6 @@ def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_pat
             {"torso", "head", *LIMB_CHAINS}
 
 
-@pytest.mark.timeout(90)
-def test_two_hypotheses_same_poses_as_single_process(model, seq_path, tmp_path):
-    """Both schedules dispatch the same frame's iteration 0 in turn: the rounds must not mix."""
-    from server.session import LocalSolver
-
-    options = FitOptions(hypotheses=2, refine_passes=0)
-    seq = load_sequence(seq_path)
-    run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options), max_frames=EQUAL_FRAMES)
-    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
-    try:
-        with thread_workers(model, solver.endpoint, 2):
-            solver.wait_for_clients(2, timeout=10)
-            run_fit(model, seq, tmp_path / "cluster", options, solver, max_frames=EQUAL_FRAMES)
-    finally:
-        solver.close(shutdown="done")
-    np.testing.assert_array_equal(poses(tmp_path / "cluster"), poses(tmp_path / "single"))
-
-
 @pytest.mark.slow  # whole first-frame searches: make test-slow
 @pytest.mark.timeout(240)
 def test_automatic_start_same_poses_as_single_process(model, seq_path, tmp_path, monkeypatch):
@@ -149,8 +134,9 @@ def test_with_no_clients_the_server_solves_everything(model, seq_path, reference
     finally:
         solver.close()
     assert np.abs(poses(tmp_path) - reference[:1]).max() <= TOLERANCE
-    limb_solves = sum(s["chain"] in LIMB_CHAINS for s in records(tmp_path)[0]["solves"])
-    assert limb_solves > 0 and summary["timing"]["local_chains"] == limb_solves
+    record = records(tmp_path)[0]
+    limb_solves = sum(s["chain"] in LIMB_CHAINS for s in record["solves"])
+    assert limb_solves > 0 and summary["timing"]["local_chains"] == limb_solves + record["whole_fits"]
 
 
 @pytest.mark.timeout(60)
@@ -195,7 +181,8 @@ def test_bench_cluster_reports_the_comparison(seq_path):
     assert r["critical_path_speedup"] > 1.0
     names = [p["name"] for p in r["processes"]["distributed"]]
     assert names == ["server", "local-1", "local-2"]
-    assert set(r["chain_cpu_seconds_per_frame"]) == {"torso", "head", *LIMB_CHAINS}
+    assert r["jobs_per_round"] >= 3  # the whole fits of a frame's starts, the four limbs of a round
+    assert r["serial_seconds_per_frame"] > r["critical_path_seconds_per_frame"] > 0
     table = format_table(r)
     assert "3.300" in table and "1.160" in table
 

@@ -9,7 +9,8 @@ import pytest
 
 from common.body import CHAINS, PARAM_COUNT, clip_to_limits, forward_kinematics, rest_params
 from common.camera import circle_studio
-from common.energy import ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window, ellipsoid_world, make_energy
+from common.energy import ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window, ellipsoid_world
+from common.objective import make_energy
 from common.fitting import FrameData
 
 # Measured (64x32 sphere): 0.1% of the silhouette; 48x24 (used here, faster) about 0.2%.
@@ -155,7 +156,8 @@ def test_compiled_powell_takes_the_same_steps_as_optimize_powell(model, frame, r
     and iterations, for a limb in its window, the torso with its limbs held and the spine prior
     (half resolution), and all 35 parameters with the prior (a hop)."""
     from common.body import P
-    from common.fitting import FitOptions, HeldLimbs, SpinePrior, powell
+    from common.fitting import FitOptions, powell
+    from common.objective import HeldLimbs, SpinePrior
 
     data, truth = frame
     options = FitOptions()

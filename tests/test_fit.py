@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from common.body import CHAINS, JOINT_NAMES, LIMB_CHAINS, LIMB_ROOTS, P, PARAM_COUNT, PARAM_LIMITS, forward_kinematics
-from common.fitting import (HOP_JOBS, FitOptions, FrameData, fit_frame, full_energy, hop_fit, solve_chain, solve_job,
-                            solve_locally)
+from common.fitting import HOP_JOBS, FitOptions, FrameData, full_energy, hop_fit, solve_chain
+from common.search import POLISHED, Context, Schedule, Stage, fit_frame, run_schedule, solve_locally
 from server.cli import main
 
 from conftest import SMALL_FRAMES
@@ -25,6 +25,13 @@ MAX_JOINT_ERROR_MM = 60.0
 SUMMARY_KEYS = ("frames", "mode", "clients", "energy_backend", "seconds_per_frame", "wall_seconds",
                 "evaluations_per_frame", "mean_joint_error_mm", "max_joint_error_mm", "per_joint_error_mm")
 RECORD_KEYS = ("frame", "params", "joints", "energy", "seconds")
+
+
+def one_stage(model, data, stages, fit=None, options=None, **context):
+    """The lowest of ``fit`` and the fits of one schedule stage or a few (``common.search``)."""
+    options = options or FitOptions()
+    ctx = Context(model, data, options, solve_locally(model, data, options), **context)
+    return run_schedule(ctx, Schedule(stages if isinstance(stages, tuple) else (stages,)), initial=fit)
 
 
 def joint_errors_mm(model, params, truth_frame) -> np.ndarray:
@@ -86,15 +93,6 @@ def test_solve_chain_is_deterministic(model, frames):
     assert (a.energy, a.evaluations) == (b.energy, b.evaluations)
 
 
-def test_two_hypotheses_keep_the_lower_energy(model, frames):
-    data, truth = frames
-    one = fit_frame(model, data[1], truth[0].params, FitOptions())
-    two = fit_frame(model, data[1], truth[0].params, FitOptions(hypotheses=2))
-    assert two.energy <= one.energy
-    assert two.energy == full_energy(model, data[1], two.params)
-    assert len(two.chains) > len(one.chains) and two.evaluations > one.evaluations
-
-
 def test_polishing_takes_the_best_hypothesis_further(model, five_frames):
     """From three frames back, two rounds per hypothesis stop short; the polishing rounds go on
     from the best of them and lower the energy and the error."""
@@ -118,7 +116,7 @@ def test_turn_hypotheses_undo_a_start_turned_from_the_truth(model, frames):
     """A start turned 0.15 rad about the vertical from frame 2's true pose: the hierarchy alone
     stays turned (torso and limbs each fit well where they are); fitted again from the start
     turned back, the whole body lands on the truth, whose energy is lower."""
-    from common.fitting import turned
+    from common.proposals import turned
 
     data, truth = frames
     start = turned(truth[2].params, 0.15)
@@ -134,7 +132,7 @@ def test_turn_hypotheses_undo_a_start_turned_from_the_truth(model, frames):
 
 
 def test_midway_is_the_mean_pose_within_the_joint_limits():
-    from common.fitting import midway
+    from common.proposals import midway
 
     rng = np.random.default_rng(5)
     a, b = rng.normal(0.0, 1.0, (2, PARAM_COUNT))
@@ -149,7 +147,7 @@ def test_midway_is_the_mean_pose_within_the_joint_limits():
 
 
 def test_tilted_ahead_follows_the_pelvis_tilt_only_while_it_moves(model, frames):
-    from common.fitting import TILT_AHEAD_RAD, TILT_MOVING_RAD, tilted_ahead
+    from common.proposals import TILT_AHEAD_RAD, TILT_MOVING_RAD, tilted_ahead
 
     _, truth = frames
     x = truth[2].params
@@ -170,7 +168,7 @@ def test_tilted_ahead_follows_the_pelvis_tilt_only_while_it_moves(model, frames)
 def test_a_tilted_ahead_start_catches_a_pelvis_the_fit_trails(model, frames):
     """A start whose pelvis trails the truth's forward tilt by 0.25 rad, having moved that way
     since the frame before: the tilted-ahead start lands on the truth, and wins on energy."""
-    from common.fitting import TILT_AHEAD_RAD, tilted_ahead
+    from common.proposals import TILT_AHEAD_RAD
 
     data, truth = frames
     options = FitOptions(turn_hypotheses=0, redetect_limbs=False)
@@ -179,7 +177,7 @@ def test_a_tilted_ahead_start_catches_a_pelvis_the_fit_trails(model, frames):
     before = lagging.copy()
     before[P["root_tilt_x"]] -= 0.1
     plain = fit_frame(model, data[2], lagging, options)
-    ahead = fit_frame(model, data[2], lagging, options, extra_starts=tilted_ahead(lagging, before))
+    ahead = fit_frame(model, data[2], lagging, options, before=before)
     assert ahead.energy < plain.energy
     assert abs(ahead.params[P["root_tilt_x"]] - truth[2].params[P["root_tilt_x"]]) < 0.02
     assert joint_errors_mm(model, ahead.params, truth[2]).mean() < joint_errors_mm(model, plain.params, truth[2]).mean()
@@ -216,7 +214,8 @@ def test_redetection_finds_a_lost_arm(model, small_loaded):
 def test_limb_alternatives_find_a_forearm_folded_away(model, small_loaded):
     """A forearm folded back along its upper arm, the elbow at its limit: among the arm's other
     basins is the true one, and refitting the frame from it lowers the energy."""
-    from common.fitting import BASIN_SEPARATION_M, distinct_rows, fit_frame, limb_alternatives, limb_joints
+    from common.fitting import BASIN_SEPARATION_M, distinct_rows, limb_joints
+    from common.proposals import limb_alternatives
 
     seq, truth = small_loaded
     f = seq.frames[1]
@@ -269,8 +268,6 @@ def test_fit_options_validate_and_travel():
         FitOptions(energy="quantum")
     with pytest.raises(ValueError, match="grid_steps"):
         FitOptions(grid_steps=4)
-    with pytest.raises(ValueError, match="hypotheses"):
-        FitOptions(hypotheses=3)
     with pytest.raises(ValueError, match="turn_hypotheses"):
         FitOptions(turn_hypotheses=-1)
     with pytest.raises(ValueError, match="polish_iterations"):
@@ -443,7 +440,7 @@ def test_fit_truncated_png_is_refused_before_anything_is_written(broken_copy, tm
 # ------------------------------------------------------------------ loss of tracking
 
 def test_tracking_lost_is_a_jump_over_the_recent_median():
-    from server.session import tracking_lost
+    from common.search import tracking_lost
 
     assert not tracking_lost([1000, 1010], 5000)  # too little history to judge
     assert not tracking_lost([1000, 1010, 990, 1005], 1100)
@@ -528,7 +525,7 @@ def test_a_refinement_pass_fits_each_inner_frame_from_halfway_between_its_neighb
     """Each frame with a neighbour on both sides is also fitted from the mean of the fit the
     pass just left behind it (refined) and the fit ahead of it (not yet refined); the end frames
     are not, and every frame keeps the lowest energy of its fits."""
-    from common.fitting import midway
+    from common.proposals import midway
     from common.sequence import load_sequence
     from server import session
     from server.session import LocalSolver, RunStats, refine_pass, run_fit
@@ -537,14 +534,16 @@ def test_a_refinement_pass_fits_each_inner_frame_from_halfway_between_its_neighb
     options = FitOptions(refine_passes=0)
     run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=4)
     records = read_lines(tmp_path / "poses.jsonl")
+    from common import search
+
     starts = []
-    fits = session.whole_body_fits
+    fits = search.fit_starts
 
-    def spy(model, data, frame, frame_starts, options, solver):
-        starts.extend((frame, np.array(s)) for s in frame_starts)
-        return fits(model, data, frame, frame_starts, options, solver)
+    def spy(ctx, jobs):
+        starts.extend((ctx.frame_number, np.array(s)) for s, _ in jobs)
+        return fits(ctx, jobs)
 
-    monkeypatch.setattr(session, "whole_body_fits", spy)
+    monkeypatch.setattr(search, "fit_starts", spy)
     monkeypatch.setattr(session, "PASS_START_HOPS", 0)
     refined, _ = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats(), backward)
     step = -1 if backward else 1
@@ -555,7 +554,8 @@ def test_a_refinement_pass_fits_each_inner_frame_from_halfway_between_its_neighb
     for end in (order[0], order[-1]):
         ends = [s for f, s in starts if f == records[end]["frame"]]
         assert not any(np.allclose(s, midway(a["params"], b["params"])) for s in ends
-                       for a in (*records, *refined) for b in (*records, *refined))
+                       for a in (*records, *refined) for b in (*records, *refined)
+                       if not np.allclose(a["params"], b["params"]))  # halfway between two fits
     assert all(r["energy"] <= b["energy"] for r, b in zip(refined, records))
 
 
@@ -582,14 +582,14 @@ def test_a_searching_pass_refits_a_frame_from_its_limbs_other_basins(model, five
     spoilt[P["l_elbow"]] = PARAM_LIMITS[P["l_elbow"], 1]
     data = FrameData(model, seq.studio, seq.silhouettes(records[-1]["frame"]))
     records[-1].update(params=spoilt.tolist(), energy=full_energy(model, data, spoilt))
+    arm = [JOINT_NAMES.index("l_elbow"), JOINT_NAMES.index("l_wrist")]
+    truth = seq.truth()[records[-1]["frame"]]
     plain, _ = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats())
-    assert plain[-1] == records[-1]
+    assert joint_errors_mm(model, np.array(plain[-1]["params"]), truth)[arm].max() > 100.0  # the arm stays folded
     searched, replaced = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats(),
                                      search=True)
     assert replaced >= 1 and searched[-1]["energy"] < records[-1]["energy"]
     assert all(r["energy"] <= b["energy"] for r, b in zip(searched, records))
-    arm = [JOINT_NAMES.index("l_elbow"), JOINT_NAMES.index("l_wrist")]
-    truth = seq.truth()[searched[-1]["frame"]]
     assert joint_errors_mm(model, np.array(searched[-1]["params"]), truth)[arm].max() < 50.0
 
 
@@ -597,7 +597,7 @@ def test_arm_twists_turn_the_upper_arm_about_itself_and_bend_the_elbow(model):
     """Each turned start keeps the elbow where it is and moves the wrist round it, a different
     place per turn; the elbow is bent at least ARM_TWIST_ELBOW_RAD; nothing else changes."""
     from common.body import rest_params
-    from common.fitting import ARM_TWIST_ELBOW_RAD, ARM_TWISTS, arm_twists
+    from common.proposals import ARM_TWIST_ELBOW_RAD, ARM_TWISTS, arm_twists
 
     rng = np.random.default_rng(3)
     params = rest_params(model)
@@ -620,12 +620,11 @@ def test_arm_twists_turn_the_upper_arm_about_itself_and_bend_the_elbow(model):
 def test_a_straight_arm_twisted_half_a_turn_is_turned_back(model, five_frames):
     """The left arm of a walk frame's truth turned half a turn about itself and straightened, as
     the walk's first frame was found: the hierarchy's fit from there keeps it (the wrist over
-    50 mm off, measured 72), ``arm_twist_fits`` turns it back (under 30 mm, measured 18) at a
-    lower energy, unless the neighbour frame's arm is twisted as it is. A bent arm is not
-    tried: its twist shows."""
-    from common.fitting import ARM_TWIST_MAX_ELBOW_RAD, arm_twist_alternative, arm_twists
+    50 mm off, measured 72), the ``twists`` proposer turns it back (under 30 mm) at a lower
+    energy, unless the neighbour frame's arm is twisted as it is. A bent arm is not tried: its
+    twist shows."""
+    from common.proposals import ARM_TWIST_MAX_ELBOW_RAD, arm_twist_alternative, arm_twists
     from common.sequence import load_sequence
-    from server.session import LocalSolver, arm_twist_fits
 
     seq = load_sequence(five_frames)
     frame = seq.frames[0]
@@ -636,14 +635,14 @@ def test_a_straight_arm_twisted_half_a_turn_is_turned_back(model, five_frames):
     start[P["l_elbow"]] = PARAM_LIMITS[P["l_elbow"], 0]
     twisted = fit_frame(model, data, start, options)
     assert joint_errors_mm(model, twisted.params, truth).max() > 50.0
-    solver = LocalSolver(model, options)
     for neighbour in (None, truth.params):  # no neighbour (a first frame), or one with the true twist
-        fits = arm_twist_fits(model, data, frame, twisted.params, options, solver, neighbour)
-        best = min(fits, key=lambda f: f.energy)
+        best = one_stage(model, data, Stage(("twists",)), twisted, start=neighbour)
         assert best.energy < twisted.energy
         assert joint_errors_mm(model, best.params, truth).max() < 30.0
-    # a neighbour whose arm is twisted as this one is: no turn is towards it
-    assert arm_twist_fits(model, data, frame, twisted.params, options, solver, twisted.params) == []
+    # a neighbour whose arm is twisted as this one is: no turn is towards it, nothing fitted
+    kept = one_stage(model, data, Stage(("twists",)), twisted, start=twisted.params)
+    np.testing.assert_array_equal(kept.params, twisted.params)
+    assert kept.evaluations == twisted.evaluations
     bent = twisted.params.copy()
     bent[P["l_elbow"]] = ARM_TWIST_MAX_ELBOW_RAD
     assert arm_twist_alternative(model, data, "left_arm", bent, options) is None
@@ -664,15 +663,15 @@ def test_hops_take_a_torso_and_leg_off_together_towards_the_truth(model, five_fr
     start = np.array(truth.params, dtype=np.float64)
     for name, change in {"l_hip_x": -0.3, "l_hip_y": 0.2, "root_tilt_x": 0.1, "spine_x": -0.15}.items():
         start[P[name]] += change
-    options = FitOptions(refine_hops=20)
+    options = FitOptions()
     fitted = fit_frame(model, data, clip_to_limits(start), options)
-    hopped = hop_fit(fitted.params, options, solve_locally(model, data, options, frame))
+    hopped = hop_fit(fitted.params, 20, options, solve_locally(model, data, options, frame))
     assert full_energy(model, data, hopped.params) < fitted.energy
     assert hopped.energy < hopped.chains[0].energy_before  # the objective, spine prior included
     # measured: 15.1 -> 11.4 mm (with the hops seeded by frames 2-6 instead: 10.1-12.4 mm)
     assert joint_errors_mm(model, hopped.params, truth).mean() < joint_errors_mm(model, fitted.params, truth).mean() - 2.0
     assert len(hopped.chains) == 20 and hopped.energy == min(c.energy for c in hopped.chains)
-    assert np.array_equal(hop_fit(fitted.params, options, solve_locally(model, data, options, frame)).params,
+    assert np.array_equal(hop_fit(fitted.params, 20, options, solve_locally(model, data, options, frame)).params,
                           hopped.params)
 
 
@@ -689,15 +688,15 @@ def test_hops_side_by_side_give_the_hops_one_after_another(model, five_frames, s
     start = np.array(seq.truth()[frame].params, dtype=np.float64)
     start[P["spine_x"]] += 0.2
     start[P["r_shoulder_x"]] -= 0.4
-    options = FitOptions(refine_hops=9)
-    one = hop_fit(start, options, solve_locally(model, data, options, frame))
+    options = FitOptions()
+    one = hop_fit(start, 9, options, solve_locally(model, data, options, frame))
     rounds = []
 
-    def dispatch(jobs, params, iteration):
+    def dispatch(jobs, params, iteration, job_options=None):
         rounds.append((len(jobs), iteration))
-        return solve_locally(model, data, options, frame)(jobs, params, iteration)
+        return solve_locally(model, data, options, frame)(jobs, params, iteration, job_options)
 
-    together = hop_fit(start, options, dispatch, side_by_side)
+    together = hop_fit(start, 9, options, dispatch, side_by_side)
     assert np.array_equal(together.params, one.params) and together.energy == one.energy < one.chains[0].energy_before
     assert together.evaluations == one.evaluations  # those of the hops one after another
     # more hops ran than were kept: some started from a pose a hop beside them had bettered
@@ -706,18 +705,16 @@ def test_hops_side_by_side_give_the_hops_one_after_another(model, five_frames, s
     assert sum(n for n, _ in rounds) == len(together.chains)
 
 
-def test_a_hop_that_the_options_do_not_have_is_refused(model, five_frames):
+def test_hop_fit_refuses_no_hops_and_too_many_side_by_side(model, five_frames):
     from common.sequence import load_sequence
 
     seq = load_sequence(five_frames)
     data = FrameData(model, seq.studio, seq.silhouettes(seq.frames[0]))
     start = np.array(seq.truth()[seq.frames[0]].params)
-    with pytest.raises(ValueError, match="hop2 of round 0 is hop 2; refine_hops=2"):
-        solve_job(model, data, "hop2", start, FitOptions(refine_hops=2), 0, 0)
-    with pytest.raises(ValueError, match="refine_hops >= 1"):
-        hop_fit(start, FitOptions(), solve_locally(model, data, FitOptions()))
+    with pytest.raises(ValueError, match="hops >= 1"):
+        hop_fit(start, 0, FitOptions(), solve_locally(model, data, FitOptions()))
     with pytest.raises(ValueError, match="side_by_side"):
-        hop_fit(start, FitOptions(refine_hops=1), solve_locally(model, data, FitOptions()), len(HOP_JOBS) + 1)
+        hop_fit(start, 1, FitOptions(), solve_locally(model, data, FitOptions()), len(HOP_JOBS) + 1)
 
 
 def test_fit_refuses_a_search_without_refinement_passes(small_sequence, tmp_path, capsys):
@@ -802,7 +799,8 @@ def test_refinement_passes_alternate_and_keep_the_tracking_fit_and_its_accuracy(
     """Two passes after tracking: backward then forward, poses.jsonl rewritten with the lower
     energies, and the summary scoring both the refined frames and the frames as tracked."""
     from common.sequence import load_sequence
-    from server.session import LocalSolver, accuracy, run_fit
+    from common.scoring import accuracy
+    from server.session import LocalSolver, run_fit
 
     seq = load_sequence(five_frames)
     tracked = run_fit(model, seq, tmp_path / "tracked", FitOptions(refine_passes=0),
@@ -876,7 +874,7 @@ def test_voxel_starts_cover_four_headings_upright_and_bent_and_head_down(model, 
     from common.body import P
     from common.ellipsoid_fit import HEAD_DOWN_ROLLS
     from common.sequence import load_sequence
-    from server.session import POSTURE_STARTS_KEPT, STANDING_START_TILTS_RAD, STANDING_START_TURNS_RAD, voxel_starts
+    from common.proposals import POSTURE_STARTS_KEPT, STANDING_START_TILTS_RAD, STANDING_START_TURNS_RAD, voxel_starts
 
     seq = load_sequence(five_frames)
     frame = seq.frames[0]
@@ -912,7 +910,8 @@ def test_a_head_down_actor_is_found_from_the_voxels(model):
     from common.body import rest_params, skinned_vertices
     from common.camera import circle_studio
     from common.render_gl import MeshRenderer
-    from server.session import SEARCH_HOPS, LocalSolver, search_frame, voxel_starts
+    from common.proposals import voxel_starts
+    from common.search import SEARCH_HOPS, search_frame
 
     p = rest_params(model, position=(0.1, -0.2, 0.9), heading=0.7)
     p[P["root_tilt_x"]], p[P["root_tilt_y"]] = 2.4, 0.5  # head down, leaning
@@ -924,18 +923,17 @@ def test_a_head_down_actor_is_found_from_the_voxels(model):
     labels = MeshRenderer(studio, model.triangles, model.triangle_segment).render_labels(skinned_vertices(model, pose))
     data = FrameData(model, studio, np.array([label >= 0 for label in labels]))
     options = FitOptions()
-    found = search_frame(model, data, 0, voxel_starts(model, data), options, LocalSolver(model, options))
+    found = search_frame(model, data, voxel_starts(model, data), options, solve_locally(model, data, options))
     error_mm = np.linalg.norm(forward_kinematics(model, found.params).joints[0] - pose.joints[0], axis=1) * 1000
     assert error_mm.mean() < 50.0, dict(zip(JOINT_NAMES, error_mm.round()))
     assert sum(c.chain in HOP_JOBS for c in found.chains) >= SEARCH_HOPS  # the search ends with hops
 
 
 @pytest.mark.timeout(300)
-def test_fit_from_starts_keeps_the_start_that_explains_the_images(model, five_frames):
+def test_a_starts_stage_keeps_the_start_that_explains_the_images(model, five_frames):
     """One start 0.6 m beside the actor, one near the truth: the near one wins, and both
     starts' solves are counted."""
     from common.sequence import load_sequence
-    from server.session import LocalSolver, fit_from_starts
 
     seq = load_sequence(five_frames)
     frame = seq.frames[0]
@@ -945,53 +943,43 @@ def test_fit_from_starts_keeps_the_start_that_explains_the_images(model, five_fr
     aside[0] += 0.6
     near = truth.params.copy()
     near[0] += 0.03
-    options = FitOptions()
-    alone = fit_frame(model, data, near, options)
-    both = fit_from_starts(model, data, frame, [aside, near], [options], LocalSolver(model, options))
+    options = FitOptions(turn_hypotheses=0)
+    alone = one_stage(model, data, Stage(("starts",)), starts=(near,), options=options)
+    both = one_stage(model, data, Stage(("starts",)), starts=(aside, near), options=options)
     assert both.energy <= alone.energy
     assert joint_errors_mm(model, both.params, truth).mean() < 20.0
-    assert len(both.chains) > len(alone.chains)
+    assert both.evaluations > alone.evaluations
 
 
-def test_fit_from_starts_refits_the_lowest_few_and_keeps_the_lowest_refit(monkeypatch):
-    """The lowest fit of a start need not refit lowest: the second-lowest refits below it and
-    wins; fits beyond REFITTED_STARTS are not refitted; every fit's solves are counted; a refit
-    uses the options its fit was found with."""
+def test_the_search_loop_refits_the_lowest_few_and_stops_when_a_round_gains_too_little(monkeypatch):
+    """The search loop with fits faked (a pose is one number; fitting b lands on FIT[b], the
+    "every" variant 5 lower in energy): the beam proposes from its lowest fits, each under the
+    variant it was fitted with; a stage stops after a round that gains less than ``min_gain``; a
+    start fitted once under a variant is not fitted again; every fit is counted; the lowest is
+    kept, the first on a tie."""
+    from common import search
     from common.fitting import FrameResult
-    from server import session
 
-    # a fake fit: a pose is one number, its basin; a start's fit stays in the start's basin, a
-    # refit moves basin b to REFIT[b]; the second options lower every energy by 5
-    energy = {0: 100, 1: 110, 2: 120, 3: 130, 10: 99, 11: 80, 21: 79}
-    refit = {0: 10, 1: 11, 10: 10, 11: 21, 21: 21}
-    calls = []
+    FIT = {2: 12, 0: 10, 3: 13, 1: 11, 10: 20, 20: 20}
+    ENERGY = {12: 120, 10: 100, 13: 130, 11: 110, 20: 90}
+    fitted = []
 
-    def fake_fit(model, data, start, options, dispatch, **_):
-        basin = int(start[0])
-        moved = refit[basin] if len(calls) >= initial else basin
-        calls.append((basin, options))
-        return FrameResult(np.array([float(moved)]), energy[moved] - 5 * (options is second), 1, 1, chains=[basin])
+    def fake_fit_starts(ctx, jobs):
+        fitted.extend((int(start[0]), variant) for start, variant in jobs)
+        return [FrameResult(np.array([float(FIT[int(start[0])])]),
+                            ENERGY[FIT[int(start[0])]] - 5 * (variant == "every"), 1, 1, variant=variant)
+                for start, variant in jobs]
 
-    class Solver:
-        solve = None
-
-        def begin_frame(self, *args):
-            pass
-
-    monkeypatch.setattr(session, "fit_frame", fake_fit)
-    monkeypatch.setattr(session, "inversion_cost", lambda *_: 0.0)
-    monkeypatch.setattr(session, "REFITTED_STARTS", 2)
-    first, second = FitOptions(), FitOptions(redetect_turn="all")
-    initial = 4
-    found = session.fit_from_starts(None, None, 0, [np.array([b]) for b in (2, 0, 3, 1)], [first], Solver())
-    assert (found.params[0], found.energy) == (21, 79)  # 1 (110) refits to 21, below 0 (100) refitted: 99
-    assert [basin for basin, _ in calls[initial:]] == [0, 10, 1, 11, 21]  # 2 and 3 not refitted
-    assert sorted(found.chains) == sorted(basin for basin, _ in calls)
-    calls.clear()
-    monkeypatch.setattr(session, "REFITTED_STARTS", 1)
-    found = session.fit_from_starts(None, None, 0, [np.array([3]), np.array([1])], [first, second], Solver())
-    assert (found.params[0], found.energy) == (21, 74)
-    assert [options for _, options in calls[initial:]] == [second] * 3
+    monkeypatch.setattr(search, "fit_starts", fake_fit_starts)
+    ctx = Context(None, None, FitOptions(), None, starts=tuple(np.array([b]) for b in (2, 0, 3, 1)))
+    schedule = Schedule((Stage(("starts",), ("track", "every")),
+                         Stage(("again",), None, rounds=3, min_gain=0.01, beam=2),
+                         Stage(("starts",), ("track",))))  # fitted already: nothing to do
+    found = run_schedule(ctx, schedule)
+    assert fitted == [(b, v) for b in (2, 0, 3, 1) for v in ("track", "every")] + [
+        (10, "every"), (10, "track"),  # round 1: the two lowest (10 every: 95, 10 track: 100), 95 -> 85
+        (20, "every"), (20, "track")]  # round 2: 85 stays 85, so no round 3
+    assert (found.params[0], found.energy, found.variant, found.evaluations) == (20, 85, "every", 12)
 
 
 def test_which_limbs_are_redetected_when():
@@ -1018,7 +1006,6 @@ def test_a_frame_fitted_with_its_legs_swapped_is_put_right(model, five_frames):
     from the legs swapped back, as a searched frame is, it is within 15 mm."""
     from common.body import swap_sides
     from common.sequence import load_sequence
-    from server.session import LocalSolver, swapped_side_fits
 
     seq = load_sequence(five_frames)
     frame = seq.frames[2]
@@ -1027,15 +1014,13 @@ def test_a_frame_fitted_with_its_legs_swapped_is_put_right(model, five_frames):
     options = FitOptions()
     swapped = fit_frame(model, data, swap_sides(truth.params, "leg"), options)
     assert joint_errors_mm(model, swapped.params, truth).max() > 200.0
-    fits = swapped_side_fits(model, data, frame, swapped.params, options, LocalSolver(model, options))
-    assert len(fits) == 2  # legs swapped, arms swapped
-    best = min(fits, key=lambda f: f.energy)
+    best = one_stage(model, data, Stage(("swaps",)), swapped)  # legs swapped, arms swapped
     assert best.energy < swapped.energy and joint_errors_mm(model, best.params, truth).mean() < 15.0
 
 
 def test_rotated_about_pelvis_carries_the_whole_body_about_the_pelvis_axes(model, frames):
     from common.body import rotvec_to_matrix
-    from common.fitting import rotated_about_pelvis, turned
+    from common.proposals import rotated_about_pelvis, turned
 
     _, truth = frames
     x = truth[2].params.copy()
@@ -1061,9 +1046,8 @@ def test_a_body_rotated_off_the_truth_is_rotated_back(model, five_frames):
     """Frame 2 fitted from its true pose leaned 0.6 rad forward about the pelvis, limbs carried
     along, stays leaned (measured: 27 mm mean): the torso alone and each limb alone fit
     well where they are. The rotated fits of a search take it back within 15 mm (measured: 10 mm)."""
-    from common.fitting import rotated_about_pelvis
+    from common.proposals import rotated_about_pelvis
     from common.sequence import load_sequence
-    from server.session import LocalSolver, rotated_body_fits
 
     seq = load_sequence(five_frames)
     frame = seq.frames[2]
@@ -1072,6 +1056,6 @@ def test_a_body_rotated_off_the_truth_is_rotated_back(model, five_frames):
     options = FitOptions()
     leaned = fit_frame(model, data, rotated_about_pelvis(model, truth.params, 0, 0.6), options)
     assert joint_errors_mm(model, leaned.params, truth).mean() > 20.0
-    found = rotated_body_fits(model, data, frame, leaned, options, LocalSolver(model, options))
+    found = one_stage(model, data, (Stage(("rotations",), ("deep",), rounds=3), *POLISHED), leaned)
     assert joint_errors_mm(model, found.params, truth).mean() < 15.0
     assert found.energy < leaned.energy

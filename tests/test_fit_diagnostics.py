@@ -51,7 +51,7 @@ def test_chains_put_one_at_a_time_at_the_truth(small_sequence, tmp_path, capsys)
     between the frame's neighbours; a frame not fitted is refused."""
     from common.body import CHAINS
     from common.sequence import load_sequence
-    from server.session import load_records
+    from server.results import load_records
 
     assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "fit"), "--quiet", "--frames", "3"]) == 0
     frames = load_sequence(small_sequence).frames

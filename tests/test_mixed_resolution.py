@@ -16,7 +16,8 @@ from common.camera import Studio
 from common.energy import ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window
 from common.errors import UserError
 from common.export import FittedMotion
-from common.fitting import FitOptions, FrameData, fit_frame
+from common.fitting import FitOptions, FrameData
+from common.search import fit_frame
 from common.motion_import import import_bvh
 from common.packing import (clear_padding, downsample_masks, inside_images, pack_planes, packbits_masks, pad_stack,
                             padded_shape, unpack_planes, unpackbits_masks)

@@ -13,7 +13,7 @@ from scipy.ndimage import binary_dilation, binary_erosion
 from common.body import JOINT_NAMES, P, forward_kinematics, rigid_vertices, skinned_vertices
 from common.calibration import load_calibration
 from common.camera import Studio
-from common.fitting import undistort_masks
+from common.frame import undistort_masks
 from common.postures import POSTURES
 from common.synth import (DISTORTION_K2_PER_K1, PROP_LABEL, SynthOptions, place_prop, posture_motion, synth_studio,
                           synthesize)

@@ -66,7 +66,8 @@ def test_seated_posture_bends_hips_and_knees_and_variation_is_seeded():
 
 
 def test_blobs_one_camera_sees_alone_are_dropped_and_the_actor_kept():
-    from common.energy import EnergySetup, Window, make_energy
+    from common.energy import EnergySetup, Window
+    from common.objective import make_energy
     model = load_body_model()
     studio = circle_studio(6, 160, 120)
     params = posture_params(model, "seated")
@@ -120,13 +121,12 @@ def test_the_actor_size_changes_only_for_a_clear_gain(monkeypatch, model, energi
     seq = type("Seq", (), {"frames": [0]})()
     monkeypatch.setattr(session, "frame_data", lambda *_: None)
     monkeypatch.setattr(session, "voxel_starts", lambda *_: [])
-    monkeypatch.setattr(session, "fit_from_starts",
-                        lambda m, d, f, starts, opts, solver: FrameResult(np.zeros(35), 100.0, 1, 1))
+    monkeypatch.setattr(session, "run_schedule", lambda ctx, schedule: FrameResult(np.zeros(35), 100.0, 1, 1))
 
-    def fake_fit(actor, data, start, options, dispatch, **_):
+    def fake_fit(actor, data, start, options, dispatch):
         return FrameResult(start, energies[round(actor.height / model.height, 2)], 1, 1)
 
-    monkeypatch.setattr(session, "fit_frame", fake_fit)
+    monkeypatch.setattr(session, "fit_rounds", fake_fit)
     assert session.choose_actor_scale(model, seq, FitOptions()) == chosen
 
 
@@ -138,7 +138,8 @@ def test_posture_starts_face_the_way_the_actor_does(tmp_path, model, posture):
     from common.camera import circle_studio
     from common.sequence import load_sequence
     from common.synth import SynthOptions, synthesize
-    from server.session import frame_data, posture_starts
+    from common.proposals import posture_starts
+    from server.session import frame_data
 
     synthesize(model, circle_studio(6, 160, 120), None, tmp_path / "seq",
                SynthOptions(frames=1, posture=posture, noise="none", seed=1))

@@ -36,10 +36,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from common.body import CHAINS, P, forward_kinematics, load_body_model  # noqa: E402
-from common.fitting import FitOptions, FrameData, fit_frame, full_energy, midway  # noqa: E402
+from common.fitting import FitOptions, FrameData, full_energy  # noqa: E402
+from common.proposals import midway  # noqa: E402
+from common.search import fit_frame  # noqa: E402
 from common.retarget import nearest_turn  # noqa: E402
 from common.sequence import load_sequence, write_sequence_meta  # noqa: E402
-from server.session import LocalSolver, joint_errors_mm, load_records, run_fit  # noqa: E402
+from common.scoring import joint_errors_mm  # noqa: E402
+from server.results import load_records  # noqa: E402
+from server.session import LocalSolver, run_fit  # noqa: E402
 
 WINDOW = 20  # frames in the first and last windows of the drift comparison
 LINE_POINTS = 11  # poses on the straight line from a fit to the truth, both ends included

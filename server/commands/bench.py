@@ -41,7 +41,6 @@ def register(sub) -> None:
     v.add_argument("--json", type=Path, default=None)
     acc = bsub.add_parser("accuracy", help="joint error on walk, dance and basketball clips (virtual studio)")
     acc.add_argument("--frames", type=count(1), default=100)
-    acc.add_argument("--hypotheses", type=int, choices=(1, 2), default=1, help="as mocap fit --hypotheses")
     acc.add_argument("--turn-hypotheses", type=count(0), default=None, metavar="N",
                      help="as mocap fit --turn-hypotheses (default: its default)")
     acc.add_argument("--turn-step", type=real(0.0, math.pi, exclusive_minimum=True), default=None, metavar="RAD",
@@ -159,7 +158,7 @@ def run(args) -> int:
                                                      ("refine_hops", args.refine_hops),
                                                      ("spine_twist_prior", args.spine_twist_prior)) if value is not None}
             for backend in [b for b in args.energy.split(",") if b]:
-                options = _fit_options(energy=backend, hypotheses=args.hypotheses,
+                options = _fit_options(energy=backend,
                                        redetect_limbs=not args.no_redetect, **chosen)
                 rows += benchmarks.accuracy_rows(args.frames, Path(tmp), options=options, restart=not args.no_restart)
             _emit(rows, args.json)

@@ -17,8 +17,8 @@ from server.cluster import LocalCluster, add_cluster_arguments, terminate_on_sig
 from server.config import PRESETS
 from server.progress import Progress
 from server.output import add_overwrite_argument, check_folder_target, replace_file
-from server.session import (MOTION_FILE, POSES_FILE, RESULT_FILES, LocalSolver, choose_actor_scale, load_records, read_done_frames,
-                            refinement_note, run_fit, tracking_error_note)
+from server.results import MOTION_FILE, POSES_FILE, RESULT_FILES, load_records, read_done_frames
+from server.session import LocalSolver, choose_actor_scale, refinement_note, run_fit, tracking_error_note
 
 INIT_CHOICES = ("auto", "truth", "standing")
 
@@ -41,9 +41,6 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--grid-range", type=non_negative, default=FitOptions.grid_range_rad,
                    help="limb grid half-width, rad")
     p.add_argument("--no-prerender", action="store_true", help="render every part in every evaluation")
-    p.add_argument("--hypotheses", type=int, choices=(1, 2), default=FitOptions.hypotheses,
-                   help="2: fit each frame with both first-round torso schedules and keep the better "
-                        "(more accurate, twice the time)")
     p.add_argument("--turn-hypotheses", type=count(0), default=FitOptions.turn_hypotheses, metavar="N",
                    help="also fit each frame from the start turned by -+1..N turn steps about the vertical and "
                         f"keep the lowest energy (default {FitOptions.turn_hypotheses}; 0: off, a fifth of the time)")
@@ -89,7 +86,7 @@ def options_from_args(args) -> FitOptions:
     try:
         return FitOptions(energy=args.energy, max_iterations=args.iterations, grid_steps=args.grid_steps,
                           grid_range_rad=args.grid_range, prerender=not args.no_prerender,
-                          hypotheses=args.hypotheses, turn_hypotheses=args.turn_hypotheses,
+                          turn_hypotheses=args.turn_hypotheses,
                           turn_step_rad=args.turn_step, polish_iterations=args.polish_iterations,
                           refine_passes=args.refine_passes, refine_search=args.refine_search,
                           refine_hops=args.refine_hops, spine_twist_prior=args.spine_twist_prior,

@@ -13,7 +13,7 @@ from common.argtypes import real
 from server.output import add_overwrite_argument, check_file_target, check_folder_target
 from server.pictures import PICTURES_DIR, make_result_pictures
 from server.report import REPORT_NAME, write_report
-from server.session import load_records
+from server.results import load_records
 
 
 def _int_list(text: str | None, option: str) -> list[int] | None:

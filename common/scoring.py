@@ -1,0 +1,64 @@
+"""How good a fit is: joint errors against the truth, and how well the body explains the masks."""
+from __future__ import annotations
+
+import numpy as np
+
+from common.body import JOINT_NAMES
+from common.frame import FrameData
+
+
+def joint_errors_mm(joints: np.ndarray, truth_frame) -> np.ndarray:
+    """(17,) distances of fitted joints (17, 3) metres, in JOINT_NAMES order, from a TruthFrame's, mm."""
+    true = np.array([truth_frame.joints[n] for n in JOINT_NAMES])
+    return np.linalg.norm(np.asarray(joints) - true, axis=1) * 1000.0
+
+
+def accuracy(records: list[dict], truth: dict | None) -> dict:
+    """Joint position errors against the truth, millimetres."""
+    if not truth:
+        return {}
+    errs = [joint_errors_mm([r["joints"][n] for n in JOINT_NAMES], truth[r["frame"]])
+            for r in records if r["frame"] in truth]
+    if not errs:
+        return {}
+    E = np.array(errs)
+    per_frame = E.mean(axis=1)
+    return {
+        "mean_joint_error_mm": float(E.mean()),
+        "max_joint_error_mm": float(E.max()),
+        "per_joint_error_mm": {n: float(v) for n, v in zip(JOINT_NAMES, E.mean(axis=0))},
+        "per_frame_error_mm": [float(v) for v in per_frame],
+        "per_frame_max_error_mm": [float(v) for v in E.max(axis=1)],
+    }
+
+
+QUALITY_FLAG_SHARE = 0.3  # a frame whose XOR is above this share of a camera's silhouette is flagged
+
+
+def frame_quality(data: FrameData, params: np.ndarray) -> dict:
+    """How well the pose ``params`` (35,) explains one frame's masks, per camera: the XOR (model
+    xor silhouette) as a share of the silhouette's area (undistorted images, the fit's own), the
+    whole frame's share, and whether (and which cameras) it is above QUALITY_FLAG_SHARE."""
+    rendered = data.whole_image_energy().render(np.asarray(params))
+    sizes = [(c.height, c.width) for c in data.studio]
+    xor = [int(np.count_nonzero(r[:h, :w] ^ m[:h, :w])) for r, m, (h, w) in zip(rendered, data.masks, sizes)]
+    area = [int(np.count_nonzero(m[:h, :w])) for m, (h, w) in zip(data.masks, sizes)]
+    share = [x / a if a else (0.0 if x == 0 else 1.0) for x, a in zip(xor, area)]
+    flagged = [c.name for c, v in zip(data.studio, share) if v > QUALITY_FLAG_SHARE]
+    return {"xor_share": [round(v, 4) for v in share], "xor_pixels": xor, "silhouette_pixels": area,
+            "xor_share_total": round(sum(xor) / max(sum(area), 1), 4), "flagged_cameras": flagged}
+
+
+def quality_summary(records: list[dict], cameras: list[str]) -> dict:
+    """Fit quality over the records: the mean and worst XOR share, per camera too, and the
+    frames flagged (``frame_quality``) with the cameras that disagree."""
+    q = [r["fit_quality"] for r in records if "fit_quality" in r]
+    if not q:
+        return {}
+    total = np.array([v["xor_share_total"] for v in q])
+    per_camera = np.array([v["xor_share"] for v in q])
+    return {"mean_xor_share": float(total.mean()), "max_xor_share": float(total.max()),
+            "per_camera_mean_xor_share": {c: float(v) for c, v in zip(cameras, per_camera.mean(axis=0))},
+            "flag_share": QUALITY_FLAG_SHARE,
+            "frames_flagged": [{"frame": r["frame"], "cameras": r["fit_quality"]["flagged_cameras"]}
+                               for r in records if r.get("fit_quality", {}).get("flagged_cameras")]}

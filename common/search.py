@@ -1,0 +1,456 @@
+"""One search: propose start poses, fit each the same way, keep the lowest.
+
+Every fit of a frame is a *schedule* of a few *stages*, declared as data (``TRACKING``,
+``LIMBS_LOST``, ``SEARCH``, ``REFINE``, ...). A stage asks its proposers (``PROPOSERS``) for
+start poses from the best fit so far (or from its ``beam`` lowest fits), fits every start by the
+same hierarchical fit (``common.fitting.fit_rounds``) under the stage's fit options
+(``VARIANTS``), and keeps the lowest score. It repeats while a round lowers the best score by its
+``min_gain``, up to ``rounds``; a schedule stops where its evaluation budget is spent. A start
+already fitted under the same options is not fitted again. New kinds of start are one proposer
+each (``common.proposals`` holds the pose making).
+
+The starts of one round are independent fits, so they are jobs (``FIT_JOBS``), handed out as
+the limb chains are: a cluster's clients fit them side by side, and with no clients the server
+fits them itself with the same code (``solve_job``), so the poses do not depend on who fitted
+what. A round of a single start is fitted here, its limbs dispatched.
+
+Schedules:
+- ``TRACKING``: the previous frame's pose, turned either way about the vertical and tilted
+  ahead; the best polished by more rounds; its limbs re-detected over their whole range;
+- ``LIMBS_LOST``: a frame whose energy jumped: fitted again with every limb re-detected;
+- ``SEARCH``: a frame with no trusted start (a first frame, a recovery): wide fits from the
+  voxels' starts, the lowest refitted; the tracking fit; rotations about the pelvis; sides
+  swapped, limbs' other basins, arms' other twists; basin hopping;
+- ``REFINE`` (``REFINE_SEARCH``): a tracked frame again, from its neighbour's fit, halfway
+  between its neighbours, its arms' other twists (and its limbs' other basins), hops where asked.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import numpy as np
+
+from common.body import CHAINS, LIMB_CHAINS, MIRROR_SIGNS, BodyModel, clip_to_limits, swap_sides
+from common.fitting import (HOP_JOBS, REDETECT_ROUND, ChainResult, Dispatch, FitOptions, FrameResult, fit_rounds,
+                            full_energy, hop, hop_fit, merge_chains, solve_chain)
+from common.frame import FrameData
+from common.proposals import (ARM_CHAINS, arm_twist_alternative, inversion_cost, limb_alternatives, midway,
+                              rotated_about_pelvis, tilted_ahead, turned)
+
+# The jobs of one round of starts, fitted side by side (the protocol's FIT_JOB_NAMES): job k is
+# the round's k-th start; a round with more starts goes out in several.
+FIT_JOBS = tuple(f"fit{k}" for k in range(16))
+
+
+# ------------------------------------------------------------------------------ jobs
+
+def solve_job(model: BodyModel, frame: FrameData, job: str, params: np.ndarray, options: FitOptions,
+              iteration: int = 0, frame_number: int = 0) -> ChainResult:
+    """The unit of work anyone does, server or client: a chain's solve (``solve_chain``), a hop
+    (HOP_JOBS[k] is hop number ``iteration`` + k, seeded by ``frame_number``), or a whole fit
+    from ``params`` (FIT_JOBS: ``fit_rounds``, its limbs solved here), whose energies are the
+    full energy at the start and at the fit."""
+    if job in FIT_JOBS:
+        wall0, cpu0 = time.perf_counter(), time.process_time()
+        fit = fit_rounds(model, frame, params, options, solve_locally(model, frame, options, frame_number))
+        return ChainResult(job, fit.params, full_energy(model, frame, params), fit.energy, fit.evaluations,
+                           fit.iterations, time.perf_counter() - wall0, time.process_time() - cpu0)
+    if job in HOP_JOBS:
+        return hop(model, frame, params, options, iteration + HOP_JOBS.index(job), frame_number, job)
+    return solve_chain(model, frame, job, params, options, iteration=iteration)
+
+
+def per_job(value, count: int, single: Callable[[object], bool]) -> list:
+    """``value`` for each of ``count`` jobs: repeated where ``single(value)``, else its items."""
+    if single(value):
+        return [value] * count
+    items = list(value)
+    if len(items) != count:
+        raise ValueError(f"{len(items)} values for {count} jobs")
+    return items
+
+
+def job_starts(params, count: int) -> list[np.ndarray]:
+    """One (35,) start per job from a (35,) start for all or a sequence of them."""
+    return [np.asarray(p, dtype=np.float64) for p in per_job(params, count, lambda v: np.ndim(v) == 1)]
+
+
+def job_options(options, frame_options: FitOptions, count: int) -> list[FitOptions]:
+    """One FitOptions per job: ``frame_options`` where None, one for all, or one each."""
+    return per_job(frame_options if options is None else options, count, lambda v: isinstance(v, FitOptions))
+
+
+def solve_locally(model: BodyModel, frame: FrameData, options: FitOptions, frame_number: int = 0) -> Dispatch:
+    """Dispatch in this process: each job by ``solve_job``, in order."""
+    def dispatch(jobs: list, params, iteration: int, options_given=None):
+        starts, opts = job_starts(params, len(jobs)), job_options(options_given, options, len(jobs))
+        return lambda: [solve_job(model, frame, j, s, o, iteration, frame_number)
+                        for j, s, o in zip(jobs, starts, opts)]
+
+    return dispatch
+
+
+def is_chain_solve(result: ChainResult) -> bool:
+    """A chain's solve, not a hop or a whole fit (the per-chain figures count these)."""
+    return result.chain in CHAINS
+
+
+# -------------------------------------------------------------------- fit variants
+
+FIRST_FRAME_ITERATIONS = 6      # torso -> limbs rounds for a first frame started without truth
+FIRST_FRAME_GRID_STEPS = 5      # limb grid points per parameter, first frame
+FIRST_FRAME_GRID_RANGE = 1.0    # radians, +- limb grid half-width, first frame
+FIRST_FRAME_LIMB_WINDOW = 400   # pixels: the limb may be far from where the start pose puts it
+
+
+def first_frame_options(options: FitOptions, redetect_turn: str) -> FitOptions:
+    """A start pose from voxels can have a limb far off: search limbs widely, in big windows,
+    re-detect them ``redetect_turn`` ("round" or "all", common.fitting.REDETECT_TURNS) and
+    iterate the fit to convergence."""
+    return replace(options, max_iterations=max(options.max_iterations, FIRST_FRAME_ITERATIONS),
+                   grid_steps=FIRST_FRAME_GRID_STEPS, grid_range_rad=FIRST_FRAME_GRID_RANGE,
+                   limb_window_px=FIRST_FRAME_LIMB_WINDOW, hinge_grid_full_range=True, redetect_turn=redetect_turn)
+
+
+# name -> the fit options a start is fitted with, from the run's options (None: not fitted)
+VARIANTS: dict[str, Callable[[FitOptions], FitOptions | None]] = {
+    "track": lambda o: o,
+    # more rounds for the best: two rounds stop short of the minimum (a walk frame fitted again
+    # from its own result lost 0.4-1.1% of its energy and 1-4 mm of error)
+    "polish": lambda o: replace(o, max_iterations=o.polish_iterations) if o.polish_iterations else None,
+    # a whole body moved far (rotated, sides swapped) settles in more rounds than a tracked one
+    "deep": lambda o: replace(o, max_iterations=o.max_iterations + o.polish_iterations),
+    "every": lambda o: replace(o, redetect_turn="every"),  # every limb re-detected in the first round
+    # both ways of re-detecting a first frame's limbs: on 7 hard first frames neither wins
+    # everywhere, together all 7 are within 50 mm
+    "wide-round": lambda o: first_frame_options(o, "round"),
+    "wide-all": lambda o: first_frame_options(o, "all"),
+}
+
+
+# ---------------------------------------------------------------------- schedules
+
+@dataclass(frozen=True)
+class Stage:
+    """Propose starts with ``proposers`` from each of the ``beam`` lowest fits so far (one with
+    none), fit each under each of ``variants`` (None: the variant its fit was fitted with), keep
+    the lowest; again while a round lowers the best score by ``min_gain`` (a fraction), up to
+    ``rounds`` rounds."""
+
+    proposers: tuple[str, ...]
+    variants: tuple[str, ...] | None = ("track",)
+    rounds: int = 1
+    min_gain: float = 0.0
+    beam: int = 1
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """Stages in order; ``score`` "energy" (the XOR energy) or "upright" (plus
+    ``inversion_cost``, where the body's posture is unknown); ``budget``: the evaluations after
+    which no further round starts (None: no limit)."""
+
+    stages: tuple[Stage, ...]
+    score: str = "energy"
+    budget: int | None = None
+
+
+POLISHED = (Stage(("again",), ("polish",)), Stage(("redetected",)))
+TRACKING = Schedule((Stage(("start", "start_turns", "tilt_ahead")), *POLISHED))
+LIMBS_LOST = Schedule((Stage(("start", "start_turns"), ("every",)), Stage(("again",), ("polish",))))
+# The lowest wide fits fitted again from their result while that still lowers the energy (each
+# fit re-detects the limbs from a better torso). The lowest fit is not always the one that refits
+# lowest: 06_08's first frame has a start a quarter turn off that fits to 17,513 and refits to
+# 17,484, 40 mm off, while the next start fits to 18,759 and refits to 16,877, 20 mm off.
+REFITTED = Stage(("again",), None, rounds=3, min_gain=0.005, beam=3)
+WIDE = Schedule((Stage(("starts",), ("wide-round",)), REFITTED), score="upright")
+BODY_ROTATION_ROUNDS = 3
+SEARCH = Schedule((
+    Stage(("starts",), ("wide-round", "wide-all")), REFITTED,
+    Stage(("best", "turns")), *POLISHED,  # local grids and small windows refine what the wide fits found
+    Stage(("rotations",), ("deep",), rounds=BODY_ROTATION_ROUNDS),
+    Stage(("swaps", "basins", "twists"), ("deep",)), *POLISHED,
+    Stage(("hops",)),
+), score="upright")
+REFINE = Schedule((Stage(("start", "start_turns", "tilt_ahead", "midway")), Stage(("twists",)), *POLISHED,
+                   Stage(("hops",))))
+REFINE_SEARCH = Schedule((REFINE.stages[0], Stage(("basins", "twists")), *REFINE.stages[2:]))
+SCHEDULES = {"tracking": TRACKING, "limbs-lost": LIMBS_LOST, "wide": WIDE, "search": SEARCH, "refine": REFINE,
+             "refine-search": REFINE_SEARCH}
+
+
+@dataclass(frozen=True)
+class Context:
+    """What a schedule's proposers and fits see of one frame.
+
+    start: the pose the frame starts from (tracking: the previous frame's fit; refinement: the
+    neighbour's), before: the one before it, other: refinement's neighbour on the other side;
+    starts: a search's starts; hops: basin hops for the ``hops`` proposer, ``side_by_side`` at
+    once."""
+
+    model: BodyModel
+    frame: FrameData
+    options: FitOptions
+    dispatch: Dispatch
+    frame_number: int = 0
+    start: np.ndarray | None = None
+    before: np.ndarray | None = None
+    other: np.ndarray | None = None
+    starts: tuple = ()
+    hops: int = 0
+    side_by_side: int = 1
+
+
+@dataclass
+class _Spent:
+    """Solves spent by proposers (limb searches, hops' dropped rounds) beside the fits."""
+
+    chains: list = field(default_factory=list)
+    evaluations: int = 0
+
+    def add(self, results: list[ChainResult]) -> None:
+        self.chains += results
+        self.evaluations += sum(r.evaluations for r in results)
+
+
+def lowest(fits: list[FrameResult], score: Callable[[FrameResult], float] | None = None,
+           spent: _Spent | None = None) -> FrameResult:
+    """The fit of lowest ``score`` (default its energy; the first on a tie), as a new result
+    carrying the solves and evaluations of every one of ``fits`` (and ``spent``): what was
+    spent to choose it."""
+    best = min(fits, key=score or (lambda f: f.energy))
+    chains = tuple(c for f in fits for c in f.chains) + tuple(spent.chains if spent else ())
+    evaluations = sum(f.evaluations for f in fits) + (spent.evaluations if spent else 0)
+    return replace(best, chains=chains, evaluations=evaluations)
+
+
+def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None = None) -> FrameResult:
+    """The lowest-scoring of ``initial`` (a fit made elsewhere, never proposed from again by
+    ``again``) and every fit the schedule's stages make; see the module docstring."""
+    score = _scorer(ctx, schedule.score)
+    fits = [initial] if initial is not None else []
+    own = set()             # ids of the fits made here
+    fitted = set()          # (variant, start bytes) already fitted
+    proposed_from = set()   # (stage, source id): a source proposes once per stage
+    spent = _Spent()
+    for s, stage in enumerate(schedule.stages):
+        for _ in range(stage.rounds):
+            if schedule.budget is not None and sum(f.evaluations for f in fits) + spent.evaluations >= schedule.budget:
+                return lowest(fits, score, spent)
+            sources = sorted(fits, key=score)[:stage.beam] if fits else [None]
+            jobs = []
+            for source in sources:
+                key = (s, id(source))
+                if key in proposed_from:
+                    continue
+                proposed_from.add(key)
+                for name in stage.proposers:
+                    for start in PROPOSERS[name](ctx, source, spent, id(source) in own):
+                        if isinstance(start, FrameResult):  # fitted by the proposer itself (hops)
+                            fits.append(start)
+                            own.add(id(start))
+                            continue
+                        for variant in stage.variants or (source.variant,):
+                            k = (variant, np.asarray(start, dtype=np.float64).tobytes())
+                            if k not in fitted and VARIANTS[variant](ctx.options) is not None:
+                                fitted.add(k)
+                                jobs.append((start, variant))
+            best_before = score(min(fits, key=score)) if fits else np.inf
+            new = fit_starts(ctx, jobs)
+            fits += new
+            own.update(id(f) for f in new)
+            if not fits or not score(min(fits, key=score)) < best_before * (1.0 - stage.min_gain):
+                break
+    return lowest(fits, score, spent)
+
+
+def _scorer(ctx: Context, name: str) -> Callable[[FrameResult], float]:
+    if name == "energy":
+        return lambda f: f.energy
+    if name == "upright":  # people are upright far more often (``inversion_cost``)
+        return lambda f: f.energy + inversion_cost(ctx.model, ctx.frame, f.params)
+    raise ValueError(f"unknown score {name!r}")
+
+
+def fit_starts(ctx: Context, jobs: list[tuple[np.ndarray, str]]) -> list[FrameResult]:
+    """Each (start (35,), variant) fitted by ``fit_rounds``: one here, its limbs dispatched;
+    several as FIT_JOBS, side by side."""
+    if len(jobs) == 1:
+        start, variant = jobs[0]
+        fit = fit_rounds(ctx.model, ctx.frame, start, VARIANTS[variant](ctx.options), ctx.dispatch)
+        return [replace(fit, variant=variant)]
+    out = []
+    for k in range(0, len(jobs), len(FIT_JOBS)):
+        chunk = jobs[k:k + len(FIT_JOBS)]
+        results = ctx.dispatch(list(FIT_JOBS[:len(chunk)]), [s for s, _ in chunk], 0,
+                               [VARIANTS[v](ctx.options) for _, v in chunk])()
+        out += [FrameResult(r.params, r.energy, r.iterations, r.evaluations, (r,), variant)
+                for r, (_, variant) in zip(results, chunk)]
+    return out
+
+
+# ---------------------------------------------------------------------- proposers
+# proposer(ctx, source fit or None, spent, made here) -> starts (35,) or fits made by the proposer
+
+def _start(ctx, source, spent, own):
+    return [] if ctx.start is None else [ctx.start]
+
+
+def _turns(params: np.ndarray, options: FitOptions) -> list:
+    # the pelvis heading is the torso's flattest valley: a tracked pose can sit turned from the
+    # truth with the hips twisted back to keep the legs in place, which neither the torso nor a
+    # limb alone can undo
+    return [turned(params, sign * step * options.turn_step_rad)
+            for step in range(1, options.turn_hypotheses + 1) for sign in (-1, 1)]
+
+
+def _start_turns(ctx, source, spent, own):
+    return [] if ctx.start is None else _turns(ctx.start, ctx.options)
+
+
+def _best_turns(ctx, source, spent, own):
+    return [] if source is None else _turns(source.params, ctx.options)
+
+
+def _tilt_ahead(ctx, source, spent, own):
+    return [] if ctx.start is None else list(tilted_ahead(ctx.start, ctx.before))
+
+
+def _midway(ctx, source, spent, own):
+    return [] if ctx.start is None or ctx.other is None else [midway(ctx.start, ctx.other)]
+
+
+def _starts(ctx, source, spent, own):
+    return list(ctx.starts)
+
+
+def _best(ctx, source, spent, own):
+    return [] if source is None else [source.params]
+
+
+def _again(ctx, source, spent, own):
+    return [source.params] if source is not None and own else []
+
+
+def _redetected(ctx, source, spent, own):
+    """Every limb searched over its whole range against the fit (side by side); if any is found
+    elsewhere, the fit with those limbs moved. A limb that moved faster than the local search (a
+    basketball player's forearm swing) is found in the frame it is lost."""
+    options = ctx.options
+    if source is None or not (options.redetect_limbs and options.redetect_turn == "final"):
+        return []
+    found = ctx.dispatch(list(LIMB_CHAINS), source.params, REDETECT_ROUND, options)()
+    spent.add(found)
+    moved = [r for r in found if r.energy < r.energy_before]
+    return [merge_chains(source.params, moved)] if moved else []
+
+
+# The whole body rotated about the pelvis's three axes by these angles. A body upside down and
+# sideways settles with the trunk tilted off and the limbs bent to make up for it, where no chain
+# alone goes down: 05_06 from source frame 150 (a cartwheel) was found with the pelvis 36 degrees
+# off, 64 mm; rotated about the front-to-back axis and fitted again, 31 mm, the next rounds ~20.
+BODY_ROTATIONS_RAD = (-0.6, -0.3, 0.3, 0.6)
+
+
+def _rotations(ctx, source, spent, own):
+    if source is None:
+        return []
+    return [clip_to_limits(rotated_about_pelvis(ctx.model, source.params, axis, angle))
+            for axis in range(3) for angle in BODY_ROTATIONS_RAD]
+
+
+def _swaps(ctx, source, spent, own):
+    """The legs swapped, the arms swapped: a stride with the left foot ahead and one with the right
+    look alike from the side, and neither leg alone can move to the other's place (05_01 from
+    source frame 127, feet out of three views: found with its legs swapped, the ankles 0.5 m off)."""
+    return [] if source is None else [swap_sides(source.params, limb) for limb in MIRROR_SIGNS]
+
+
+def _basins(ctx, source, spent, own):
+    """Each limb moved into its other basins: a limb found wrong holds the torso where it
+    explains that limb, and neither can move alone."""
+    if source is None:
+        return []
+    return [a for chain in LIMB_CHAINS for a in limb_alternatives(ctx.model, ctx.frame, chain, source.params,
+                                                                    ctx.options)]
+
+
+def _twists(ctx, source, spent, own):
+    """Each nearly straight arm at its lower twist (towards the neighbour's, in a refinement)."""
+    if source is None:
+        return []
+    return [alt for chain in ARM_CHAINS
+            if (alt := arm_twist_alternative(ctx.model, ctx.frame, chain, source.params, ctx.options,
+                                             ctx.start)) is not None]
+
+
+def _hops(ctx, source, spent, own):
+    """Basin hopping from the fit (``hop_fit``), as one fit whose energy is the full energy."""
+    if source is None or ctx.hops < 1:
+        return []
+    hopped = hop_fit(source.params, ctx.hops, ctx.options, ctx.dispatch, min(max(ctx.side_by_side, 1), len(HOP_JOBS)))
+    return [replace(hopped, energy=full_energy(ctx.model, ctx.frame, hopped.params))]
+
+
+PROPOSERS = {
+    "start": _start, "start_turns": _start_turns, "turns": _best_turns, "tilt_ahead": _tilt_ahead,
+    "midway": _midway, "starts": _starts, "best": _best, "again": _again, "redetected": _redetected,
+    "rotations": _rotations, "swaps": _swaps, "basins": _basins, "twists": _twists, "hops": _hops,
+}
+
+
+# ---------------------------------------------------------------------- entry points
+
+def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: FitOptions,
+              dispatch: Dispatch | None = None, before: np.ndarray | None = None,
+              frame_number: int = 0) -> FrameResult:
+    """Track one frame from ``start`` (35,), the previous frame's fit (``before``: the one
+    before that), by the TRACKING schedule."""
+    dispatch = dispatch or solve_locally(model, frame, options, frame_number)
+    ctx = Context(model, frame, options, dispatch, frame_number, start=np.asarray(start, dtype=np.float64),
+                  before=before)
+    return run_schedule(ctx, TRACKING)
+
+
+SEARCH_HOPS = 30  # hops that end a search: 06_02 from source frame 262 (five of eight views) 54 -> 27 mm
+
+
+def search_frame(model: BodyModel, frame: FrameData, starts: list, options: FitOptions, dispatch: Dispatch,
+                 frame_number: int = 0, side_by_side: int = 1, schedule: Schedule = SEARCH) -> FrameResult:
+    """A frame without a trusted start (a first frame, a recovery), searched from ``starts``."""
+    ctx = Context(model, frame, options, dispatch, frame_number, starts=tuple(starts), hops=SEARCH_HOPS,
+                  side_by_side=side_by_side)
+    return run_schedule(ctx, schedule)
+
+
+def refine_frame(model: BodyModel, frame: FrameData, fit: FrameResult, options: FitOptions, dispatch: Dispatch,
+                 neighbour: np.ndarray | None, beyond: np.ndarray | None, other: np.ndarray | None,
+                 hops: int = 0, search: bool = False, frame_number: int = 0, side_by_side: int = 1) -> FrameResult:
+    """A tracked frame (``fit``) fitted again by REFINE (REFINE_SEARCH with ``search``) from its
+    ``neighbour``'s refined fit (``beyond``: the one beyond it; ``other``: the not yet refined
+    neighbour on the other side) and with ``hops`` hops; ``fit`` where nothing is lower.
+
+    Tracking leaves frames in basins that a later frame escaped (an arm whose twist showed once
+    it bent; a first frame found by search). Halfway between the neighbours' fits (``midway``):
+    tracking can leave a frame with its torso and limbs off together, in a valley that neither
+    neighbour's fit leads out of, while their mean lies in the truth's (the dance's frames 21 and
+    39: 54 and 50 mm off; fitted from halfway, 16 and 23 mm)."""
+    ctx = Context(model, frame, options, dispatch, frame_number, start=neighbour, before=beyond, other=other,
+                  hops=hops, side_by_side=side_by_side)
+    return run_schedule(ctx, REFINE_SEARCH if search else REFINE, initial=fit)
+
+
+LOSS_ENERGY_RATIO = 1.25  # a frame's energy this far above the recent median: tracking is lost
+LIMB_LOSS_ENERGY_RATIO = 1.06  # ... this far: a limb may be lost, every limb is re-detected
+LOSS_HISTORY = 10         # frames in that median
+LOSS_MIN_HISTORY = 3
+
+
+def tracking_lost(energies: list, energy: float, ratio: float = LOSS_ENERGY_RATIO) -> bool:
+    """Whether ``energy`` jumps ``ratio`` times above the median of the last frames' energies
+    (silhouette noise moves it by a few per cent; a limb lost in a fast move adds 5-15%, a body
+    fitted beside the actor its whole area)."""
+    recent = energies[-LOSS_HISTORY:]
+    return len(recent) >= LOSS_MIN_HISTORY and energy > ratio * float(np.median(recent))

@@ -1,0 +1,113 @@
+"""A result folder's records and settings: reading poses.jsonl, run.json and --resume's checks,
+and replacing the file whole."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+from common.errors import InputFileError, UserError
+from common.export import FORMATS, export_name
+from server.output import check_folder_target, write_text
+
+POSES_FILE = "poses.jsonl"
+SUMMARY_FILE = "summary.json"
+RUN_FILE = "run.json"  # the settings of the run that wrote poses.jsonl, which --resume must match
+MOTION_FILE = "motion.bvh"
+RESULT_FILES = (POSES_FILE, SUMMARY_FILE, RUN_FILE, MOTION_FILE)
+# made from a result, so stale once it is replaced (mocap report, mocap export's default names)
+DERIVED_FILES = ("report.html", "pictures") + tuple(export_name(f) for f in FORMATS if export_name(f) != MOTION_FILE)
+
+
+def read_done_frames(path: Path) -> list[dict]:
+    """The records of an existing poses.jsonl.
+
+    A torn last line (a crash while it was written: no newline at its end) is dropped; any
+    other line that is not a record is an InputFileError naming it, because the frames after
+    it would otherwise be lost or fitted again.
+    """
+    if not path.exists():
+        return []
+    lines = path.read_bytes().split(b"\n")
+    done = []
+    for n, raw in enumerate(lines[:-1], start=1):  # lines[-1]: b"" or the torn last line
+        try:
+            record = json.loads(raw)
+        except (UnicodeDecodeError, json.JSONDecodeError):
+            record = None
+        if not (isinstance(record, dict) and isinstance(record.get("frame"), int)
+                and isinstance(record.get("params"), list)):
+            raise InputFileError(path, f"line {n}: not a pose record (corrupt?); repair or remove the file, "
+                                       "or fit again with --overwrite")
+        done.append(record)
+    return done
+
+
+def settings_differences(before: dict, now: dict, prefix: str = "") -> list[str]:
+    """'KEY NOW (was BEFORE)' for every setting that differs, nested keys joined by dots."""
+    out = []
+    for key in sorted(set(before) | set(now)):
+        a, b = before.get(key), now.get(key)
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += settings_differences(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append(f"{prefix}{key} {b!r} (was {a!r})")
+    return out
+
+
+def check_resume(out_dir: Path, settings: dict) -> None:
+    """Refuse to continue a run with other settings than those it was started with."""
+    path = out_dir / RUN_FILE
+    if not path.exists():
+        raise InputFileError(path, "missing: no record of the settings the earlier frames were fitted with; "
+                                   "fit again with --overwrite")
+    try:
+        before = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise InputFileError(path, "not valid JSON (corrupt?); fit again with --overwrite") from None
+    if not isinstance(before, dict):
+        raise InputFileError(path, "expected a JSON object; fit again with --overwrite")
+    differ = settings_differences(before, settings)
+    if differ:
+        raise UserError(f"--resume: the settings differ from the run being continued ({path}): "
+                        + "; ".join(differ) + ". Pass the same options, or --overwrite to fit again")
+
+
+def prepare_result_folder(out_dir: Path, settings: dict, resume: bool, overwrite: bool) -> list[dict]:
+    """Check a result folder and make it ready for a run; returns the records being continued.
+
+    An earlier result is refused unless ``resume`` (its settings must match, see
+    ``check_resume``) or ``overwrite`` (its files, and those made from them, are removed).
+    """
+    earlier = check_folder_target(out_dir, RESULT_FILES, resume=resume, overwrite=overwrite)
+    poses_path = out_dir / POSES_FILE
+    if resume and earlier:
+        check_resume(out_dir, settings)
+        done = read_done_frames(poses_path)
+        rewrite_complete(poses_path, done)  # drop a torn last line before appending
+        return done
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for name in (RESULT_FILES + DERIVED_FILES) if earlier else ():
+        target = out_dir / name
+        if target.is_dir():
+            shutil.rmtree(target)
+        else:
+            target.unlink(missing_ok=True)
+    write_text(out_dir / RUN_FILE, json.dumps(settings, indent=1))
+    return []
+
+
+def rewrite_complete(path: Path, records: list[dict]) -> None:
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "w") as fh:
+        for r in records:
+            fh.write(json.dumps(r) + "\n")
+    os.replace(tmp, path)
+
+
+def load_records(out_dir: Path) -> list[dict]:
+    path = Path(out_dir) / POSES_FILE
+    if not path.exists():
+        raise InputFileError(path, "missing (not a result folder?)")
+    return read_done_frames(path)
