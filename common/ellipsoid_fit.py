@@ -22,6 +22,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.ndimage import distance_transform_edt
 from scipy.optimize import minimize
 from scipy.sparse import coo_matrix
@@ -117,28 +118,44 @@ def shell_distances(points, centres, axes, radii) -> np.ndarray:
     Solves for the closest point with Eberly's parametrisation: x_i = r_i^2 y_i / (t + r_i^2)
     where t is the largest root of F(t) = sum (r_i y_i / (t + r_i^2))^2 = 1. F is convex and
     decreasing right of its last pole, so Newton from a point left of the root converges
-    monotonically.
+    monotonically. Compiled: the voxel fit of a first frame calls it some 10,000 times.
     """
-    points = np.asarray(points, dtype=np.float64)
-    centres = np.asarray(centres, dtype=np.float64)
-    radii = np.asarray(radii, dtype=np.float64)
-    local = np.matmul((points[None] - centres[:, None]), axes)  # (E, n, 3) in the shells' frames
-    r = radii[:, None, :]
-    y = np.maximum(np.abs(local), 1e-6 * r)  # off the symmetry planes, where roots sit on poles
-    r2 = [r[..., i] ** 2 for i in range(3)]
-    ry2 = [(r[..., i] * y[..., i]) ** 2 for i in range(3)]
-    # Each term alone equals 1 at -r_i^2 + r_i y_i, so F >= 1 at the largest of these.
-    t = np.max(-r * r + r * y, axis=-1)
-    for _ in range(NEWTON_STEPS):
-        d = [t + r2[i] for i in range(3)]
-        terms = [ry2[i] / (d[i] * d[i]) for i in range(3)]
-        f = terms[0] + terms[1] + terms[2] - 1.0
-        df = -2.0 * (terms[0] / d[0] + terms[1] / d[1] + terms[2] / d[2])
-        t = t - f / df
-        if np.abs(f).max() < NEWTON_TOLERANCE:
-            break
-    dist2 = sum((y[..., i] * t / (t + r2[i])) ** 2 for i in range(3))  # y - x, x_i = r_i^2 y_i / (t + r_i^2)
-    return np.sqrt(dist2).T
+    return _shell_distances(np.ascontiguousarray(points, dtype=np.float64),
+                            np.ascontiguousarray(centres, dtype=np.float64),
+                            np.ascontiguousarray(axes, dtype=np.float64),
+                            np.ascontiguousarray(radii, dtype=np.float64), NEWTON_STEPS, NEWTON_TOLERANCE)
+
+
+@njit(cache=True, nogil=True)
+def _shell_distances(points, centres, axes, radii, steps, tolerance):
+    n, E = points.shape[0], centres.shape[0]
+    out = np.empty((n, E))
+    y = np.empty(3)
+    for e in range(E):
+        r = radii[e]
+        for k in range(n):
+            t = -np.inf
+            for i in range(3):  # the point in the shell's frame, off its symmetry planes
+                v = 0.0
+                for j in range(3):
+                    v += (points[k, j] - centres[e, j]) * axes[e, j, i]
+                y[i] = max(abs(v), 1e-6 * r[i])
+                t = max(t, -r[i] * r[i] + r[i] * y[i])  # each term alone is 1 here, so F >= 1
+            for _ in range(steps):
+                f, df = -1.0, 0.0
+                for i in range(3):
+                    d = t + r[i] * r[i]
+                    term = (r[i] * y[i]) ** 2 / (d * d)
+                    f += term
+                    df -= 2.0 * term / d
+                t -= f / df
+                if abs(f) < tolerance:
+                    break
+            dist2 = 0.0
+            for i in range(3):  # y - x, x_i = r_i^2 y_i / (t + r_i^2)
+                dist2 += (y[i] * t / (t + r[i] * r[i])) ** 2
+            out[k, e] = np.sqrt(dist2)
+    return out
 
 
 def _unit_sphere(count: int) -> np.ndarray:

@@ -481,17 +481,23 @@ def merge_chains(params: np.ndarray, results: list) -> np.ndarray:
     return out
 
 
+def fit_converged(improved: float, energy: float, rounds: int, options: FitOptions) -> bool:
+    """Whether a fit stops after ``rounds`` rounds, the last of which lowered the full energy by
+    ``improved`` to ``energy``: it gained less than ``options.min_improvement`` (a fraction),
+    and re-detecting one limb per round (``redetect_turn`` "round") gave every limb its round."""
+    rounds_needed = len(LIMB_CHAINS) if options.redetect_limbs and options.redetect_turn == "round" else 1
+    return improved < options.min_improvement * max(energy, 1) and rounds >= rounds_needed
+
+
 def fit_rounds(model: BodyModel, frame: FrameData, start: np.ndarray, options: FitOptions,
                dispatch: Dispatch) -> FrameResult:
     """One hierarchical fit from ``start`` (35,): rounds of torso, then the four limbs side by
-    side (``dispatch``, against the torso's result: Jacobi) and the head, until a round lowers
-    the full energy by less than ``options.min_improvement`` or ``options.max_iterations``
-    rounds. A round whose energy is higher is not taken. Re-detecting one limb per round
-    (``redetect_turn`` "round") gives every limb its round before the fit may stop."""
+    side (``dispatch``, against the torso's result: Jacobi) and the head, until
+    ``fit_converged`` or ``options.max_iterations`` rounds. A round whose energy is higher is
+    not taken."""
     x = np.array(start, dtype=np.float64)
     best = full_energy(model, frame, x)
     chains, evaluations, rounds = [], 0, 0
-    rounds_needed = len(LIMB_CHAINS) if options.redetect_limbs and options.redetect_turn == "round" else 1
     for it in range(options.max_iterations):
         torso = solve_chain(model, frame, "torso", x, options)
         # the limbs go out first so that clients work while the server fits the head
@@ -506,6 +512,6 @@ def fit_rounds(model: BodyModel, frame: FrameData, start: np.ndarray, options: F
         improved = best - e_new
         if e_new <= best:
             x, best = x_new, e_new
-        if improved < options.min_improvement * max(best, 1) and rounds >= rounds_needed:
+        if fit_converged(improved, best, rounds, options):
             break
     return FrameResult(x, best, rounds, evaluations, tuple(chains))

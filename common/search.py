@@ -21,8 +21,9 @@ Schedules:
 - ``SEARCH``: a frame with no trusted start (a first frame, a recovery): wide fits from the
   voxels' starts, the lowest refitted; the tracking fit; rotations about the pelvis; sides
   swapped, limbs' other basins, arms' other twists; basin hopping;
-- ``REFINE`` (``REFINE_SEARCH``): a tracked frame again, from its neighbour's fit, halfway
-  between its neighbours, its arms' other twists (and its limbs' other basins), hops where asked.
+- ``REFINE`` (``REFINE_SEARCH``): a tracked frame again, from its neighbour's fit, tilted
+  ahead, halfway between its neighbours, its arms' other twists (and its limbs' other basins);
+  the best polished; hops where asked.
 """
 from __future__ import annotations
 
@@ -50,8 +51,8 @@ def solve_job(model: BodyModel, frame: FrameData, job: str, params: np.ndarray, 
               iteration: int = 0, frame_number: int = 0) -> ChainResult:
     """The unit of work anyone does, server or client: a chain's solve (``solve_chain``), a hop
     (HOP_JOBS[k] is hop number ``iteration`` + k, seeded by ``frame_number``), or a whole fit
-    from ``params`` (FIT_JOBS: ``fit_rounds``, its limbs solved here), whose energies are the
-    full energy at the start and at the fit."""
+    from ``params`` (FIT_JOBS: ``fit_rounds``, its limbs solved here),
+    whose energies are the full energy at the start and at the fit."""
     if job in FIT_JOBS:
         wall0, cpu0 = time.perf_counter(), time.process_time()
         fit = fit_rounds(model, frame, params, options, solve_locally(model, frame, options, frame_number))
@@ -174,7 +175,10 @@ SEARCH = Schedule((
     Stage(("swaps", "basins", "twists"), ("deep",)), *POLISHED,
     Stage(("hops",)),
 ), score="upright")
-REFINE = Schedule((Stage(("start", "start_turns", "tilt_ahead", "midway")), Stage(("twists",)), *POLISHED,
+# No turns and no limb re-detection of the refits: tracking tried both on each frame (and its
+# fit stays a candidate); without them a walk's pass took 0.39 s a frame instead of 0.62 at the
+# same error (7.7 / 21.5 mm against 7.9 / 20.2, 40 frames)
+REFINE = Schedule((Stage(("start", "tilt_ahead", "midway")), Stage(("twists",)), Stage(("again",), ("polish",)),
                    Stage(("hops",))))
 REFINE_SEARCH = Schedule((REFINE.stages[0], Stage(("basins", "twists")), *REFINE.stages[2:]))
 SCHEDULES = {"tracking": TRACKING, "limbs-lost": LIMBS_LOST, "wide": WIDE, "search": SEARCH, "refine": REFINE,
@@ -276,7 +280,9 @@ def _scorer(ctx: Context, name: str) -> Callable[[FrameResult], float]:
 
 def fit_starts(ctx: Context, jobs: list[tuple[np.ndarray, str]]) -> list[FrameResult]:
     """Each (start (35,), variant) fitted by ``fit_rounds``: one here, its limbs dispatched;
-    several as FIT_JOBS, side by side."""
+    several as FIT_JOBS side by side, len(FIT_JOBS) at a time. Every start is fitted to the end:
+    dropping those more than 3% above the lowest after their first round saved a fifth of the
+    walk's tracking time and cost 1.8 mm of its mean error (8.7 -> 10.5 mm, 40 frames)."""
     if len(jobs) == 1:
         start, variant = jobs[0]
         fit = fit_rounds(ctx.model, ctx.frame, start, VARIANTS[variant](ctx.options), ctx.dispatch)

@@ -1,0 +1,96 @@
+"""Accuracy and time on every shared clip: the check every accuracy change is measured by.
+
+    python tools/shared_clips_accuracy.py [--frames 100] [--jobs 2] [--preset default]
+                                          [--init truth|auto] [--json FILE] [--work DIR]
+
+Each clip of ../shared/data/mocap (17) is synthesised into the 8-camera 320x240 studio with
+Cheung noise (seed 0), then fitted single-process with the preset's settings from the truth's
+first pose (``--init auto``: from a search of the first frame), as ``mocap bench accuracy``
+fits its three clips. Clips run ``--jobs`` at a time, one process each. Prints one row per
+clip (mean and worst joint error, frames with a joint over 40 mm, seconds per frame) and
+writes them as JSON.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from server.benchmarks import MAX_ERROR_TARGET_MM, shared_clips  # noqa: E402
+
+
+def fit_clip(clip: Path, frames: int, work: Path, preset: str, init: str) -> dict:
+    from common.body import load_body_model
+    from common.camera import circle_studio
+    from common.sequence import load_sequence
+    from common.synth import SynthOptions, synthesize
+    from server.cli import main as mocap
+
+    seq_dir = work / f"seq-{clip.stem}"
+    if not (seq_dir / "sequence.json").exists():
+        synthesize(load_body_model(), circle_studio(), clip, seq_dir, SynthOptions(frames=frames, noise="cheung", seed=0))
+    out = work / f"fit-{clip.stem}-{preset}-{init}"
+    t0 = time.perf_counter()
+    code = mocap(["fit", str(seq_dir), "--out", str(out), "--preset", preset, "--init", init, "--frames", str(frames),
+                  "--quiet", "--overwrite"])
+    wall = time.perf_counter() - t0
+    if code:
+        raise RuntimeError(f"mocap fit {seq_dir} failed ({code})")
+    s = json.loads((out / "summary.json").read_text())
+    load_sequence(seq_dir)  # readable, as the fit found it
+    return {"clip": clip.stem, "frames": s["frames"], "preset": preset, "init": init,
+            "mean_joint_error_mm": s["mean_joint_error_mm"], "max_joint_error_mm": s["max_joint_error_mm"],
+            "frames_over_40mm": sum(v > MAX_ERROR_TARGET_MM for v in s["per_frame_max_error_mm"]),
+            "worst_frame": int(max(range(s["frames"]), key=lambda k: s["per_frame_max_error_mm"][k])),
+            "tracking_mean_joint_error_mm": s["tracking_mean_joint_error_mm"],
+            "tracking_max_joint_error_mm": s["tracking_max_joint_error_mm"],
+            "wall_seconds_per_frame": wall / s["frames"], "seconds_per_frame": s["mean_seconds_per_frame"],
+            "refine_seconds_per_frame": s["refine_seconds_per_frame"]}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--jobs", type=int, default=min(2, os.cpu_count() or 1))
+    ap.add_argument("--preset", default="default")
+    ap.add_argument("--init", default="truth", choices=("truth", "auto"))
+    ap.add_argument("--clips", default=None, help="comma-separated clip stems (default: all shared clips)")
+    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--work", type=Path, default=None, help="keep the sequences and results here")
+    args = ap.parse_args(argv)
+    clips = shared_clips()
+    if args.clips:
+        clips = [c for c in clips if c.stem in args.clips.split(",")]
+    if not clips:
+        print("no shared clips (../shared/data/mocap)", file=sys.stderr)
+        return 2
+    with tempfile.TemporaryDirectory(prefix="shared-clips-") as tmp:
+        work = args.work or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        with ProcessPoolExecutor(args.jobs) as pool:
+            rows = list(pool.map(fit_clip, clips, [args.frames] * len(clips), [work] * len(clips),
+                                 [args.preset] * len(clips), [args.init] * len(clips)))
+    print(f"{'clip':16s} {'mean':>6s} {'max':>6s} {'>40':>4s} {'worst':>5s} {'s/frame':>8s} {'refine':>7s} {'wall':>6s}")
+    for r in rows:
+        print(f"{r['clip']:16s} {r['mean_joint_error_mm']:6.1f} {r['max_joint_error_mm']:6.1f} "
+              f"{r['frames_over_40mm']:4d} {r['worst_frame']:5d} {r['seconds_per_frame']:8.3f} "
+              f"{r['refine_seconds_per_frame']:7.3f} {r['wall_seconds_per_frame']:6.3f}")
+    means = [r["mean_joint_error_mm"] for r in rows]
+    print(f"all {len(rows)}: mean {sum(means) / len(means):.2f} mm, worst {max(r['max_joint_error_mm'] for r in rows):.1f} "
+          f"mm, clips with a frame over 40 mm: {sum(r['frames_over_40mm'] > 0 for r in rows)}, wall "
+          f"{sum(r['wall_seconds_per_frame'] for r in rows) / len(rows):.3f} s/frame")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
