@@ -13,7 +13,7 @@ import os
 import sys
 from pathlib import Path
 
-KERNEL_SOURCES = ("body.py", "energy.py", "optimize.py", "powell_cpu.py")  # files whose kernels numba caches
+KERNEL_SOURCES = ("body.py", "energy.py", "ellipsoid_fit.py", "optimize.py", "powell_cpu.py")  # files whose kernels numba caches
 
 
 def _kernel_cache_dir() -> str | None:

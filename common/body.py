@@ -19,6 +19,9 @@ Parameters (index: name), angles in radians:
 Rotation vectors (exponential maps) have no gimbal lock inside |angle| < pi, which keeps
 Powell's line searches well conditioned; the root uses heading + tilt so that turning on the
 spot (pirouettes) never wraps.
+
+One module of about 600 lines: the kinematic tree, its parameters and limits, forward
+kinematics and the mesh/ellipsoid surfaces are the body model every other module takes.
 """
 from __future__ import annotations
 

@@ -11,6 +11,9 @@ One fit (``fit_rounds``) from a start pose:
 A chain's solve (``solve_chain``), a limb's search over its whole range (``search_limb``) and a
 hop of basin hopping (``hop``) are the units of work below a fit; which starts are fitted, and
 in what order, is ``common.search``.
+
+One module of about 520 lines: the fit's chain solves, limb searches and hops share the
+optimizers and options above.
 """
 from __future__ import annotations
 
@@ -32,6 +35,12 @@ from common.objective import HeldLimbs, SpinePrior, with_spine_prior
 from common.powell_cpu import powell_cpu
 
 ENERGY_BACKENDS = ("cpu", "gl", "coarse-to-fine", "volume")
+
+
+# FitOptions fields that shape the search's schedules and the run (which starts, how many passes),
+# never a single job: the server reads them, a SOLVE does not carry them
+RUN_SETTINGS = ("turn_hypotheses", "turn_step_rad", "polish_iterations", "refine_passes", "refine_search",
+                "refine_hops")
 
 
 @dataclass(frozen=True)
@@ -96,7 +105,13 @@ class FitOptions:
                              f"got {self.turn_step_rad}")
 
     def to_wire(self) -> dict:
+        """Every setting (run.json, summary.json)."""
         return dict(self.__dict__)
+
+    def solve_settings(self) -> dict:
+        """The settings a job is solved with, what a SOLVE carries: all but the schedule's
+        (RUN_SETTINGS), which only the server's search reads."""
+        return {k: v for k, v in self.__dict__.items() if k not in RUN_SETTINGS}
 
     @classmethod
     def from_wire(cls, options: dict) -> "FitOptions":

@@ -138,23 +138,26 @@ class Stage:
     """Propose starts with ``proposers`` from each of the ``beam`` lowest fits so far (one with
     none), fit each under each of ``variants`` (None: the variant its fit was fitted with), keep
     the lowest; again while a round lowers the best score by ``min_gain`` (a fraction), up to
-    ``rounds`` rounds."""
+    ``rounds`` rounds. ``score``: "energy" (the XOR energy) or "upright" (plus
+    ``inversion_cost``: where the body's posture is unknown, among a search's starts);
+    ``choose``: the stage ends by keeping its lowest-scoring fit alone, so that later stages
+    compare their fits with that one, by their own score."""
 
     proposers: tuple[str, ...]
     variants: tuple[str, ...] | None = ("track",)
     rounds: int = 1
     min_gain: float = 0.0
     beam: int = 1
+    score: str = "energy"
+    choose: bool = False
 
 
 @dataclass(frozen=True)
 class Schedule:
-    """Stages in order; ``score`` "energy" (the XOR energy) or "upright" (plus
-    ``inversion_cost``, where the body's posture is unknown); ``budget``: the evaluations after
-    which no further round starts (None: no limit)."""
+    """Stages in order; ``budget``: the evaluations after which no further round starts (None:
+    no limit). The result is the lowest energy of the fits the last stage compared."""
 
     stages: tuple[Stage, ...]
-    score: str = "energy"
     budget: int | None = None
 
 
@@ -165,16 +168,16 @@ LIMBS_LOST = Schedule((Stage(("start", "start_turns"), ("every",)), Stage(("agai
 # fit re-detects the limbs from a better torso). The lowest fit is not always the one that refits
 # lowest: 06_08's first frame has a start a quarter turn off that fits to 17,513 and refits to
 # 17,484, 40 mm off, while the next start fits to 18,759 and refits to 16,877, 20 mm off.
-REFITTED = Stage(("again",), None, rounds=3, min_gain=0.005, beam=3)
-WIDE = Schedule((Stage(("starts",), ("wide-round",)), REFITTED), score="upright")
+REFITTED = Stage(("again",), None, rounds=3, min_gain=0.005, beam=3, score="upright", choose=True)
+WIDE = Schedule((Stage(("starts",), ("wide-round",), score="upright"), REFITTED))
 BODY_ROTATION_ROUNDS = 3
 SEARCH = Schedule((
-    Stage(("starts",), ("wide-round", "wide-all")), REFITTED,
+    Stage(("starts",), ("wide-round", "wide-all"), score="upright"), REFITTED,
     Stage(("best", "turns")), *POLISHED,  # local grids and small windows refine what the wide fits found
     Stage(("rotations",), ("deep",), rounds=BODY_ROTATION_ROUNDS),
     Stage(("swaps", "basins", "twists"), ("deep",)), *POLISHED,
     Stage(("hops",)),
-), score="upright")
+))
 # No turns and no limb re-detection of the refits: tracking tried both on each frame (and its
 # fit stays a candidate); without them a walk's pass took 0.39 s a frame instead of 0.62 at the
 # same error (7.7 / 21.5 mm against 7.9 / 20.2, 40 frames)
@@ -220,29 +223,33 @@ class _Spent:
 
 
 def lowest(fits: list[FrameResult], score: Callable[[FrameResult], float] | None = None,
-           spent: _Spent | None = None) -> FrameResult:
-    """The fit of lowest ``score`` (default its energy; the first on a tie), as a new result
-    carrying the solves and evaluations of every one of ``fits`` (and ``spent``): what was
-    spent to choose it."""
+           made: list[FrameResult] | None = None, spent: _Spent | None = None) -> FrameResult:
+    """The fit of lowest ``score`` (default its energy; the first on a tie) among ``fits``, as a
+    new result carrying the solves and evaluations of every one of ``made`` (default ``fits``)
+    and ``spent``: what was spent to choose it."""
     best = min(fits, key=score or (lambda f: f.energy))
-    chains = tuple(c for f in fits for c in f.chains) + tuple(spent.chains if spent else ())
-    evaluations = sum(f.evaluations for f in fits) + (spent.evaluations if spent else 0)
+    made = fits if made is None else made
+    chains = tuple(c for f in made for c in f.chains) + tuple(spent.chains if spent else ())
+    evaluations = sum(f.evaluations for f in made) + (spent.evaluations if spent else 0)
     return replace(best, chains=chains, evaluations=evaluations)
 
 
 def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None = None) -> FrameResult:
-    """The lowest-scoring of ``initial`` (a fit made elsewhere, never proposed from again by
-    ``again``) and every fit the schedule's stages make; see the module docstring."""
-    score = _scorer(ctx, schedule.score)
-    fits = [initial] if initial is not None else []
+    """The lowest-energy of ``initial`` (a fit made elsewhere, never proposed from again by
+    ``again``) and the fits the schedule's stages make; see the module docstring and ``Stage``.
+    Its solves and evaluations are those of every fit made, chosen or not."""
+    fits = [initial] if initial is not None else []  # the candidates
+    made = list(fits)       # every fit, for what was spent
     own = set()             # ids of the fits made here
     fitted = set()          # (variant, start bytes) already fitted
     proposed_from = set()   # (stage, source id): a source proposes once per stage
     spent = _Spent()
     for s, stage in enumerate(schedule.stages):
+        score = _scorer(ctx, stage.score)
         for _ in range(stage.rounds):
-            if schedule.budget is not None and sum(f.evaluations for f in fits) + spent.evaluations >= schedule.budget:
-                return lowest(fits, score, spent)
+            if schedule.budget is not None and sum(f.evaluations for f in made) + spent.evaluations >= schedule.budget:
+                break
+            best_before = score(min(fits, key=score)) if fits else np.inf
             sources = sorted(fits, key=score)[:stage.beam] if fits else [None]
             jobs = []
             for source in sources:
@@ -254,6 +261,7 @@ def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None =
                     for start in PROPOSERS[name](ctx, source, spent, id(source) in own):
                         if isinstance(start, FrameResult):  # fitted by the proposer itself (hops)
                             fits.append(start)
+                            made.append(start)
                             own.add(id(start))
                             continue
                         for variant in stage.variants or (source.variant,):
@@ -261,13 +269,15 @@ def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None =
                             if k not in fitted and VARIANTS[variant](ctx.options) is not None:
                                 fitted.add(k)
                                 jobs.append((start, variant))
-            best_before = score(min(fits, key=score)) if fits else np.inf
             new = fit_starts(ctx, jobs)
             fits += new
+            made += new
             own.update(id(f) for f in new)
             if not fits or not score(min(fits, key=score)) < best_before * (1.0 - stage.min_gain):
                 break
-    return lowest(fits, score, spent)
+        if stage.choose and fits:
+            fits = [min(fits, key=score)]
+    return lowest(fits, made=made, spent=spent)
 
 
 def _scorer(ctx: Context, name: str) -> Callable[[FrameResult], float]:

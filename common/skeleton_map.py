@@ -16,6 +16,8 @@ joints that sit at the same rest position (zero OFFSET) count as one site and tw
 are skipped: the first site is the elbow, the next the shoulder (upper arm), and a next site
 holding a same-side joint is the clavicle. So ``LeftShoulder`` is the clavicle in CMU and
 Mixamo skeletons and the shoulder in simple ones. The chest is where the arms and neck branch.
+
+One module of about 510 lines: the mapping of every supported skeleton onto ours.
 """
 from __future__ import annotations
 

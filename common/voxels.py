@@ -17,6 +17,9 @@ Error model (section 3.2, with eps * Q = 1): if silhouette pixels are lost with 
 eta and background pixels turn into silhouette with probability xi, independently, then
 P(FA) = [1 - (1 - xi)^Q]^K and P(FR) = eta^Q sum_{i<K} (1 - eta^Q)^i; see
 ``false_acceptance_probability`` and ``false_rejection_probability``.
+
+One module of about 600 lines: SPOT's lookup tables, the reconstruction and the hull's surface
+share one grid layout.
 """
 from __future__ import annotations
 

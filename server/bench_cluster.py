@@ -28,7 +28,7 @@ from common.body import load_body_model
 from common.fitting import FitOptions
 from common.sequence import load_sequence
 from common.argtypes import count
-from server.cluster import LocalCluster
+from server.local_cluster import LocalCluster
 from server.results import load_records
 from server.session import LocalSolver, run_fit
 

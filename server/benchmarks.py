@@ -257,21 +257,44 @@ def search_error_mm(model, record: dict, truth: dict) -> float:
 
 
 def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpose: bool = False,
-              options: FitOptions | None = None, first_frame_only: bool = False) -> list[dict]:
+              options: FitOptions | None = None, first_frame_only: bool = False, jobs: int = 1) -> list[dict]:
     """Automatic initialisation (issue 7): per clip, from frame 1 ("start", the first frame
     of motion), from a seeded random frame ("random") and, with ``tpose``, from frame 0
     ("tpose"), fit ``frames`` frames from the voxels (no truth) and from the truth.
 
     One row per clip and start: first_frame_error_mm (the voxel-started run's first frame)
     and whether it meets INIT_TARGET_MM, first_frame_seconds (initialisation and first fit),
-    the two runs' mean joint errors and their difference (auto minus truth start), and the two
-    runs' errors on their last frame, mm. A start whose automatic run fails (``UserError``:
-    no actor in the voxels) gives a row with "error" and first_frame_ok false, and the
-    benchmark goes on. With ``first_frame_only``, the sequences and starts are the same (the
-    random frames and the actor's place in the studio depend on ``frames``), but each run fits
-    its first frame alone: the search, without the backward refinement.
+    first_frame_evaluations, the two runs' mean joint errors and their difference (auto minus
+    truth start), and the two runs' errors on their last frame, mm. A start whose automatic run
+    fails (``UserError``: no actor in the voxels) gives a row with "error" and first_frame_ok
+    false, and the benchmark goes on. With ``first_frame_only``, the sequences and starts are
+    the same (the random frames and the actor's place in the studio depend on ``frames``), but
+    each run fits its first frame alone: the search, without the backward refinement. The
+    starts are drawn first, in clip order, so ``jobs`` processes (one start each at a time, one
+    core each) give the rows one process gives.
     """
     from common.bvh import read_bvh
+
+    options = options or FitOptions()
+    rng = np.random.default_rng(seed)
+    plan = []
+    for clip in clips:
+        total = read_bvh(clip).num_frames
+        starts = [("start", 1), ("random", int(rng.integers(1, max(2, total - 4 * frames))))]
+        if tpose:
+            starts.append(("tpose", TPOSE_FRAME))
+        plan += [(clip, label, start, frames, workdir, seed, options, first_frame_only) for label, start in starts]
+    if jobs <= 1:
+        return [_init_row(*p) for p in plan]
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(jobs) as pool:
+        return list(pool.map(_init_row, *zip(*plan)))
+
+
+def _init_row(clip: Path, label: str, start: int, frames: int, workdir: Path, seed: int, options: FitOptions,
+              first_frame_only: bool) -> dict:
+    """One row of ``init_rows``."""
     from common.camera import circle_studio
     from common.sequence import load_sequence
     from common.synth import SynthOptions, synthesize
@@ -279,45 +302,32 @@ def init_rows(clips: list[Path], frames: int, workdir: Path, seed: int = 0, tpos
     from server.session import LocalSolver, run_fit
 
     model = load_body_model()
-    options = options or FitOptions()
-    rng = np.random.default_rng(seed)
     fitted = 1 if first_frame_only else None
-    rows = []
-    for clip in clips:
-        total = read_bvh(clip).num_frames
-        starts = [("start", 1), ("random", int(rng.integers(1, max(2, total - 4 * frames))))]
-        if tpose:
-            starts.append(("tpose", TPOSE_FRAME))
-        for label, start in starts:
-            seq_dir = workdir / f"init-{clip.stem}-{label}"
-            synthesize(model, circle_studio(), clip, seq_dir,
-                       SynthOptions(frames=frames, start=start, noise="cheung", seed=seed))
-            seq = load_sequence(seq_dir)
-            auto_dir = workdir / f"auto-{clip.stem}-{label}"
-            try:
-                auto = run_fit(model, seq, auto_dir, options, LocalSolver(model, options), init="auto",
-                               max_frames=fitted, overwrite=True)
-            except UserError as exc:  # the clip's other rows still count (an actor out of most views)
-                rows.append({"clip": clip.name, "start": label, "start_frame": start, "first_frame_ok": False,
-                             "error": str(exc)})
-                continue
-            given = run_fit(model, seq, workdir / f"truth-{clip.stem}-{label}", options, LocalSolver(model, options),
-                            init="truth", max_frames=fitted, overwrite=True)
-            first = auto["per_frame_error_mm"][0]
-            first_record = load_records(auto_dir)[0]
-            rows.append({"clip": clip.name, "start": label, "start_frame": start, "frames": auto["frames"],
-                         "refine_search": options.refine_search, "refine_hops": options.refine_hops,
-                         "first_frame_error_mm": first, "first_frame_ok": bool(first <= INIT_TARGET_MM),
-                         # the search's own first frame, before the backward refinement replaced it
-                         "first_frame_search_error_mm": search_error_mm(model, first_record, seq.truth()),
-                         "first_frame_seconds": first_record["seconds"],
-                         "auto_mean_joint_error_mm": auto["mean_joint_error_mm"],
-                         "truth_start_mean_joint_error_mm": given["mean_joint_error_mm"],
-                         "auto_minus_truth_start_mm": auto["mean_joint_error_mm"] - given["mean_joint_error_mm"],
-                         # whether tracking forgets how it started: the runs' last frames
-                         "auto_last_frame_error_mm": auto["per_frame_error_mm"][-1],
-                         "truth_start_last_frame_error_mm": given["per_frame_error_mm"][-1]})
-    return rows
+    seq_dir = workdir / f"init-{clip.stem}-{label}"
+    synthesize(model, circle_studio(), clip, seq_dir, SynthOptions(frames=frames, start=start, noise="cheung", seed=seed))
+    seq = load_sequence(seq_dir)
+    auto_dir = workdir / f"auto-{clip.stem}-{label}"
+    try:
+        auto = run_fit(model, seq, auto_dir, options, LocalSolver(model, options), init="auto",
+                       max_frames=fitted, overwrite=True)
+    except UserError as exc:  # the clip's other rows still count (an actor out of most views)
+        return {"clip": clip.name, "start": label, "start_frame": start, "first_frame_ok": False, "error": str(exc)}
+    given = run_fit(model, seq, workdir / f"truth-{clip.stem}-{label}", options, LocalSolver(model, options),
+                    init="truth", max_frames=fitted, overwrite=True)
+    first = auto["per_frame_error_mm"][0]
+    first_record = load_records(auto_dir)[0]
+    return {"clip": clip.name, "start": label, "start_frame": start, "frames": auto["frames"],
+            "refine_search": options.refine_search, "refine_hops": options.refine_hops,
+            "first_frame_error_mm": first, "first_frame_ok": bool(first <= INIT_TARGET_MM),
+            # the search's own first frame, before the backward refinement replaced it
+            "first_frame_search_error_mm": search_error_mm(model, first_record, seq.truth()),
+            "first_frame_seconds": first_record["seconds"], "first_frame_evaluations": first_record["evaluations"],
+            "auto_mean_joint_error_mm": auto["mean_joint_error_mm"],
+            "truth_start_mean_joint_error_mm": given["mean_joint_error_mm"],
+            "auto_minus_truth_start_mm": auto["mean_joint_error_mm"] - given["mean_joint_error_mm"],
+            # whether tracking forgets how it started: the runs' last frames
+            "auto_last_frame_error_mm": auto["per_frame_error_mm"][-1],
+            "truth_start_last_frame_error_mm": given["per_frame_error_mm"][-1]}
 
 
 def print_init_table(rows: list[dict]) -> None:

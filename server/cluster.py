@@ -48,24 +48,20 @@ Reliability (zguide's Paranoid Pirate, adapted):
 Threads: a broker thread owns the socket and does all I/O, heartbeats and time-outs; the
 caller's thread queues work, checks results and waits for them (or solves a chain itself), so
 the clients hear from the server while it fits the torso and head.
+
+One module of about 800 lines: ``ClusterSolver`` is one state machine whose broker thread and
+caller thread share its lock and round state; what it trusts is ``server.trust``, the local
+cluster ``server.local_cluster``.
 """
 from __future__ import annotations
 
-import ipaddress
 import logging
-import os
 import queue
 import secrets
-import shutil
-import signal
-import subprocess
-import sys
-import tempfile
 import threading
 import time
 from collections import defaultdict, deque
-from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -75,14 +71,13 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils.monitor import recv_monitor_message
 
-from common import argtypes
-from common.body import CHAINS, LIMB_CHAINS, BodyModel
+from common.body import BodyModel
 from common.errors import UserError
 from common.fitting import (
-    HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, _limb_centre_segments, _stage_backends, full_energy,
-    redetects, with_spine_prior,
+    HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, redetects,
 )
 from common.search import FIT_JOBS, job_options, job_starts, solve_job
+from server.trust import check_bind, check_result, server_keys
 from common.packing import packbits_masks
 from common.protocol import (
     MAX_CLIENT_MESSAGE_BYTES, MAX_PARTS, Error, Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve,
@@ -102,101 +97,11 @@ SOLVE_TIMES_KEPT = 64  # measured solves per kind of job, the most recent; their
 RECEIVE_HWM = 100  # messages queued per peer at most; a client sends a few between the server's reads
 MAX_SLEEP = 1.0  # seconds the broker sleeps at most; it wakes for messages, commands and deadlines
 SHUTDOWN_GRACE = 1.0  # seconds to wait for clients to acknowledge SHUTDOWN
-CLIENT_START_TIMEOUT = 60.0  # seconds for local clients to start and register
-CLIENT_STOP_TIMEOUT = 5.0  # seconds a local client gets to exit after SIGTERM
 AUTH_EVENTS = {zmq.EVENT_HANDSHAKE_FAILED_AUTH: "unauthenticated",
                zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL: "handshake",
                zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL: "handshake"}
-LOOPBACK_NAMES = ("localhost",)
 
 log = logging.getLogger("server.cluster")
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread so that ``finally`` blocks run (see ``terminate_on_sigterm``)."""
-
-
-@contextmanager
-def terminate_on_sigterm():
-    """Within the block, SIGTERM raises ``Terminated`` in the main thread; the old handler after."""
-    def handler(signum, frame):
-        raise Terminated()
-
-    old = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
-
-
-# ----------------------------------------------------------------------------- CURVE keys
-
-SECRET_KEY_MODE = 0o600  # secret key files: their owner alone reads them
-
-
-def create_curve_keys(directory: Path, clients: tuple[str, ...] = ("client",)) -> Path:
-    """Make a key folder: server pair, ``clients/NAME.key`` (the allow-list) and, for the first
-    client name, ``client.key_secret``, the pair ``python -m client --curve-keys DIR`` loads.
-    Secret key files are ``SECRET_KEY_MODE``: made in a private folder (mkdtemp's 0700), so
-    no other user can open one between its creation and its chmod.
-
-    Deployments give clients a copy without ``server.key_secret``.
-    """
-    directory = Path(directory)
-    allowed = directory / "clients"
-    allowed.mkdir(parents=True, exist_ok=True)
-    private = Path(tempfile.mkdtemp(prefix=".keys-", dir=directory))
-    try:
-        pairs = [("server", *zmq.auth.create_certificates(private, "server"))]
-        pairs += [(name, *zmq.auth.create_certificates(private, name)) for name in clients]
-        for i, (name, public, secret) in enumerate(pairs):
-            os.chmod(secret, SECRET_KEY_MODE)
-            if name == "server":
-                shutil.move(public, directory / "server.key")
-                shutil.move(secret, directory / "server.key_secret")
-                continue
-            shutil.move(public, allowed / f"{name}.key")
-            shutil.move(secret, directory / ("client.key_secret" if i == 1 else f"{name}.key_secret"))
-    finally:
-        shutil.rmtree(private, ignore_errors=True)
-    return directory
-
-
-def check_bind(bind: str, curve_keys: Path | None, insecure: bool) -> bool:
-    """Without CURVE, only a loopback (127.0.0.0/8, ::1, localhost) or ipc/inproc address:
-    anyone who reaches a network address could send poses. ``insecure`` allows it; returns
-    whether it did (UserError where it is needed and not given)."""
-    if curve_keys is not None:
-        return False
-    scheme, _, rest = bind.partition("://")
-    if scheme in ("ipc", "inproc"):
-        return False
-    host = rest.rpartition(":")[0].strip("[]")
-    try:
-        local = host in LOOPBACK_NAMES or ipaddress.ip_address(host).is_loopback
-    except ValueError:  # "*", an interface or a host name
-        local = False
-    if local:
-        return False
-    if not insecure:
-        raise UserError(f"--bind {bind}: not a loopback address, and without --curve-keys any host that reaches "
-                        f"it could join and send results; give --curve-keys DIR (mocap keys), a loopback --bind "
-                        f"(tcp://127.0.0.1:5555), or --insecure on a network you trust")
-    return True
-
-
-def _server_keys(directory: Path) -> tuple[bytes, bytes, Path]:
-    directory = Path(directory)
-    secret_file, allowed = directory / "server.key_secret", directory / "clients"
-    try:
-        public, secret = zmq.auth.load_certificate(secret_file)
-    except (OSError, ValueError) as exc:
-        raise UserError(f"--curve-keys {directory}: cannot read server.key_secret: {exc}") from None
-    if secret is None:
-        raise UserError(f"--curve-keys {directory}: server.key_secret holds no secret key")
-    if not allowed.is_dir() or not any(allowed.glob("*.key")):
-        raise UserError(f"--curve-keys {directory}: no allowed client keys in clients/*.key")
-    return public, secret, allowed
 
 
 # ----------------------------------------------------------------------------- state
@@ -261,7 +166,7 @@ class _Round:
     chains: list
     starts: dict                                         # chain -> (35,) its start
     options: dict                                        # chain -> FitOptions
-    wire_options: dict                                   # chain -> options.to_wire()
+    wire_options: dict                                   # chain -> options.solve_settings()
     results: dict = field(default_factory=dict)         # chain -> ChainResult, the first checked
     claims: dict = field(default_factory=dict)          # chain -> _Claim, the first to arrive, unchecked
     pending: deque = field(default_factory=deque)        # chains nobody works on
@@ -294,56 +199,6 @@ def _job_kind(chain: str, iteration: int, options: FitOptions, wire_options: dic
     else:
         kind = "limb"
     return kind, tuple(sorted(wire_options.items()))
-
-
-def score_job(frame: FrameData, job: str, start: np.ndarray, params: np.ndarray, options: FitOptions,
-              iteration: int) -> tuple[int, int | None]:
-    """(energy_before, energy): what ``solve_job`` reports for ``job`` solved from ``start``
-    to ``params`` (35,), one evaluation each, in the energy it was solved in. The XOR counts
-    are integers and deterministic, so an honest result matches exactly. ``energy`` is None for
-    a coarse-to-fine limb outside the re-detection round: its last (gl) stage places its windows
-    at the first stage's result, which the message does not carry.
-
-    The server dispatches limb chains, hops and whole fits only (torso and head it fits itself)."""
-    if job in FIT_JOBS:
-        return full_energy(frame.model, frame, start), full_energy(frame.model, frame, params)
-    if job in HOP_JOBS:
-        objective = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
-        before, after = (round(float(objective(p[None])[0])) for p in (start, params))
-        return before, after
-    if job not in LIMB_CHAINS:
-        raise ValueError(f"{job!r} is not a job the cluster dispatches")
-    moving = CHAINS[job].segments
-    if iteration == REDETECT_ROUND:  # ``redetect_limb``: the whole images, every stage the same energy
-        setup = replace(frame.full_setup(start), moving=moving, prerender=True)
-        energy = frame.energy("cpu" if options.energy == "coarse-to-fine" else options.energy, setup)
-        return int(energy(start)[0]), int(energy(params)[0])
-    backends = _stage_backends(options)
-    setup = replace(frame.window_setup(start, _limb_centre_segments(job), options.limb_window_px, options.prerender),
-                    moving=moving)
-    energy = frame.energy(backends[0], setup)
-    before = int(energy(start)[0])
-    return before, (int(round(float(energy(params)[0]))) if len(backends) == 1 else None)
-
-
-def check_result(frame: FrameData, result: ChainResult, start: np.ndarray, options: FitOptions,
-                 iteration: int) -> str | None:
-    """Why ``result`` of a job solved from ``start`` (35,) cannot be used, or None: its energies
-    are not those of its parameters (``score_job``), or a limb's result moved parameters that
-    are not its chain's (the solves hold them, so an honest result leaves them bit for bit)."""
-    params = np.asarray(result.params, dtype=np.float64)
-    if params.shape != start.shape or not np.all(np.isfinite(params)):
-        return f"parameters of shape {params.shape}, not {start.shape} finite numbers"
-    if result.chain in LIMB_CHAINS:
-        others = np.ones(len(start), dtype=bool)
-        others[list(CHAINS[result.chain].params)] = False
-        if not np.array_equal(params[others], start[others]):
-            return f"parameters outside {result.chain} moved"
-    before, after = score_job(frame, result.chain, start, params, options, iteration)
-    if before != result.energy_before or (after is not None and after != result.energy):
-        return (f"claimed energies {result.energy_before} -> {result.energy}, its parameters score "
-                f"{before} -> {after if after is not None else '?'}")
-    return None
 
 
 def _chain_result(msg: Result) -> ChainResult:
@@ -402,7 +257,7 @@ class ClusterSolver:
             self.sock.setsockopt(zmq.MAXMSGSIZE, MAX_CLIENT_MESSAGE_BYTES)
             self.sock.rcvhwm = RECEIVE_HWM
             if curve_keys is not None:
-                public, secret, allowed = _server_keys(curve_keys)
+                public, secret, allowed = server_keys(curve_keys)
                 self._auth = ThreadAuthenticator(self.ctx, log=logging.getLogger("server.cluster.auth"))
                 self._auth.start()
                 self._auth.configure_curve(domain="*", location=str(allowed))
@@ -479,7 +334,7 @@ class ClusterSolver:
         chains = list(chains)
         opts = job_options(options, self._frame_options, len(chains))
         rnd = _Round(self._current_frame, int(iteration), chains, dict(zip(chains, job_starts(params, len(chains)))),
-                     dict(zip(chains, opts)), {c: o.to_wire() for c, o in zip(chains, opts)})
+                     dict(zip(chains, opts)), {c: o.solve_settings() for c, o in zip(chains, opts)})
         rnd.pending.extend(rnd.chains)
         with self._lock:
             self._round = rnd
@@ -954,97 +809,3 @@ class ClusterSolver:
         if self._auth is not None:
             self._auth.stop()
         self.ctx.term()
-
-
-# ----------------------------------------------------------------------------- local cluster
-
-def _project_root() -> Path:
-    return Path(__file__).resolve().parent.parent
-
-
-class LocalCluster:
-    """A ClusterSolver on 127.0.0.1 (random port) and ``n`` client subprocesses (``python -m client``).
-
-    ``with LocalCluster(...) as solver:`` waits until every client has registered; on leaving
-    (normally, on an error or on Ctrl-C/SIGTERM) it sends SHUTDOWN, then SIGTERM, then SIGKILL
-    to clients still there after ``CLIENT_STOP_TIMEOUT``.
-    """
-
-    def __init__(self, model: BodyModel, options: FitOptions, clients: int,
-                 heartbeat_interval: float = HEARTBEAT_INTERVAL, client_timeout: float = CLIENT_TIMEOUT,
-                 client_args: tuple[str, ...] = ()):
-        self.model, self.options, self.n = model, options, clients
-        self.heartbeat_interval, self.client_timeout = heartbeat_interval, client_timeout
-        self.client_args = client_args
-        self.solver: ClusterSolver | None = None
-        self.procs: list[subprocess.Popen] = []
-
-    def __enter__(self) -> ClusterSolver:
-        self.solver = ClusterSolver(self.model, self.options, bind=LOCAL_BIND,
-                                    heartbeat_interval=self.heartbeat_interval, client_timeout=self.client_timeout)
-        try:
-            env = dict(os.environ)
-            env["PYTHONPATH"] = os.pathsep.join(p for p in (str(_project_root()), env.get("PYTHONPATH")) if p)
-            for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-                env.setdefault(var, "1")  # one core per client: no thread oversubscription
-            for i in range(self.n):
-                self.procs.append(subprocess.Popen(
-                    [sys.executable, "-m", "client", "--connect", self.solver.endpoint, "--id", f"local-{i + 1}",
-                     "--quiet", "--exit-with-parent", "--reconnect-min", "0.2", *self.client_args],
-                    # own sessions: a terminal's Ctrl-C reaches only us, and we stop them in order;
-                    # the kernel's autogroup scheduler also shares the CPU out per session, so each
-                    # client counts as a machine of its own, as in the paper's cluster
-                    env=env, stdin=subprocess.DEVNULL, start_new_session=True))
-            self.solver.wait_for_clients(self.n, CLIENT_START_TIMEOUT, check=self._check_alive)
-        except BaseException:
-            self.__exit__(None, None, None)
-            raise
-        return self.solver
-
-    def _check_alive(self) -> None:
-        for i, p in enumerate(self.procs):
-            if p.poll() is not None:
-                raise UserError(f"local client {i + 1} exited with status {p.returncode} before registering")
-
-    def __exit__(self, *exc) -> None:
-        if self.solver is not None:
-            self.solver.close(shutdown="run finished")
-        stop_processes(self.procs, CLIENT_STOP_TIMEOUT)
-
-
-def stop_processes(procs: list, timeout: float) -> None:
-    """SIGTERM the ones still running, wait up to ``timeout`` in all, SIGKILL the rest."""
-    deadline = time.monotonic() + timeout
-    for p in procs:
-        if p.poll() is None:
-            # they may be exiting on SHUTDOWN already
-            try:
-                p.wait(max(0.0, min(0.5, deadline - time.monotonic())))
-            except subprocess.TimeoutExpired:
-                p.terminate()
-    for p in procs:
-        try:
-            p.wait(max(0.0, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-
-
-def add_cluster_arguments(p, server: bool) -> None:
-    """Command-line flags of the cluster: ``mocap server`` (server=True) or ``mocap fit --clients``."""
-    if server:
-        p.add_argument("--bind", default=DEFAULT_BIND, help=f"ROUTER address (default {DEFAULT_BIND}); without "
-                                                            f"--curve-keys only a loopback or ipc:// address")
-        p.add_argument("--min-clients", type=argtypes.count(0), default=1,
-                       help="clients to wait for before the first frame (default 1; 0: start at once)")
-        p.add_argument("--curve-keys", type=Path, default=None, metavar="DIR",
-                       help="CURVE: DIR/server.key_secret, allowed client keys in DIR/clients/*.key")
-        p.add_argument("--insecure", action="store_true",
-                       help="bind a network address without CURVE: any host that reaches it can join")
-    p.add_argument("--client-timeout", type=argtypes.seconds, default=CLIENT_TIMEOUT,
-                   help=f"seconds a chain or hop may take on a client at most before it is re-sent (default "
-                        f"{CLIENT_TIMEOUT:g}); once solves are measured, {DEADLINE_FACTOR:g} times their median, "
-                        f"at least {DEADLINE_FLOOR:g}")
-    p.add_argument("--heartbeat", type=argtypes.real(0.001, 3600.0), default=HEARTBEAT_INTERVAL,
-                   help=f"heartbeat interval, seconds (default {HEARTBEAT_INTERVAL:g}); a peer silent for "
-                        f"{HEARTBEAT_LIVENESS} intervals counts as gone")

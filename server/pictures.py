@@ -14,6 +14,9 @@
   chain.
 
 ``make_result_pictures`` writes them all into ``RESULT/pictures/``.
+
+One module of about 700 lines: every picture (overlays, skeleton views, contact sheets, the
+MP4) draws with the same projection and tile helpers.
 """
 from __future__ import annotations
 

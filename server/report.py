@@ -14,6 +14,8 @@ Hooks for automated checks: the page records any script error or console.error/w
 (CSS pixels) in ``data-canvas-rect``; the take's video, once decoded, its length in
 ``data-video-duration`` (seconds). ``report.html#frame=N`` opens paused at frame index N
 (also ``yaw=DEG``, ``pitch=DEG``, ``play``).
+
+One module of about 570 lines: one HTML page, its sections in the order they appear.
 """
 from __future__ import annotations
 

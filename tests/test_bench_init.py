@@ -33,9 +33,9 @@ def captured(monkeypatch):
     """Replaces init_rows; records the clips and options it was called with."""
     calls = []
 
-    def fake(clips, frames, workdir, seed=0, tpose=False, options=None, first_frame_only=False):
+    def fake(clips, frames, workdir, seed=0, tpose=False, options=None, first_frame_only=False, jobs=1):
         calls.append({"clips": list(clips), "frames": frames, "tpose": tpose, "search": options.refine_search,
-                      "hops": options.refine_hops, "first_frame_only": first_frame_only})
+                      "hops": options.refine_hops, "first_frame_only": first_frame_only, "jobs": jobs})
         return [_row(c.name, "start", 1, 30.0) for c in clips]
 
     monkeypatch.setattr(benchmarks, "init_rows", fake)
@@ -49,14 +49,14 @@ def test_bench_init_defaults_to_the_shared_clips(tmp_path, monkeypatch, captured
     monkeypatch.setattr(benchmarks, "SHARED_CLIPS", shared)
     assert main(["bench", "init", "--frames", "2", "--tpose", "--json", str(tmp_path / "rows.json")]) == 0
     assert captured[-1] == {"clips": [shared / "cmu" / "05_02.bvh"], "frames": 2, "tpose": True, "search": False,
-                            "hops": 0, "first_frame_only": False}
+                            "hops": 0, "first_frame_only": False, "jobs": 1}
     assert (tmp_path / "rows.json").exists()
     assert "05_02.bvh" in capsys.readouterr().out
     assert main(["bench", "init", "--bundled", "--refine-search", "--refine-hops", "20"]) == 0
     assert captured[-1]["clips"] == BUNDLED and not captured[-1]["tpose"] and captured[-1]["search"]
     assert captured[-1]["hops"] == 20
-    assert main(["bench", "init", "--bundled", "--frames", "100", "--first-frame-only"]) == 0
-    assert captured[-1]["first_frame_only"] and captured[-1]["frames"] == 100
+    assert main(["bench", "init", "--bundled", "--frames", "100", "--first-frame-only", "--jobs", "2"]) == 0
+    assert captured[-1]["first_frame_only"] and captured[-1]["frames"] == 100 and captured[-1]["jobs"] == 2
 
 
 def test_bench_init_falls_back_to_the_bundled_clips(tmp_path, monkeypatch, captured):

@@ -18,7 +18,8 @@ from common.protocol import (MAX_CLIENT_MESSAGE_BYTES, MAX_HEADER_BYTES, PROTOCO
 from common.camera import circle_studio
 from common.sequence import load_sequence
 from client.worker import CurveKeys
-from server.cluster import LOCAL_BIND, ClusterSolver, create_curve_keys
+from server.cluster import LOCAL_BIND, ClusterSolver
+from server.trust import create_curve_keys
 from server.session import run_fit
 from test_cluster_support import HEARTBEAT, THREAD_HEARTBEAT, poses, reference_fit, thread_workers, wait_for
 

@@ -18,8 +18,8 @@ from common.fitting import FitOptions
 from common.protocol import (MAX_CLIENT_MESSAGE_BYTES, MAX_TEXT_CHARS, Error, Heartbeat, Register,
                              Result, Solve, encode)
 from common.sequence import load_sequence
-from server.cluster import (DEADLINE_FACTOR, DEADLINE_FLOOR, LOCAL_BIND, ClusterSolver, check_bind,
-                            create_curve_keys)
+from server.cluster import DEADLINE_FACTOR, DEADLINE_FLOOR, LOCAL_BIND, ClusterSolver
+from server.trust import check_bind, create_curve_keys
 from server.session import run_fit
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 from reliability_faults import FakePeers  # noqa: E402  the fault suite's fake peers, in tests too

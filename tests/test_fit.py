@@ -278,6 +278,13 @@ def test_fit_options_validate_and_travel():
         FitOptions.from_wire({"bogus": 1})
     opts = FitOptions(max_iterations=3, prerender=False)
     assert FitOptions.from_wire(json.loads(json.dumps(opts.to_wire()))) == opts
+    # a SOLVE carries what a job is solved with, not the schedule's settings
+    from common.fitting import RUN_SETTINGS
+
+    run = FitOptions(turn_hypotheses=1, polish_iterations=0, refine_passes=3, refine_hops=5)
+    solve = run.solve_settings()
+    assert not set(solve) & set(RUN_SETTINGS) and set(solve) | set(RUN_SETTINGS) == set(run.to_wire())
+    assert FitOptions.from_wire(solve) == replace(FitOptions(), **{k: v for k, v in solve.items()})
 
 
 # ------------------------------------------------------------------------ mocap fit

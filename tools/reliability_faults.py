@@ -287,7 +287,7 @@ def network_bind_without_keys(ctx: _Context) -> tuple[bool, str]:
 
 
 def curve_refusal(ctx: _Context) -> tuple[bool, str]:
-    from server.cluster import create_curve_keys
+    from server.trust import create_curve_keys
 
     keys = create_curve_keys(ctx.work_dir / "keys")
     stranger = create_curve_keys(ctx.work_dir / "stranger")  # a pair the server does not allow

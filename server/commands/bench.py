@@ -67,6 +67,8 @@ def register(sub) -> None:
                      help="fit only the first frame of each run (the search alone), on the same clips and starts")
     ini.add_argument("--refine-search", action="store_true", help="both runs as mocap fit --refine-search")
     ini.add_argument("--refine-hops", type=count(0), default=0, metavar="N", help="both runs as mocap fit --refine-hops")
+    ini.add_argument("--jobs", type=count(1), default=1,
+                     help="starts fitted at once, one process (and core) each; the same rows as one")
     ini.add_argument("--json", type=Path, default=None)
     pr = bsub.add_parser("presets", help="mocap fit --preset fast|default|best on the same frames: time and error")
     pr.add_argument("sequence", type=Path, nargs="?", default=None,
@@ -172,7 +174,7 @@ def run(args) -> int:
         with tempfile.TemporaryDirectory() as tmp:
             options = _fit_options(refine_search=args.refine_search, refine_hops=args.refine_hops)
             rows = benchmarks.init_rows(clips, args.frames, Path(tmp), tpose=args.tpose, options=options,
-                                        first_frame_only=args.first_frame_only)
+                                        first_frame_only=args.first_frame_only, jobs=args.jobs)
         if args.json:
             benchmarks.write_json(args.json, rows)
         benchmarks.print_init_table(rows)

@@ -13,7 +13,7 @@ from common.fitting import ENERGY_BACKENDS, FitOptions
 from common.sequence import MAX_MASK_THRESHOLD, load_sequence
 from common.world import UP_CHOICES
 from common.argtypes import count, non_negative, real
-from server.cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
+from server.local_cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.config import PRESETS
 from server.progress import Progress
 from server.output import add_overwrite_argument, check_folder_target, replace_file

@@ -14,7 +14,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from server.cluster import create_curve_keys
+    from server.trust import create_curve_keys
 
     names = tuple(n.strip() for n in args.clients.split(",") if n.strip())
     if not names:

@@ -12,7 +12,9 @@ import sys
 
 from common.body import load_body_model
 from common.sequence import load_sequence
-from server.cluster import ClusterSolver, Terminated, add_cluster_arguments, check_bind, terminate_on_sigterm
+from server.cluster import ClusterSolver
+from server.local_cluster import Terminated, add_cluster_arguments, terminate_on_sigterm
+from server.trust import check_bind
 from server.commands.fit import add_fit_arguments, finish, options_from_args
 from server.progress import Progress
 from server.session import run_fit
