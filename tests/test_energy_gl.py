@@ -5,8 +5,8 @@ import pytest
 from common.body import (CHAINS, PARAM_COUNT, clip_to_limits, forward_kinematics, load_body_model, rest_params,
                          rigid_vertices)
 from common.camera import circle_studio
-from common.energy import (ARM_WINDOW, CpuEnergy, EnergySetup, Window, centred_window, cut_window, ellipsoid_world,
-                           make_energy)
+from common.energy import (ARM_WINDOW, CpuEnergy, EnergySetup, Window, centred_window, cut_window, ellipsoid_world)
+from common.objective import make_energy
 from common.errors import UserError
 
 ARM = CHAINS["left_arm"]
