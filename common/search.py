@@ -21,9 +21,9 @@ Schedules:
 - ``SEARCH``: a frame with no trusted start (a first frame, a recovery): wide fits from the
   voxels' starts, the lowest refitted; the tracking fit; rotations about the pelvis; sides
   swapped, limbs' other basins, arms' other twists; basin hopping;
-- ``REFINE`` (``REFINE_SEARCH``): a tracked frame again, from its neighbour's fit and from
-  halfway between its neighbours, each turned either way, tilted ahead; its arms' other twists
-  (and its limbs' other basins); the two lowest polished, the limbs re-detected; hops where asked.
+- ``REFINE`` (``REFINE_SEARCH``): a tracked frame again, from its neighbour's fit (turned,
+  tilted ahead), then from halfway between its neighbours (turned), each polished and its limbs
+  re-detected; its arms' other twists (and its limbs' other basins); hops where asked.
 """
 from __future__ import annotations
 
@@ -178,12 +178,15 @@ SEARCH = Schedule((
     Stage(("swaps", "basins", "twists"), ("deep",)), *POLISHED,
     Stage(("hops",)),
 ))
-# The neighbour's fit and the pose halfway, each turned either way as tracking turns its start;
-# the two lowest polished. Without the turns, the re-detection and the second polish, a pass took
-# a third of the time, and over the 17 shared clips the refined mean error was 0.1-1.3 mm worse.
-REFINE = Schedule((Stage(("start", "start_turns", "tilt_ahead", "midway", "midway_turns")), Stage(("twists",)),
-                   Stage(("again",), ("polish",), beam=2), Stage(("redetected",)), Stage(("hops",))))
-REFINE_SEARCH = Schedule((REFINE.stages[0], Stage(("basins", "twists")), *REFINE.stages[2:]))
+# The neighbour's fit, then the pose halfway, each turned either way as tracking turns its start,
+# each group's best polished and its limbs re-detected, as tracking does. With one polish and one
+# re-detection for both, the dance was 10.6 / 60.3 mm (3 frames over 40) instead of 10.4 / 45.9
+# (2 frames), the same tracking refined; leaner still (no turns, no re-detection), a walk's pass
+# took 0.39 s a frame instead of 0.62 but the error was worse on 15 of the 16 shared clips other
+# than the cartwheel (by up to 1.3 mm; docs/accuracy.md).
+REFINE = Schedule((Stage(("start", "start_turns", "tilt_ahead")), *POLISHED, Stage(("midway", "midway_turns")),
+                   *POLISHED, Stage(("twists",), ("deep",)), Stage(("hops",))))
+REFINE_SEARCH = Schedule((*REFINE.stages[:-2], Stage(("basins", "twists"), ("deep",)), REFINE.stages[-1]))
 SCHEDULES = {"tracking": TRACKING, "limbs-lost": LIMBS_LOST, "wide": WIDE, "search": SEARCH, "refine": REFINE,
              "refine-search": REFINE_SEARCH}
 
