@@ -177,7 +177,7 @@ SEARCH = Schedule((
     Stage(("rotations",), ("deep",), rounds=BODY_ROTATION_ROUNDS),
     Stage(("swaps", "basins", "twists"), ("deep",)), *POLISHED,
     Stage(("hops",)),
-))
+), budget=4_000_000)  # evaluations: twice the most any of the 34 first frames of `mocap bench init` spent (1.97M)
 # The neighbour's fit, then the pose halfway, each turned either way as tracking turns its start,
 # each group's best polished and its limbs re-detected, as tracking does. With one polish and one
 # re-detection for both, the dance was 10.6 / 60.3 mm (3 frames over 40) instead of 10.4 / 45.9

@@ -987,6 +987,10 @@ def test_the_search_loop_refits_the_lowest_few_and_stops_when_a_round_gains_too_
         (10, "every"), (10, "track"),  # round 1: the two lowest (10 every: 95, 10 track: 100), 95 -> 85
         (20, "every"), (20, "track")]  # round 2: 85 stays 85, so no round 3
     assert (found.params[0], found.energy, found.variant, found.evaluations) == (20, 85, "every", 12)
+    # a budget spent: no further round starts (the starts' 8 evaluations spend a budget of 8)
+    fitted.clear()
+    found = run_schedule(ctx, Schedule(schedule.stages, budget=8))
+    assert len(fitted) == 8 and found.evaluations == 8 and found.energy == 95
 
 
 def test_which_limbs_are_redetected_when():

@@ -4,10 +4,10 @@ segment, fit. Skipped without ../shared. Slow (about 4 minutes on 2 cores): `mak
 
 What it holds the fit to is what the fit reaches today (see docs/accuracy.md, "The seated
 take"): upright in the calibration's z-down world, hips and knees bent as a seated body's (over
-45 degrees, a standing body's are under 20; the target of 60-130 is missed in some frames: the
-right knee is fitted 48-58 degrees, at the XOR energy an earlier search reached with it at 59-63,
-27,703 against 27,699 pixels on frame 0, so the silhouettes, with the chair in them, do not pin
-it to 10 degrees), feet near the floor, still from frame to frame. The XOR share (under 30% is the target) is printed, and only held
+50 degrees, a standing body's are under 20; the target of 60-130 is missed in some frames: the
+right knee is fitted 51-57 degrees, where fbbbf57's search put it at 59-63 with the same XOR
+energy, 27,703 against 27,699 pixels on frame 0, so the silhouettes, with the chair in them, do
+not pin it to 10 degrees), feet near the floor, still from frame to frame. The XOR share (under 30% is the target) is printed, and only held
 under 60%.
 """
 import json
@@ -58,7 +58,7 @@ def test_the_seated_take_fits_seated_upright_and_still(tmp_path):
     for side in ("l", "r"):
         for joint in ("hip", "knee"):
             bend = np.array(fig[f"{side}_{joint}_bend_deg"])
-            assert np.all((bend > 45) & (bend < 130)), (joint, bend)  # seated (standing: under 20)
+            assert np.all((bend > 50) & (bend < 130)), (joint, bend)  # seated (standing: under 20)
         assert np.all(np.abs(np.array(fig[f"{side}_ankle_height_m"])) < 0.2)
     # upright: the head above the pelvis in the z-up fit frame, i.e. below it in the file's z-down world
     assert all(r["joints"]["head_top"][2] < r["joints"]["pelvis"][2] for r in records)
