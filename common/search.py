@@ -187,8 +187,6 @@ SEARCH = Schedule((
 REFINE = Schedule((Stage(("start", "start_turns", "tilt_ahead")), *POLISHED, Stage(("midway", "midway_turns")),
                    *POLISHED, Stage(("twists",), ("deep",)), Stage(("hops",))))
 REFINE_SEARCH = Schedule((*REFINE.stages[:-2], Stage(("basins", "twists"), ("deep",)), REFINE.stages[-1]))
-SCHEDULES = {"tracking": TRACKING, "limbs-lost": LIMBS_LOST, "wide": WIDE, "search": SEARCH, "refine": REFINE,
-             "refine-search": REFINE_SEARCH}
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from server.benchmarks import MAX_ERROR_TARGET_MM, shared_clips  # noqa: E402
+from server.benchmarks import MAX_ERROR_TARGET_MM, shared_clips, write_json  # noqa: E402
 
 
 def fit_clip(clip: Path, frames: int, work: Path, preset: str, init: str) -> dict:
@@ -87,8 +87,7 @@ def main(argv=None) -> int:
           f"mm, clips with a frame over 40 mm: {sum(r['frames_over_40mm'] > 0 for r in rows)}, wall "
           f"{sum(r['wall_seconds_per_frame'] for r in rows) / len(rows):.3f} s/frame")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(rows, indent=1))
+        write_json(args.json, rows)
     return 0
 
 
