@@ -22,7 +22,8 @@ Reliability (zguide's Paranoid Pirate, adapted):
    it answers. The deadline is ``DEADLINE_FACTOR`` times the median of the measured solve times
    of that kind of job (round trips of accepted results, and the server's own solves), at least
    ``DEADLINE_FLOOR``, at most ``client_timeout``, which is also the deadline before anything
-   is measured;
+   is measured; while it waits on a kind nothing has measured, the server solves one job of
+   it itself, so a new kind of job costs a measured deadline, not ``client_timeout``;
  - a chain queued again (its client stalled, failed or left, or its result was refused) goes
    to a client that has delivered accepted work, or the server solves it: a crowd of new peers
    that never answer costs one deadline per round, not one per peer;
@@ -239,8 +240,10 @@ class ClusterSolver:
         self._stats: dict[str, _ClientStats] = {}
         self._solve_times: dict[tuple, deque] = defaultdict(lambda: deque(maxlen=SOLVE_TIMES_KEPT))
         self._deadlines: dict[tuple, float] = {}  # kind of job -> seconds, from _solve_times
+        self._measuring: set = set()  # kinds of job the server has taken one of to measure (_unmeasured_job)
+        self._backed_up: set = set()  # (session, frame, iteration, request) the server also solved
         self._counts = {"dropped": {}, "rejected": 0, "stalls": 0, "lost_clients": 0, "resent": 0,
-                        "local_chains": 0, "disconnects": 0}
+                        "local_chains": 0, "backup_chains": 0, "disconnects": 0}
         # seconds: the caller's thread waiting for results, and encoding FRAMEs; the broker's I/O
         self._server = {"waiting_seconds": 0.0, "encode_seconds": 0.0, "io_seconds": 0.0,
                         "local_compute_seconds": 0.0, "check_seconds": 0.0}
@@ -413,10 +416,14 @@ class ClusterSolver:
         while True:
             with self._lock:
                 t0 = time.perf_counter()
+                unmeasured = None
                 while not rnd.claims and not rnd.done() and not (rnd.dispatched and rnd.pending):
                     if not self._thread.is_alive():
                         raise RuntimeError("the cluster broker thread died")
-                    self._lock.wait(MAX_SLEEP)
+                    unmeasured, wait = self._unmeasured_job(rnd) if rnd.dispatched else (None, MAX_SLEEP)
+                    if unmeasured is not None:
+                        break
+                    self._lock.wait(wait)
                 self._server["waiting_seconds"] += time.perf_counter() - t0
                 if rnd.claims:
                     chain = next(iter(rnd.claims))
@@ -425,6 +432,9 @@ class ClusterSolver:
                     if self._round is rnd:
                         self._round = None
                     return [rnd.results[c] for c in rnd.chains]
+                elif unmeasured is not None:
+                    chain, claim = unmeasured, None
+                    rnd.local.add(chain)
                 else:
                     chain, claim = rnd.pending.popleft(), None
                     rnd.resent.discard(chain)
@@ -443,6 +453,28 @@ class ClusterSolver:
                 rnd.local.discard(chain)
                 rnd.results.setdefault(chain, result)
                 self._lock.notify_all()
+
+    def _unmeasured_job(self, rnd: _Round) -> tuple[str | None, float]:
+        """(a chain out with a client for ``DEADLINE_FLOOR`` whose kind of job has no measured
+        solve yet, seconds to wait before looking again). Its deadline would be the whole
+        ``client_timeout``; the server solves it itself instead of waiting (a backup task), which
+        measures the kind: peers that never answer cost a measured deadline, not a
+        ``client_timeout`` per kind of job. Once per kind, so honest clusters lose little."""
+        if rnd.local:
+            return None, MAX_SLEEP
+        now, wait = time.monotonic(), MAX_SLEEP
+        for request, req in rnd.requests.items():
+            if (req.timed_out or req.chain in rnd.results or req.chain in rnd.claims
+                    or req.kind in self._deadlines or req.kind in self._measuring):
+                continue
+            age = now - req.sent
+            if age >= DEADLINE_FLOOR:
+                self._measuring.add(req.kind)
+                self._backed_up.add((self.session, rnd.frame, rnd.iteration, request))
+                self._counts["backup_chains"] += 1
+                return req.chain, 0.0
+            wait = min(wait, DEADLINE_FLOOR - age)
+        return None, wait
 
     def _check(self, rnd: _Round, chain: str, claim: _Claim) -> None:
         """Use ``claim`` if its energies are its parameters' (``check_result``); else refuse it,
@@ -671,6 +703,8 @@ class ClusterSolver:
             stats.cpu_seconds += msg.cpu_seconds
         if msg.request == peer.request:
             self._release(peer)
+        if (msg.session, msg.frame, msg.iteration, msg.request) in self._backed_up:
+            return  # the server solved it too, to measure its kind; whichever came first is used
         if (rnd is None or req is None or msg.session != self.session or msg.frame != rnd.frame
                 or msg.iteration != rnd.iteration):
             self._drop("stale", f"result for frame {msg.frame} iteration {msg.iteration} request "

@@ -51,10 +51,12 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     limb_solves = sum(s["chain"] in LIMB_CHAINS for r in records(tmp_path) for s in r["solves"])
     whole_fits = sum(r["whole_fits"] for r in records(tmp_path))
     assert limb_solves >= len(LIMB_CHAINS) and whole_fits >= 3 * EQUAL_FRAMES  # the start and its two turns
-    # every job was done by a client or by the server, most by clients where there are some
-    assert sum(p["chains"] for p in clients) + timing["local_chains"] == limb_solves + whole_fits
+    # every job was done by a client or by the server, most by clients where there are some; the
+    # server may also solve one job of a kind nothing has measured, which a client took a while over
+    done = sum(p["chains"] for p in clients) + timing["local_chains"]
+    assert limb_solves + whole_fits <= done <= limb_solves + whole_fits + timing["backup_chains"]
     if n >= len(LIMB_CHAINS):
-        assert timing["local_chains"] <= whole_fits
+        assert timing["local_chains"] <= whole_fits + timing["backup_chains"]
     assert timing["dropped"] == {} and timing["resent"] == 0
     assert timing["rejected"] == 0 and all(p["rejected"] == 0 for p in clients)  # honest results check
     for p in timing["processes"]:

@@ -38,9 +38,10 @@ HEARTBEAT = 0.3  # seconds: quick failure detection in small runs
 FAKE_BEAT = 0.1  # seconds between a fake peer's heartbeats, well inside the server's liveness
 STALL_CLIENT_TIMEOUT = 2.0  # seconds: the deadline until a solve has been measured
 STALL_PEERS = 20
-# A crowd of silent peers may cost one client timeout (the first round: nothing measured yet)
-# and a measured deadline for each later round that hands its chains to fresh silent peers, with
-# room for a loaded machine: not one timeout per peer (before: 5 timeouts in the first round).
+# A crowd of silent peers may cost a measured deadline for each round that hands its chains to
+# fresh silent peers (the server measures a new kind of job itself rather than wait a client
+# timeout on it), with room for a loaded machine: not one timeout per peer (before: 5 timeouts
+# in the first round), nor one per kind of job.
 STALL_SLACK = 2.0
 FLOOD_PARTS, FLOOD_PART_BYTES = 20, 60_000_000  # the flood of the issue: 20 frames of 60 MB
 OLD_MAX_FRAME_BYTES = 64 * 1024 * 1024  # the server's per-frame limit before it was the clients' largest
@@ -261,9 +262,9 @@ def stalling_peers(ctx: _Context) -> tuple[bool, str]:
     from common.body import LIMB_CHAINS
     from server.cluster import DEADLINE_FLOOR
 
-    later_rounds = -(-STALL_PEERS // len(LIMB_CHAINS)) - 1
+    rounds = -(-STALL_PEERS // len(LIMB_CHAINS))
     deadline = max([DEADLINE_FLOOR, *solver.deadlines()])
-    allowed = STALL_SLACK * (ctx.clean_seconds + later_rounds * deadline) + STALL_CLIENT_TIMEOUT
+    allowed = STALL_SLACK * (ctx.clean_seconds + rounds * deadline)
     ok = problem is None and seconds <= allowed and summary["clients"] == 0
     return ok, (problem or f"{STALL_PEERS} peers that never answer: {seconds:.1f} s against {ctx.clean_seconds:.1f} s "
                            f"undisturbed (allowed {allowed:.1f} s), {summary['timing']['stalls']} stalls")
