@@ -235,10 +235,13 @@ def lowest(fits: list[FrameResult], score: Callable[[FrameResult], float] | None
     return replace(best, chains=chains, evaluations=evaluations)
 
 
-def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None = None) -> FrameResult:
+def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None = None,
+                 memo: dict | None = None) -> FrameResult:
     """The lowest-energy of ``initial`` (a fit made elsewhere, never proposed from again by
     ``again``) and the fits the schedule's stages make; see the module docstring and ``Stage``.
-    Its solves and evaluations are those of every fit made, chosen or not."""
+    Its solves and evaluations are those of every fit made, chosen or not. ``memo``: {(variant,
+    start bytes): fit} of fits already made of this frame by this model under ``ctx.options``
+    (an earlier schedule's), used instead of fitting those starts again; the new fits are added."""
     fits = [initial] if initial is not None else []  # the candidates
     made = list(fits)       # every fit, for what was spent
     own = set()             # ids of the fits made here
@@ -270,7 +273,7 @@ def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None =
                             if k not in fitted and VARIANTS[variant](ctx.options) is not None:
                                 fitted.add(k)
                                 jobs.append((start, variant))
-            new = fit_starts(ctx, jobs)
+            new = _fit_or_recall(ctx, jobs, memo)
             fits += new
             made += new
             own.update(id(f) for f in new)
@@ -279,6 +282,16 @@ def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None =
         if stage.choose and fits:
             fits = [min(fits, key=score)]
     return lowest(fits, made=made, spent=spent)
+
+
+def _fit_or_recall(ctx: Context, jobs: list[tuple[np.ndarray, str]], memo: dict | None) -> list[FrameResult]:
+    """``fit_starts`` of the jobs ``memo`` does not hold, the others from it, in the jobs' order."""
+    if memo is None:
+        return fit_starts(ctx, jobs)
+    keys = [(variant, np.asarray(start, dtype=np.float64).tobytes()) for start, variant in jobs]
+    todo = [job for job, k in zip(jobs, keys) if k not in memo]
+    memo.update(zip([k for k in keys if k not in memo], fit_starts(ctx, todo)))
+    return [memo[k] for k in keys]
 
 
 def _scorer(ctx: Context, name: str) -> Callable[[FrameResult], float]:
@@ -439,11 +452,13 @@ SEARCH_HOPS = 30  # hops that end a search: 06_02 from source frame 262 (five of
 
 
 def search_frame(model: BodyModel, frame: FrameData, starts: list, options: FitOptions, dispatch: Dispatch,
-                 frame_number: int = 0, side_by_side: int = 1, schedule: Schedule = SEARCH) -> FrameResult:
-    """A frame without a trusted start (a first frame, a recovery), searched from ``starts``."""
+                 frame_number: int = 0, side_by_side: int = 1, schedule: Schedule = SEARCH,
+                 memo: dict | None = None) -> FrameResult:
+    """A frame without a trusted start (a first frame, a recovery), searched from ``starts``;
+    ``memo`` as ``run_schedule``'s (the actor-size search's fits of the same frame)."""
     ctx = Context(model, frame, options, dispatch, frame_number, starts=tuple(starts), hops=SEARCH_HOPS,
                   side_by_side=side_by_side)
-    return run_schedule(ctx, schedule)
+    return run_schedule(ctx, schedule, memo=memo)
 
 
 def refine_frame(model: BodyModel, frame: FrameData, fit: FrameResult, options: FitOptions, dispatch: Dispatch,

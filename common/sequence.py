@@ -52,7 +52,10 @@ MASK_FOLDERS = ("silhouettes", "mask", "masks")  # ours first, then EasyMocap / 
 IMAGE_FOLDER = "images"
 DEFAULT_FPS = 30.0  # frames per second when sequence.json does not say
 MAX_MASK_THRESHOLD = 65535  # grey levels of 16-bit masks
-CLEANED_FRAMES_KEPT = 64  # frames whose cleaned masks a Sequence keeps (about 0.6 MB each at 8 x 320x240)
+# bytes of cleaned masks a Sequence keeps, bit-packed (77 kB a frame at 8 x 320x240: 800 frames):
+# a fit reads each frame at least three times (tracking, refinement, the fit-quality record),
+# and cleaning one costs tens of milliseconds, unpacking it a fraction of one
+CLEANED_BYTES_KEPT = 64 * 1024 * 1024
 
 _DIGITS = re.compile(r"\d+")
 # What PIL raises for a file that is not a readable image: truncated or corrupt data ends in
@@ -222,7 +225,8 @@ class Sequence:
         self.world: WorldFrame = resolve_world(self.user_studio, up)
         self.studio: Studio = self.world.studio_to_fit(self.user_studio)
         self.clean_masks = clean_masks
-        self._cleaned: OrderedDict = OrderedDict()  # frame -> (masks, pixels removed per camera)
+        self._cleaned: OrderedDict = OrderedDict()  # frame -> (packed masks, width, pixels removed per camera)
+        self._cleaned_bytes = 0
         meta_path = self.path / "sequence.json"
         self.meta = read_sequence_meta(meta_path) if meta_path.exists() else {}
         self.fps = self.meta.get("fps", DEFAULT_FPS)
@@ -310,15 +314,18 @@ class Sequence:
 
     def cleaned(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """(masks (K, Hmax, Wmax) bool, (K,) pixels removed): one frame's masks without the blobs
-        the other cameras do not support (``common.consistency.supported_masks``); the last
-        CLEANED_FRAMES_KEPT frames are kept, since a fit reads each frame several times."""
+        the other cameras do not support (``common.consistency.supported_masks``); the most
+        recent frames' are kept, packed, up to CLEANED_BYTES_KEPT."""
         if frame not in self._cleaned:
             raw = self.raw_silhouettes(frame)
-            self._cleaned[frame] = supported_masks(self.studio, raw, silhouette_centre(self.studio, raw))
-            while len(self._cleaned) > CLEANED_FRAMES_KEPT:
-                self._cleaned.popitem(last=False)
+            masks, removed = supported_masks(self.studio, raw, silhouette_centre(self.studio, raw))
+            self._cleaned[frame] = (np.packbits(masks, axis=-1), masks.shape[-1], removed)
+            self._cleaned_bytes += self._cleaned[frame][0].nbytes
+            while self._cleaned_bytes > CLEANED_BYTES_KEPT and len(self._cleaned) > 1:
+                self._cleaned_bytes -= self._cleaned.popitem(last=False)[1][0].nbytes
         self._cleaned.move_to_end(frame)
-        return self._cleaned[frame]
+        packed, width, removed = self._cleaned[frame]
+        return np.unpackbits(packed, axis=-1, count=width).astype(bool), removed
 
     def images(self, frame: int) -> np.ndarray:
         """(K, Hmax, Wmax, 3) uint8 colour images of one frame; camera k's in ``[k, :h_k, :w_k]``, zero padded."""

@@ -178,7 +178,21 @@ def context(model: BodyModel, data: FrameData, frame: int, options: FitOptions, 
     return Context(model, data, options, solver.solve, int(frame), side_by_side=solver.workers(), **kw)
 
 
-def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions) -> float:
+@dataclass(frozen=True)
+class ActorSize:
+    """What the actor-size search found: the actor's ``scale`` over the body model's, and, for
+    the first frame's search at the model's own size, the ``frame``, its voxel ``starts`` and the
+    fits already made (``memo``, as ``common.search.run_schedule``'s), so the search does not
+    fit them again; ``seconds`` it took."""
+
+    scale: float
+    frame: int
+    starts: tuple
+    memo: dict
+    seconds: float
+
+
+def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions) -> ActorSize:
     """The actor's size over ``model``'s, chosen by the silhouettes of the first frame: the
     first frame searched once at the model's size (the WIDE schedule: every start, one way of
     re-detecting limbs), then its best pose fitted again at each of ACTOR_SCALES (the pelvis
@@ -186,10 +200,12 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions) -> 
     kept if it beats the model's own size by ACTOR_SCALE_MIN_GAIN.
     Why: real subjects are not the body model's size, and a body too small for its silhouettes
     folds into them wrongly (the seated take, fitted at 1.66 m, stood)."""
+    t0 = time.perf_counter()
     frame = seq.frames[0]
     data = frame_data(model, seq, frame)
     solver = LocalSolver(model, options)
-    found = run_schedule(context(model, data, frame, options, solver, starts=tuple(voxel_starts(model, data))), WIDE)
+    starts, memo = tuple(voxel_starts(model, data)), {}
+    found = run_schedule(context(model, data, frame, options, solver, starts=starts), WIDE, memo=memo)
     wide = VARIANTS["wide-round"](options)
     best_scale, best_energy = 1.0, found.energy * (1.0 - ACTOR_SCALE_MIN_GAIN)
     for scale in ACTOR_SCALES:
@@ -202,7 +218,7 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions) -> 
         fit = fit_rounds(actor, actor_data, start, wide, solve_locally(actor, actor_data, wide, frame))
         if fit.energy < best_energy:
             best_scale, best_energy = scale, fit.energy
-    return best_scale
+    return ActorSize(best_scale, frame, starts, memo, time.perf_counter() - t0)
 
 
 def recovery_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:
@@ -268,12 +284,14 @@ PASS_START_HOPS = 120
 
 def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
                 stats: RunStats, backward: bool = True, progress=None, search: bool = False,
-                hops: int = 0) -> tuple[list[dict], int]:
+                hops: int = 0, anchor: np.ndarray | None = None) -> tuple[list[dict], int]:
     """Fitted frames fitted again in one direction, each by ``common.search.refine_frame`` from
     its neighbour's fit: going backwards each frame starts from the (already refined) fit of the
     frame after it, forwards from the frame before; each keeps the lowest energy. The pass's
     first frame, which has no neighbour, is fitted by PASS_START_HOPS hops (the pass's own
-    ``hops`` where it has them). With ``search``, each frame is also fitted from each limb's
+    ``hops`` where it has them), unless ``anchor`` (35,) is the fit of the frame beyond it, which
+    the pass then starts from (a run without refinement carrying its settled tracking back over
+    the frames after a first-frame search). With ``search``, each frame is also fitted from each limb's
     other basins (tracking and its neighbours can share a torso and limb that are off together:
     basketball frame 84, the left ankle 74 mm off, an alternative leg 1.8% lower in energy).
     With ``hops`` > 0, every frame also gets that many hops, seeded by its frame number; a
@@ -285,7 +303,8 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     to ``stats``. Returns the records, changed, and how many were replaced."""
     out = [dict(r) for r in records]
     order = range(len(out) - 1, -1, -1) if backward else range(len(out))
-    neighbour = beyond = None
+    neighbour = None if anchor is None else np.asarray(anchor, dtype=np.float64)
+    beyond = None
     replaced = 0
     for done, i in enumerate(order):
         r = out[i]
@@ -318,11 +337,13 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
 
 def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions, solver: Solver,
             init: str | None = None, resume: bool = False, max_frames: int | None = None, progress=None,
-            overwrite: bool = False) -> dict:
+            overwrite: bool = False, actor_size: ActorSize | None = None) -> dict:
     """Fit the sequence's frames in order; returns the summary (also written to summary.json).
 
     ``resume``: continue the frames of an earlier run there (same settings); ``overwrite``:
     replace an earlier result; with neither, an earlier result is refused before any work.
+    ``actor_size``: the actor-size search that chose ``model`` (its time is counted in the wall
+    time; at the model's own size its first-frame fits are reused by the first frame's search).
     """
     frames = seq.frames[:max_frames] if max_frames else list(seq.frames)
     seq.check_files(frames)  # every mask there and readable before anything is written
@@ -357,8 +378,10 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
             if progress:
                 progress(n, len(frames), f"frame {frame}: first-frame search ({init} start)")
             ctx = context(model, data, frame, options, solver)
-            result = search_frame(model, data, initial_starts(model, seq, data, init), options, ctx.dispatch, frame,
-                                  ctx.side_by_side)
+            known = actor_size if actor_size and actor_size.frame == frame and actor_size.scale == 1.0 \
+                and init == "auto" and model_scale(model) == 1.0 else None
+            result = search_frame(model, data, known.starts if known else initial_starts(model, seq, data, init),
+                                  options, ctx.dispatch, frame, ctx.side_by_side, memo=known.memo if known else None)
             recovered = limbs_redetected = False
         else:
             result, limbs_redetected, recovered = track(
@@ -390,9 +413,11 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         if n == settle_index > 0:
             if progress:
                 progress(n + 1, len(frames), f"refining frames {frames[0]}-{frames[n - 1]} backwards")
-            refined, _ = refine_pass(model, seq, read_done_frames(poses_path), options, solver, stats)
-            rewrite_complete(poses_path, refined)
-            energies = [int(r["energy"]) for r in refined]
+            done_records = read_done_frames(poses_path)
+            refined, _ = refine_pass(model, seq, done_records[:-1], options, solver, stats,
+                                     anchor=np.asarray(done_records[-1]["params"]))
+            rewrite_complete(poses_path, refined + done_records[-1:])
+            energies = [int(r["energy"]) for r in refined + done_records[-1:]]
         if progress:
             progress(n + 1, len(frames), f"E={result.energy}")
     records = read_done_frames(poses_path)
@@ -428,7 +453,9 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "mean_seconds_per_frame": float(np.mean(stats.seconds)) if stats.seconds else None,
         "refine_seconds_per_frame": sum(p["seconds"] for p in passes) / len(records) if passes else 0.0,
         "refinement_passes": passes,
-        "wall_seconds": time.perf_counter() - wall0,
+        # with the actor-size search, which a user waits for too
+        "wall_seconds": time.perf_counter() - wall0 + (actor_size.seconds if actor_size else 0.0),
+        "actor_size_seconds": actor_size.seconds if actor_size else 0.0,
         "evaluations_per_frame": float(np.mean(stats.evaluations)) if stats.evaluations else None,
         "frames_recovered": sum(1 for r in records if r.get("recovered")),
         "frames_limbs_redetected": sum(1 for r in records if r.get("limbs_redetected")),

@@ -121,13 +121,13 @@ def test_the_actor_size_changes_only_for_a_clear_gain(monkeypatch, model, energi
     seq = type("Seq", (), {"frames": [0]})()
     monkeypatch.setattr(session, "frame_data", lambda *_: None)
     monkeypatch.setattr(session, "voxel_starts", lambda *_: [])
-    monkeypatch.setattr(session, "run_schedule", lambda ctx, schedule: FrameResult(np.zeros(35), 100.0, 1, 1))
+    monkeypatch.setattr(session, "run_schedule", lambda ctx, schedule, memo: FrameResult(np.zeros(35), 100.0, 1, 1))
 
     def fake_fit(actor, data, start, options, dispatch):
         return FrameResult(start, energies[round(actor.height / model.height, 2)], 1, 1)
 
     monkeypatch.setattr(session, "fit_rounds", fake_fit)
-    assert session.choose_actor_scale(model, seq, FitOptions()) == chosen
+    assert session.choose_actor_scale(model, seq, FitOptions()).scale == chosen
 
 
 @pytest.mark.parametrize("posture", ["crouching", "seated", "lying_side"])

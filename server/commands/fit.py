@@ -162,7 +162,8 @@ def add_world_arguments(p) -> None:
 
 
 def actor_model(model, seq, options, args, init: str):
-    """The body model at the actor's size (``--actor-height``; auto: see ``choose_actor_scale``)."""
+    """(the body model at the actor's size, the ``ActorSize`` search that chose it or None)
+    (``--actor-height``; auto: see ``choose_actor_scale``)."""
     if args.actor_height != "auto":
         try:
             height = float(args.actor_height)
@@ -170,15 +171,15 @@ def actor_model(model, seq, options, args, init: str):
             raise UserError(f"--actor-height: expected metres or auto, got {args.actor_height!r}") from None
         if not 0.5 <= height <= 3.0:
             raise UserError(f"--actor-height: expected 0.5 to 3 metres, got {height}")
-        return model.scaled(height / model.height)
+        return model.scaled(height / model.height), None
     if args.resume:  # the size the run being continued chose
         done = read_done_frames(args.out / POSES_FILE)
         scale = float(done[0].get("actor_scale", 1.0)) if done else 1.0
-        return model.scaled(scale) if scale != 1.0 else model
+        return (model.scaled(scale) if scale != 1.0 else model), None
     if init == "truth":
-        return model
-    scale = choose_actor_scale(model, seq, options)
-    return model.scaled(scale) if scale != 1.0 else model
+        return model, None
+    size = choose_actor_scale(model, seq, options)
+    return (model.scaled(size.scale) if size.scale != 1.0 else model), size
 
 
 def run(args) -> int:
@@ -189,7 +190,7 @@ def run(args) -> int:
                         clean_masks=args.clean_masks)
     options = options_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
-    model = actor_model(base, seq, options, args, init)
+    model, size = actor_model(base, seq, options, args, init)
     if args.clients and model is not base:
         raise UserError("--clients: limb clients fit the body model at its own size; pass --actor-height "
                         f"{base.height:.2f} (or fit single-process) for this sequence")
@@ -199,7 +200,7 @@ def run(args) -> int:
         solver = LocalSolver(model, options)
         try:
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
-                              max_frames=args.frames, progress=bar, overwrite=args.overwrite)
+                              max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)
         finally:
             solver.close()
     else:
@@ -207,6 +208,6 @@ def run(args) -> int:
         with terminate_on_sigterm(), LocalCluster(model, options, args.clients, heartbeat_interval=args.heartbeat,
                                                   client_timeout=args.client_timeout) as solver:
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
-                              max_frames=args.frames, progress=bar, overwrite=args.overwrite)
+                              max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)
     finish(model, seq, args, summary)
     return 0
