@@ -526,6 +526,29 @@ def test_a_refinement_pass_refits_a_spoilt_frame_from_its_neighbour(model, five_
 
 
 @pytest.mark.timeout(300)
+def test_a_pass_given_an_anchor_starts_from_it_without_hops(model, five_frames, tmp_path):
+    """The settle pass of a run without refinement: the frames before the last tracked one are
+    refitted backwards from that frame's fit (the anchor), which is neither refitted nor hopped;
+    a pass without an anchor hops its first frame."""
+    from common.sequence import load_sequence
+    from server.session import PASS_START_HOPS, LocalSolver, RunStats, refine_pass, run_fit
+
+    seq = load_sequence(five_frames)
+    options = FitOptions(refine_passes=0)
+    run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=3)
+    records = read_lines(tmp_path / "poses.jsonl")
+    anchored = RunStats()
+    refined, _ = refine_pass(model, seq, records[:-1], options, LocalSolver(model, options), anchored,
+                             anchor=np.array(records[-1]["params"]))
+    assert [r["frame"] for r in refined] == [r["frame"] for r in records[:-1]]
+    assert anchored.hops_run == 0
+    assert all(r["energy"] <= r.get("first_pass", r)["energy"] for r in refined)
+    hopped = RunStats()
+    refine_pass(model, seq, records[-1:], options, LocalSolver(model, options), hopped)
+    assert hopped.hops_run >= PASS_START_HOPS
+
+
+@pytest.mark.timeout(300)
 @pytest.mark.parametrize("backward", [True, False])
 def test_a_refinement_pass_fits_each_inner_frame_from_halfway_between_its_neighbours(model, five_frames, tmp_path,
                                                                                      monkeypatch, backward):
