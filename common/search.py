@@ -242,10 +242,11 @@ def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None =
     Its solves and evaluations are those of every fit made, chosen or not. ``memo``: {(variant,
     start bytes): fit} of fits already made of this frame by this model under ``ctx.options``
     (an earlier schedule's), used instead of fitting those starts again; the new fits are added."""
+    memo = {} if memo is None else memo  # (variant, start bytes) -> fit, across schedules
     fits = [initial] if initial is not None else []  # the candidates
     made = list(fits)       # every fit, for what was spent
     own = set()             # ids of the fits made here
-    fitted = set()          # (variant, start bytes) already fitted
+    fitted = set()          # (variant, start bytes) already fitted here
     proposed_from = set()   # (stage, source id): a source proposes once per stage
     spent = _Spent()
     for s, stage in enumerate(schedule.stages):
@@ -255,7 +256,7 @@ def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None =
                 break
             best_before = score(min(fits, key=score)) if fits else np.inf
             sources = sorted(fits, key=score)[:stage.beam] if fits else [None]
-            jobs = []
+            jobs, keys = [], []
             for source in sources:
                 key = (s, id(source))
                 if key in proposed_from:
@@ -273,7 +274,8 @@ def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None =
                             if k not in fitted and VARIANTS[variant](ctx.options) is not None:
                                 fitted.add(k)
                                 jobs.append((start, variant))
-            new = _fit_or_recall(ctx, jobs, memo)
+                                keys.append(k)
+            new = _fit_or_recall(ctx, jobs, keys, memo)
             fits += new
             made += new
             own.update(id(f) for f in new)
@@ -284,13 +286,12 @@ def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None =
     return lowest(fits, made=made, spent=spent)
 
 
-def _fit_or_recall(ctx: Context, jobs: list[tuple[np.ndarray, str]], memo: dict | None) -> list[FrameResult]:
-    """``fit_starts`` of the jobs ``memo`` does not hold, the others from it, in the jobs' order."""
-    if memo is None:
-        return fit_starts(ctx, jobs)
-    keys = [(variant, np.asarray(start, dtype=np.float64).tobytes()) for start, variant in jobs]
-    todo = [job for job, k in zip(jobs, keys) if k not in memo]
-    memo.update(zip([k for k in keys if k not in memo], fit_starts(ctx, todo)))
+def _fit_or_recall(ctx: Context, jobs: list[tuple[np.ndarray, str]], keys: list, memo: dict) -> list[FrameResult]:
+    """The jobs' fits, in their order: ``memo``'s where it holds their key, else ``fit_starts``'
+    (then kept in ``memo``)."""
+    missing = [i for i, k in enumerate(keys) if k not in memo]
+    for i, fit in zip(missing, fit_starts(ctx, [jobs[i] for i in missing])):
+        memo[keys[i]] = fit
     return [memo[k] for k in keys]
 
 

@@ -378,8 +378,9 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
             if progress:
                 progress(n, len(frames), f"frame {frame}: first-frame search ({init} start)")
             ctx = context(model, data, frame, options, solver)
-            known = actor_size if actor_size and actor_size.frame == frame and actor_size.scale == 1.0 \
-                and init == "auto" and model_scale(model) == 1.0 else None
+            # the actor-size search fitted this frame's voxel starts at this model's size already
+            known = actor_size if (init == "auto" and actor_size and actor_size.scale == 1.0
+                                   and actor_size.frame == frame) else None
             result = search_frame(model, data, known.starts if known else initial_starts(model, seq, data, init),
                                   options, ctx.dispatch, frame, ctx.side_by_side, memo=known.memo if known else None)
             recovered = limbs_redetected = False
@@ -413,11 +414,11 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         if n == settle_index > 0:
             if progress:
                 progress(n + 1, len(frames), f"refining frames {frames[0]}-{frames[n - 1]} backwards")
-            done_records = read_done_frames(poses_path)
-            refined, _ = refine_pass(model, seq, done_records[:-1], options, solver, stats,
-                                     anchor=np.asarray(done_records[-1]["params"]))
-            rewrite_complete(poses_path, refined + done_records[-1:])
-            energies = [int(r["energy"]) for r in refined + done_records[-1:]]
+            *before, last = read_done_frames(poses_path)
+            refined, _ = refine_pass(model, seq, before, options, solver, stats, anchor=np.asarray(last["params"]))
+            settled = refined + [last]
+            rewrite_complete(poses_path, settled)
+            energies = [int(r["energy"]) for r in settled]
         if progress:
             progress(n + 1, len(frames), f"E={result.energy}")
     records = read_done_frames(poses_path)
