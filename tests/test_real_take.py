@@ -2,14 +2,12 @@
 project's commands only: calib convert (--units mm), import-video (every 10th frame),
 segment, fit. Skipped without ../shared. Slow (about 4 minutes on 2 cores): `make real-test`.
 
-What it holds the fit to is what the fit reaches today (see docs/accuracy.md, "The seated
-take"): upright in the calibration's z-down world, hips and knees bent as a seated body's (a
-standing body's are under 20 degrees; the target of 60-130 is missed: the hips are fitted 42-51
-degrees, the knees 70-80), feet near the floor, still from frame to frame. The hips were 55-67
-degrees at 5413c3f, before the one search (bae8de2); its fits have less XOR on every frame
-(45.8% against 46.2% of the silhouette area on frame 0), so the silhouettes, with the chair in
-them, prefer the straighter hips: the energy, not the search, sets the bend. The XOR share
-(under 30% is the target) is printed, and only held under 60%.
+What it holds the fit to (see docs/accuracy.md, "The seated take"): upright in the
+calibration's z-down world, hips and knees bent 60-130 degrees in every frame as a seated
+body's (a standing body's are under 20; fitted 74-76 and 76-84 since the actor's size may be
+1.4 times the model's, 42-51 and 72-80 at 1.3), feet near the floor, still from frame to frame.
+The XOR share (under 30% is the target; 40-44% is fitted, the chair and the horse mask being
+silhouette no body covers) is printed, and only held under 60%.
 """
 import json
 import subprocess
@@ -57,9 +55,9 @@ def test_the_seated_take_fits_seated_upright_and_still(tmp_path):
     fig = posture_figures(records)
     print(json.dumps({k: (np.round(v, 3).tolist() if isinstance(v, list) else v) for k, v in fig.items()}))
     for side in ("l", "r"):
-        for joint, least in (("hip", 40.0), ("knee", 50.0)):  # degrees; standing: under 20
+        for joint in ("hip", "knee"):  # degrees; standing: under 20
             bend = np.array(fig[f"{side}_{joint}_bend_deg"])
-            assert np.all((bend > least) & (bend < 130)), (joint, bend)
+            assert np.all((bend > 60) & (bend < 130)), (joint, bend)
         assert np.all(np.abs(np.array(fig[f"{side}_ankle_height_m"])) < 0.2)
     # upright: the head above the pelvis in the z-up fit frame, i.e. below it in the file's z-down world
     assert all(r["joints"]["head_top"][2] < r["joints"]["pelvis"][2] for r in records)

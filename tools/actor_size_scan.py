@@ -1,0 +1,56 @@
+"""How a sequence's first frame fits at each actor size: what `mocap fit`'s size search sees.
+
+    python tools/actor_size_scan.py SEQUENCE [--scales 0.9,1.0,...,1.6]
+
+The first frame is searched at the model's size (the WIDE schedule from the voxel starts, as
+``server.session.choose_actor_scale`` does), then that pose is fitted again at each size. Per
+size it prints the XOR energy and its two parts: model pixels outside the silhouettes and
+silhouette pixels the model misses. Where the XOR keeps falling while the model stays inside
+the silhouettes, the masks hold foreground that no body explains (a prop, a mask, loose clothes).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from common.body import P, load_body_model  # noqa: E402
+from common.fitting import FitOptions, fit_rounds, full_energy  # noqa: E402
+from common.proposals import voxel_starts  # noqa: E402
+from common.search import VARIANTS, WIDE, run_schedule, solve_locally  # noqa: E402
+from common.sequence import load_sequence  # noqa: E402
+from server.session import ACTOR_SCALES, LocalSolver, context, frame_data  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("sequence", type=Path)
+    ap.add_argument("--scales", default=",".join(map(str, ACTOR_SCALES)), help="sizes over the model's, comma-separated")
+    args = ap.parse_args()
+    seq = load_sequence(args.sequence)
+    model, options = load_body_model(), FitOptions()
+    frame = seq.frames[0]
+    data = frame_data(model, seq, frame)
+    ctx = context(model, data, frame, options, LocalSolver(model, options), starts=tuple(voxel_starts(model, data)))
+    found = run_schedule(ctx, WIDE)
+    wide = VARIANTS["wide-round"](options)
+    print(f"frame {frame}: silhouette {int(np.count_nonzero(data.masks))} px")
+    for scale in (float(s) for s in args.scales.split(",")):
+        actor = model.scaled(scale)
+        start = np.array(found.params)
+        start[P["root_z"]] *= scale
+        actor_data = frame_data(actor, seq, frame)
+        fit = fit_rounds(actor, actor_data, start, wide, solve_locally(actor, actor_data, wide, frame))
+        drawn = actor_data.energy("cpu", actor_data.full_setup(fit.params)).render(fit.params)
+        masks = actor_data.masks[:, :drawn.shape[1], :drawn.shape[2]]
+        outside, missed = int(np.count_nonzero(drawn & ~masks)), int(np.count_nonzero(masks & ~drawn))
+        print(f"scale {scale:.2f}: XOR {full_energy(actor, actor_data, fit.params)}  model {int(drawn.sum())} px, "
+              f"{outside} outside the silhouettes ({outside / max(int(drawn.sum()), 1):.1%}), {missed} missed")
+
+
+if __name__ == "__main__":
+    main()
