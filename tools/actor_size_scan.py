@@ -1,6 +1,6 @@
 """How a sequence's first frame fits at each actor size: what `mocap fit`'s size search sees.
 
-    python tools/actor_size_scan.py SEQUENCE [--scales 0.9,1.0,...,1.6]
+    python tools/actor_size_scan.py SEQUENCE [--scales 0.9,1.0,...,1.6] [--ruler OUT.png]
 
 The first frame is searched at the model's size (the WIDE schedule from the voxel starts, as
 ``server.session.choose_actor_scale`` does), then that pose is fitted again at each size. Per
@@ -23,17 +23,44 @@ from common.fitting import FitOptions, fit_rounds, full_energy  # noqa: E402
 from common.proposals import voxel_starts  # noqa: E402
 from common.search import VARIANTS, WIDE, run_schedule, solve_locally  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
+from common.voxels import silhouette_centre  # noqa: E402
 from server.session import ACTOR_SCALES, LocalSolver, context, frame_data  # noqa: E402
+
+RULER_STEP = 0.25     # calibration units (metres, after --units) per ruler segment
+RULER_LENGTH = 2.5    # ... the ruler's length
+
+
+def draw_ruler(seq, frame: int, out: Path) -> None:
+    """The first frame's colour images side by side with the ruler drawn in (see the docstring)."""
+    from PIL import Image, ImageDraw
+
+    centre = silhouette_centre(seq.studio, seq.silhouettes(frame))
+    heights = np.arange(0.0, RULER_LENGTH + 1e-9, RULER_STEP)
+    pictures = []
+    for cam in seq.studio:
+        picture = Image.fromarray(seq.image(cam, frame))
+        draw = ImageDraw.Draw(picture)
+        uv = cam.project(np.array([[centre[0], centre[1], h] for h in heights]))
+        for k in range(len(heights) - 1):
+            draw.line([tuple(uv[k]), tuple(uv[k + 1])], fill=(255, 0, 0) if k % 2 == 0 else (255, 255, 0), width=3)
+        pictures.append(np.asarray(picture))
+    height = max(p.shape[0] for p in pictures)
+    row = [np.pad(p, ((0, height - p.shape[0]), (0, 0), (0, 0))) for p in pictures]
+    Image.fromarray(np.concatenate(row, axis=1)).save(out)
+    print(f"wrote {out}: a ruler of {RULER_LENGTH} units in {RULER_STEP}-unit segments (red from the floor)")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sequence", type=Path)
     ap.add_argument("--scales", default=",".join(map(str, ACTOR_SCALES)), help="sizes over the model's, comma-separated")
+    ap.add_argument("--ruler", type=Path, default=None, metavar="OUT.png", help="also draw the ruler picture")
     args = ap.parse_args()
     seq = load_sequence(args.sequence)
     model, options = load_body_model(), FitOptions()
     frame = seq.frames[0]
+    if args.ruler:
+        draw_ruler(seq, frame, args.ruler)
     data = frame_data(model, seq, frame)
     ctx = context(model, data, frame, options, LocalSolver(model, options), starts=tuple(voxel_starts(model, data)))
     found = run_schedule(ctx, WIDE)
