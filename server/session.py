@@ -207,19 +207,26 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions) -> 
     solver = LocalSolver(model, options)
     starts, memo = tuple(voxel_starts(model, data)), {}
     found = run_schedule(context(model, data, frame, options, solver, starts=starts), WIDE, memo=memo)
-    wide = VARIANTS["wide-round"](options)
     best_scale, best_energy = 1.0, found.energy * (1.0 - ACTOR_SCALE_MIN_GAIN)
     for scale in ACTOR_SCALES:
         if scale == 1.0:
             continue
-        actor = model.scaled(scale)
-        start = np.array(found.params)
-        start[P["root_z"]] *= scale
-        actor_data = frame_data(actor, seq, frame)
-        fit = fit_rounds(actor, actor_data, start, wide, solve_locally(actor, actor_data, wide, frame))
+        _, _, fit = fit_at_scale(model, seq, frame, found.params, scale, options)
         if fit.energy < best_energy:
             best_scale, best_energy = scale, fit.energy
     return ActorSize(best_scale, frame, starts, memo, time.perf_counter() - t0)
+
+
+def fit_at_scale(model: BodyModel, seq: Sequence, frame: int, params: np.ndarray, scale: float,
+                 options: FitOptions) -> tuple[BodyModel, FrameData, FrameResult]:
+    """(the actor, its frame data, the fit): ``params`` (35,), a fit of ``frame`` at ``model``'s
+    size, fitted again with the body scaled by ``scale`` (the pelvis height scaled along)."""
+    actor = model.scaled(scale)
+    start = np.array(params, dtype=np.float64)
+    start[P["root_z"]] *= scale
+    data = frame_data(actor, seq, frame)
+    wide = VARIANTS["wide-round"](options)
+    return actor, data, fit_rounds(actor, data, start, wide, solve_locally(actor, data, wide, frame))
 
 
 def recovery_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:

@@ -3,7 +3,8 @@
     python tools/actor_size_scan.py SEQUENCE [--scales 0.9,1.0,...,1.6] [--ruler OUT.png]
 
 The first frame is searched at the model's size (the WIDE schedule from the voxel starts, as
-``server.session.choose_actor_scale`` does), then that pose is fitted again at each size. Per
+``server.session.choose_actor_scale`` does), then that pose is fitted again at each size
+(``server.session.fit_at_scale``). Per
 size it prints the XOR energy and its two parts: model pixels outside the silhouettes and
 silhouette pixels the model misses. Where the XOR keeps falling while the model stays inside
 the silhouettes, the masks hold foreground that no body explains (a prop, a mask, loose clothes).
@@ -18,15 +19,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common.body import P, load_body_model  # noqa: E402
-from common.fitting import FitOptions, fit_rounds, full_energy  # noqa: E402
+from common.body import load_body_model  # noqa: E402
+from common.fitting import FitOptions, full_energy  # noqa: E402
 from common.proposals import voxel_starts  # noqa: E402
-from common.search import VARIANTS, WIDE, run_schedule, solve_locally  # noqa: E402
+from common.search import WIDE, run_schedule  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
 from common.voxels import silhouette_centre  # noqa: E402
-from server.session import ACTOR_SCALES, LocalSolver, context, frame_data  # noqa: E402
+from server.session import ACTOR_SCALES, LocalSolver, context, fit_at_scale, frame_data  # noqa: E402
 
-RULER_STEP = 0.25     # calibration units (metres, after --units) per ruler segment
+RULER_STEP = 0.25     # the sequence's world units (metres) per ruler segment
 RULER_LENGTH = 2.5    # ... the ruler's length
 
 
@@ -64,14 +65,9 @@ def main() -> None:
     data = frame_data(model, seq, frame)
     ctx = context(model, data, frame, options, LocalSolver(model, options), starts=tuple(voxel_starts(model, data)))
     found = run_schedule(ctx, WIDE)
-    wide = VARIANTS["wide-round"](options)
     print(f"frame {frame}: silhouette {int(np.count_nonzero(data.masks))} px")
     for scale in (float(s) for s in args.scales.split(",")):
-        actor = model.scaled(scale)
-        start = np.array(found.params)
-        start[P["root_z"]] *= scale
-        actor_data = frame_data(actor, seq, frame)
-        fit = fit_rounds(actor, actor_data, start, wide, solve_locally(actor, actor_data, wide, frame))
+        actor, actor_data, fit = fit_at_scale(model, seq, frame, found.params, scale, options)
         drawn = actor_data.energy("cpu", actor_data.full_setup(fit.params)).render(fit.params)
         masks = actor_data.masks[:, :drawn.shape[1], :drawn.shape[2]]
         outside, missed = int(np.count_nonzero(drawn & ~masks)), int(np.count_nonzero(masks & ~drawn))
