@@ -203,7 +203,9 @@ def grid_search(energy, x0: np.ndarray, indices, steps: int, half_range: float, 
 # ------------------------------------------------------------------------ chain solves
 
 def _clock():
-    return time.perf_counter(), time.process_time()
+    """(wall, CPU) seconds; the CPU time is this thread's, so jobs run side by side on threads
+    each count their own."""
+    return time.perf_counter(), time.thread_time()
 
 
 def _stage_backends(options: FitOptions) -> tuple:

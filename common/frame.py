@@ -2,6 +2,7 @@
 and half resolution, with the energies and windows built from them (``FrameData``)."""
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from dataclasses import replace
 from functools import cached_property
@@ -20,6 +21,7 @@ VOLUME_GRID = 64  # voxels per side for the volume energy's SPOT reconstruction
 
 _UNDISTORT_MAPS: dict = {}
 _SPOT_GRIDS: OrderedDict = OrderedDict()  # lookup tables per studio and box, the most recent kept
+_SPOT_GRIDS_LOCK = threading.Lock()
 SPOT_GRIDS_KEPT = 4  # each about 20 MB (64^3, 8 cameras); an actor crossing the studio needs a few
 
 
@@ -66,12 +68,13 @@ def spot_grid(studio: Studio, masks: np.ndarray, grid: int):
 
     bounds = actor_bounds(studio, masks)
     key = (grid, bounds.tobytes(), tuple((c.name, c.K.tobytes(), c.R.tobytes(), c.t.tobytes()) for c in studio))
-    if key not in _SPOT_GRIDS:
-        _SPOT_GRIDS[key] = SpotGrid.build(studio, grid=grid, q=2, bounds=bounds)
-        while len(_SPOT_GRIDS) > SPOT_GRIDS_KEPT:
-            _SPOT_GRIDS.popitem(last=False)
-    _SPOT_GRIDS.move_to_end(key)
-    return _SPOT_GRIDS[key]
+    with _SPOT_GRIDS_LOCK:  # a fit's threads share the tables
+        if key not in _SPOT_GRIDS:
+            _SPOT_GRIDS[key] = SpotGrid.build(studio, grid=grid, q=2, bounds=bounds)
+            while len(_SPOT_GRIDS) > SPOT_GRIDS_KEPT:
+                _SPOT_GRIDS.popitem(last=False)
+        _SPOT_GRIDS.move_to_end(key)
+        return _SPOT_GRIDS[key]
 
 
 class FrameData:

@@ -28,6 +28,7 @@ Schedules:
 from __future__ import annotations
 
 import time
+from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -54,10 +55,10 @@ def solve_job(model: BodyModel, frame: FrameData, job: str, params: np.ndarray, 
     from ``params`` (FIT_JOBS: ``fit_rounds``, its limbs solved here),
     whose energies are the full energy at the start and at the fit."""
     if job in FIT_JOBS:
-        wall0, cpu0 = time.perf_counter(), time.process_time()
+        wall0, cpu0 = time.perf_counter(), time.thread_time()
         fit = fit_rounds(model, frame, params, options, solve_locally(model, frame, options, frame_number))
         return ChainResult(job, fit.params, full_energy(model, frame, params), fit.energy, fit.evaluations,
-                           fit.iterations, time.perf_counter() - wall0, time.process_time() - cpu0)
+                           fit.iterations, time.perf_counter() - wall0, time.thread_time() - cpu0)
     if job in HOP_JOBS:
         return hop(model, frame, params, options, iteration + HOP_JOBS.index(job), frame_number, job)
     return solve_chain(model, frame, job, params, options, iteration=iteration)
@@ -83,12 +84,21 @@ def job_options(options, frame_options: FitOptions, count: int) -> list[FitOptio
     return per_job(frame_options if options is None else options, count, lambda v: isinstance(v, FitOptions))
 
 
-def solve_locally(model: BodyModel, frame: FrameData, options: FitOptions, frame_number: int = 0) -> Dispatch:
-    """Dispatch in this process: each job by ``solve_job``, in order."""
+def solve_locally(model: BodyModel, frame: FrameData, options: FitOptions, frame_number: int = 0,
+                  pool: Executor | None = None) -> Dispatch:
+    """Dispatch in this process: each job by ``solve_job``, in order, or side by side on
+    ``pool``'s threads (the energy's compiled loops release the GIL). Every job is a pure
+    function of its inputs and the results come back in the order of ``jobs``, so the poses do
+    not depend on the pool. A job must not dispatch to the pool it runs on (a whole fit's
+    limbs are solved in its own thread), or a full pool would wait on itself."""
     def dispatch(jobs: list, params, iteration: int, options_given=None):
         starts, opts = job_starts(params, len(jobs)), job_options(options_given, options, len(jobs))
-        return lambda: [solve_job(model, frame, j, s, o, iteration, frame_number)
-                        for j, s, o in zip(jobs, starts, opts)]
+        if pool is None or len(jobs) < 2:
+            return lambda: [solve_job(model, frame, j, s, o, iteration, frame_number)
+                            for j, s, o in zip(jobs, starts, opts)]
+        futures = [pool.submit(solve_job, model, frame, j, s, o, iteration, frame_number)
+                   for j, s, o in zip(jobs, starts, opts)]
+        return lambda: [f.result() for f in futures]
 
     return dispatch
 

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import json
 import re
+import threading
 import warnings
 from collections import OrderedDict
 from contextlib import contextmanager
@@ -227,6 +228,7 @@ class Sequence:
         self.clean_masks = clean_masks
         self._cleaned: OrderedDict = OrderedDict()  # frame -> (packed masks, width, pixels removed per camera)
         self._cleaned_bytes = 0
+        self._cleaned_lock = threading.Lock()
         meta_path = self.path / "sequence.json"
         self.meta = read_sequence_meta(meta_path) if meta_path.exists() else {}
         self.fps = self.meta.get("fps", DEFAULT_FPS)
@@ -316,15 +318,16 @@ class Sequence:
         """(masks (K, Hmax, Wmax) bool, (K,) pixels removed): one frame's masks without the blobs
         the other cameras do not support (``common.consistency.supported_masks``); the most
         recent frames' are kept, packed, up to CLEANED_BYTES_KEPT."""
-        if frame not in self._cleaned:
-            raw = self.raw_silhouettes(frame)
-            masks, removed = supported_masks(self.studio, raw, silhouette_centre(self.studio, raw))
-            self._cleaned[frame] = (np.packbits(masks, axis=-1), masks.shape[-1], removed)
-            self._cleaned_bytes += self._cleaned[frame][0].nbytes
-            while self._cleaned_bytes > CLEANED_BYTES_KEPT and len(self._cleaned) > 1:
-                self._cleaned_bytes -= self._cleaned.popitem(last=False)[1][0].nbytes
-        self._cleaned.move_to_end(frame)
-        packed, width, removed = self._cleaned[frame]
+        with self._cleaned_lock:  # a fit's threads may ask for a frame at once
+            if frame not in self._cleaned:
+                raw = self.raw_silhouettes(frame)
+                masks, removed = supported_masks(self.studio, raw, silhouette_centre(self.studio, raw))
+                self._cleaned[frame] = (np.packbits(masks, axis=-1), masks.shape[-1], removed)
+                self._cleaned_bytes += self._cleaned[frame][0].nbytes
+                while self._cleaned_bytes > CLEANED_BYTES_KEPT and len(self._cleaned) > 1:
+                    self._cleaned_bytes -= self._cleaned.popitem(last=False)[1][0].nbytes
+            self._cleaned.move_to_end(frame)
+            packed, width, removed = self._cleaned[frame]
         return np.unpackbits(packed, axis=-1, count=width).astype(bool), removed
 
     def images(self, frame: int) -> np.ndarray:

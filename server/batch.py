@@ -22,13 +22,15 @@ from pathlib import Path
 from common.errors import UserError
 from server.output import write_text
 from server.project import find_takes, frames_done, run_take
+from server.session import THREADS_ENV, usable_cores
 
 BATCH_FILE = "batch.json"
 INDEX_FILE = "index.html"
 POLL_SECONDS = 1.0  # how often the progress line is brought up to date
 SHUTDOWN_SECONDS = 10.0  # for the client and the local cluster to close
 # one thread per worker, and one for the numerical libraries in it: the takes are the parallelism
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1",
+              THREADS_ENV: "1"}  # one take per core: each fit runs one thread
 
 
 def run_take_task(take: str) -> dict:
@@ -45,8 +47,6 @@ def run_take_task(take: str) -> dict:
         return {"name": Path(take).name, "path": take, "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
 
 
-def default_workers() -> int:
-    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
 
 
 def start_client(workers: int | None, scheduler: str | None):
@@ -59,7 +59,7 @@ def start_client(workers: int | None, scheduler: str | None):
             return Client(scheduler, timeout=30), None
         except OSError as exc:
             raise UserError(f"--scheduler {scheduler}: cannot connect ({exc})") from None
-    cluster = LocalCluster(n_workers=workers or default_workers(), threads_per_worker=1, processes=True,
+    cluster = LocalCluster(n_workers=workers or usable_cores(), threads_per_worker=1, processes=True,
                            host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR)
     return Client(cluster), cluster
 

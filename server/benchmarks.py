@@ -349,8 +349,9 @@ def print_init_table(rows: list[dict]) -> None:
 
 def preset_rows(seq: Path, frames: int, workdir: Path, presets=None) -> list[dict]:
     """``mocap fit --preset P --init auto`` for each preset on the same frames: wall seconds per
-    frame with everything a user waits for (the first frame's search from the voxels, tracking,
-    the refinement), each part's share, and the joint error, from one run each."""
+    frame with everything a user waits for (the actor-size search, the first frame's search from
+    the voxels, tracking, the refinement), each part's share, and the joint error, from one run
+    each, on every core (``mocap fit``'s default threads)."""
     from server.cli import main as mocap
     from server.config import PRESETS
     from server.results import load_records
@@ -365,7 +366,9 @@ def preset_rows(seq: Path, frames: int, workdir: Path, presets=None) -> list[dic
         summary = json.loads((out / "summary.json").read_text())
         records = load_records(out)
         rows.append({"preset": name, "frames": summary["frames"], "init": summary["init"],
+                     "threads": summary["threads"],
                      "wall_seconds_per_frame": summary["wall_seconds"] / summary["frames"],
+                     "actor_size_seconds": summary["actor_size_seconds"],
                      "first_frame_seconds": records[0]["seconds"],
                      "tracking_seconds_per_frame": float(np.mean([r["seconds"] for r in records[1:]] or [0.0])),
                      "refine_seconds_per_frame": summary["refine_seconds_per_frame"],

@@ -99,6 +99,8 @@ SETTINGS: tuple[Setting, ...] = (
             _one_of(("", "auto", "truth", "standing")), "one of auto, truth, standing"),
     Setting("fit", "actor_height", "auto", str, "the actor's height in metres, or auto"),
     Setting("fit", "clean_masks", True, bool, "drop silhouette blobs the other cameras do not support"),
+    Setting("fit", "threads", 0, int, "single process: starts and limbs fitted at once (0: every core); "
+            "the poses are the same for any number", _at_least(0), "an integer >= 0"),
     Setting("export", "formats", ["bvh", "trc", "csv"], list, "formats written into the result folder",
             lambda v: all(f in FORMATS for f in v), "a list of " + ", ".join(FORMATS)),
     Setting("report", "enabled", True, bool, "write report.html and pictures"),
@@ -180,7 +182,7 @@ FIT_OPTION_DESTS = {
     ("fit", "polish_iterations"): ("polish_iterations", None), ("fit", "refine_passes"): ("refine_passes", None),
     ("fit", "refine_search"): ("refine_search", None), ("fit", "refine_hops"): ("refine_hops", None),
     ("fit", "init"): ("init", lambda v: v or None), ("fit", "actor_height"): ("actor_height", None),
-    ("fit", "clean_masks"): ("clean_masks", None),
+    ("fit", "clean_masks"): ("clean_masks", None), ("fit", "threads"): ("threads", None),
     ("calibration", "units"): ("units", lambda v: v or None), ("calibration", "up"): ("up", None),
 }
 

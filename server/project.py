@@ -178,7 +178,7 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
                "--iterations", str(fit["iterations"]), "--turn-hypotheses", str(fit["turn_hypotheses"]),
                "--polish-iterations", str(fit["polish_iterations"]), "--refine-passes", str(fit["refine_passes"]),
                "--refine-hops", str(fit["refine_hops"]), "--energy", fit["energy"],
-               "--actor-height", fit["actor_height"]]
+               "--actor-height", fit["actor_height"], "--threads", str(fit["threads"])]
     command += ["--frames", str(fit["frames"])] if fit["frames"] else []
     command += ["--units", calib_settings["units"]] if calib_settings["units"] else []
     command += ["--init", fit["init"]] if fit["init"] else []

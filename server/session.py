@@ -20,7 +20,9 @@ Result folder (``server.results``):
 from __future__ import annotations
 
 import json
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Protocol
@@ -70,20 +72,54 @@ class Solver(Protocol):
     def close(self) -> None: ...
 
 
+def usable_cores() -> int:
+    """The CPU cores this process may run on."""
+    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
+
+
+# Threads of a single-process fit when not told (``--threads 0``): this variable where set (a
+# batch's workers, one take per core, set it to 1), else every usable core.
+THREADS_ENV = "MOCAP_THREADS"
+# Backends whose energy is bound to one thread's GL context
+SINGLE_THREAD_BACKENDS = ("gl", "coarse-to-fine")
+
+
+def resolve_threads(threads: int, options: FitOptions) -> int:
+    """The threads a single-process fit runs: ``threads``, or where 0 $MOCAP_THREADS or every
+    usable core; 1 for the GL backends."""
+    if options.energy in SINGLE_THREAD_BACKENDS:
+        return 1
+    if threads > 0:
+        return threads
+    try:
+        return max(1, int(os.environ.get(THREADS_ENV, "0"))) if os.environ.get(THREADS_ENV) else usable_cores()
+    except ValueError:
+        raise UserError(f"${THREADS_ENV}: expected a whole number of threads, got {os.environ[THREADS_ENV]!r}") from None
+
+
 class LocalSolver:
-    """Single-process mode: the same jobs, run here in a fixed order."""
+    """Single-process mode: the same jobs, run here, ``threads`` at once (the same poses for
+    any number: ``common.search.solve_locally``)."""
 
     mode = "single"
     clients = 0
 
-    def __init__(self, model: BodyModel, options: FitOptions):
+    def __init__(self, model: BodyModel, options: FitOptions, threads: int = 1):
         self.model, self.options = model, options
         self.data: FrameData | None = None
         self.compute_seconds = 0.0
+        self.threads = 1 if options.energy in SINGLE_THREAD_BACKENDS else max(1, int(threads))
+        self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="fit") if self.threads > 1 else None
 
     def begin_frame(self, frame: int, data: FrameData, start: np.ndarray, options: FitOptions) -> None:
         self.data, self.frame = data, int(frame)
-        self._dispatch = solve_locally(self.model, data, options, int(frame))
+        self._dispatch = solve_locally(self.model, data, options, int(frame), self._pool)
+
+    def map(self, function: Callable, items) -> list:
+        """[function(item) for item in items], side by side on the threads; in order."""
+        if self._pool is None:
+            return [function(item) for item in items]
+        return list(self._pool.map(function, items))
 
     def solve(self, jobs: list, params, iteration: int, options=None) -> Callable[[], list]:
         collect = self._dispatch(jobs, params, iteration, options)
@@ -97,13 +133,14 @@ class LocalSolver:
         return timed
 
     def workers(self) -> int:
-        return 1
+        return self.threads
 
     def timing(self) -> dict:
         return {"processes": []}
 
     def close(self) -> None:
-        pass
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
 
 
 @dataclass
@@ -193,25 +230,28 @@ class ActorSize:
     seconds: float
 
 
-def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions) -> ActorSize:
+def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, threads: int = 1) -> ActorSize:
     """The actor's size over ``model``'s, chosen by the silhouettes of the first frame: the
     first frame searched once at the model's size (the WIDE schedule: every start, one way of
     re-detecting limbs), then its best pose fitted again at each of ACTOR_SCALES (the pelvis
     height scaled along), and the size whose fit explains the masks best (lowest XOR energy)
     kept if it beats the model's own size by ACTOR_SCALE_MIN_GAIN.
     Why: real subjects are not the body model's size, and a body too small for its silhouettes
-    folds into them wrongly (the seated take, fitted at 1.66 m, stood)."""
+    folds into them wrongly (the seated take, fitted at 1.66 m, stood). ``threads``: the
+    starts and the sizes are fitted that many at once."""
     t0 = time.perf_counter()
     frame = seq.frames[0]
     data = frame_data(model, seq, frame)
-    solver = LocalSolver(model, options)
-    starts, memo = tuple(voxel_starts(model, data)), {}
-    found = run_schedule(context(model, data, frame, options, solver, starts=starts), WIDE, memo=memo)
+    solver = LocalSolver(model, options, threads)
+    try:
+        starts, memo = tuple(voxel_starts(model, data)), {}
+        found = run_schedule(context(model, data, frame, options, solver, starts=starts), WIDE, memo=memo)
+        scales = [s for s in ACTOR_SCALES if s != 1.0]
+        fits = solver.map(lambda scale: fit_at_scale(model, seq, frame, found.params, scale, options)[2], scales)
+    finally:
+        solver.close()
     best_scale, best_energy = 1.0, found.energy * (1.0 - ACTOR_SCALE_MIN_GAIN)
-    for scale in ACTOR_SCALES:
-        if scale == 1.0:
-            continue
-        _, _, fit = fit_at_scale(model, seq, frame, found.params, scale, options)
+    for scale, fit in zip(scales, fits):
         if fit.energy < best_energy:
             best_scale, best_energy = scale, fit.energy
     return ActorSize(best_scale, frame, starts, memo, time.perf_counter() - t0)
@@ -455,6 +495,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "frames_fitted_this_run": len(stats.seconds),
         "mode": solver.mode,
         "clients": solver.clients,
+        "threads": solver.workers() if solver.mode == "single" else 1,
         "energy_backend": options.energy,
         "init": init,
         # tracking, the paper's measure; the refinement passes are timed apart

@@ -161,6 +161,48 @@ def test_mocap_fit_refuses_negative_clients(seq_path, tmp_path):
     assert proc.returncode == 2 and "--clients" in proc.stderr
 
 
+@pytest.mark.timeout(180)
+def test_threads_give_the_single_threads_poses(model, seq_path, tmp_path):
+    """One process fitting starts, limbs and hops three at a time: tracking and a refinement
+    pass with hops give the one thread's poses, and the same frames replaced."""
+    from server.session import LocalSolver
+
+    options = FitOptions(refine_passes=1, refine_hops=4)
+    seq = load_sequence(seq_path)
+    one = run_fit(model, seq, tmp_path / "one", options, LocalSolver(model, options, threads=1))
+    solver = LocalSolver(model, options, threads=3)
+    try:
+        three = run_fit(model, seq, tmp_path / "three", options, solver)
+    finally:
+        solver.close()
+    np.testing.assert_array_equal(poses(tmp_path / "three"), poses(tmp_path / "one"))
+    assert (one["threads"], three["threads"]) == (1, 3) and three["mode"] == "single"
+    assert [p["frames_replaced"] for p in three["refinement_passes"]] == \
+        [p["frames_replaced"] for p in one["refinement_passes"]]
+    assert three["refinement_passes"][0]["hops_run"] >= one["refinement_passes"][0]["hops_run"]
+
+
+def test_thread_count_from_the_environment(monkeypatch):
+    from common.errors import UserError
+    from server.session import THREADS_ENV, resolve_threads, usable_cores
+
+    monkeypatch.delenv(THREADS_ENV, raising=False)
+    assert resolve_threads(0, FitOptions()) == usable_cores()
+    assert resolve_threads(3, FitOptions()) == 3
+    assert resolve_threads(3, FitOptions(energy="gl")) == 1  # one GL context, one thread
+    monkeypatch.setenv(THREADS_ENV, "1")
+    assert resolve_threads(0, FitOptions()) == 1 and resolve_threads(2, FitOptions()) == 2
+    monkeypatch.setenv(THREADS_ENV, "many")
+    with pytest.raises(UserError, match=THREADS_ENV):
+        resolve_threads(0, FitOptions())
+
+
+def test_mocap_fit_refuses_negative_threads(seq_path, tmp_path):
+    proc = subprocess.run([PY, "-m", "server.cli", "fit", str(seq_path), "--out", str(tmp_path), "--threads", "-1"],
+                          cwd=ROOT, env=env(), capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2 and "--threads" in proc.stderr and "Traceback" not in proc.stderr
+
+
 def test_server_refuses_a_busy_address(model):
     from common.errors import UserError
 

@@ -18,7 +18,8 @@ from server.config import PRESETS
 from server.progress import Progress
 from server.output import add_overwrite_argument, check_folder_target, replace_file
 from server.results import MOTION_FILE, POSES_FILE, RESULT_FILES, load_records, read_done_frames
-from server.session import LocalSolver, choose_actor_scale, refinement_note, run_fit, tracking_error_note
+from server.session import (LocalSolver, choose_actor_scale, refinement_note, resolve_threads, run_fit,
+                            tracking_error_note)
 
 INIT_CHOICES = ("auto", "truth", "standing")
 
@@ -110,7 +111,8 @@ def finish(model, seq, args, summary: dict) -> None:
 
 
 def print_summary(summary: dict, out) -> None:
-    rows = [("frames", summary["frames"]), ("mode", f"{summary['mode']} ({summary['clients']} clients)"),
+    rows = [("frames", summary["frames"]), ("mode", f"{summary['mode']} ({summary['clients']} clients"
+                     + (f", {summary['threads']} threads)" if summary.get("threads", 1) > 1 else ")")),
             ("energy", summary["energy_backend"]),
             ("s/frame (median)", f"{summary['seconds_per_frame']:.3f}" if summary["seconds_per_frame"] else "-"),
             ("evaluations/frame", f"{summary['evaluations_per_frame']:.0f}" if summary["evaluations_per_frame"] else "-")]
@@ -144,6 +146,9 @@ def _cluster_rows(summary: dict) -> list:
 def register(sub) -> None:
     p = sub.add_parser("fit", help="fit the body model to a sequence")
     add_fit_arguments(p)
+    p.add_argument("--threads", type=count(0), default=0,
+                   help="single process: fit this many starts and limbs at once (default 0: every core, "
+                        "or $MOCAP_THREADS); the poses are the same for any number")
     p.add_argument("--clients", type=count(0), default=0,
                    help="start N local limb clients and a server on 127.0.0.1 (default 0: one process)")
     add_cluster_arguments(p, server=False)
@@ -178,7 +183,7 @@ def actor_model(model, seq, options, args, init: str):
         return (model.scaled(scale) if scale != 1.0 else model), None
     if init == "truth":
         return model, None
-    size = choose_actor_scale(model, seq, options)
+    size = choose_actor_scale(model, seq, options, resolve_threads(args.threads, options))
     return (model.scaled(size.scale) if size.scale != 1.0 else model), size
 
 
@@ -197,7 +202,7 @@ def run(args) -> int:
     total = min(len(seq.frames), args.frames or len(seq.frames))
     bar = Progress("fit", total, enabled=None if not args.quiet else False)
     if args.clients == 0:
-        solver = LocalSolver(model, options)
+        solver = LocalSolver(model, options, resolve_threads(args.threads, options))
         try:
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
                               max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)
