@@ -40,7 +40,7 @@ ENERGY_BACKENDS = ("cpu", "gl", "coarse-to-fine", "volume")
 # FitOptions fields that shape the search's schedules and the run (which starts, how many passes),
 # never a single job: the server reads them, a SOLVE does not carry them
 RUN_SETTINGS = ("turn_hypotheses", "turn_step_rad", "polish_iterations", "refine_passes", "refine_search",
-                "refine_hops")
+                "refine_hops", "refine_chunk_frames")
 
 
 @dataclass(frozen=True)
@@ -76,6 +76,7 @@ class FitOptions:
     refine_passes: int = 1              # after tracking, passes over all frames (backward, forward, ...): see server.session
     refine_search: bool = False         # the first pass also refits each frame from each limb's other basins (slow)
     refine_hops: int = 0                # the first pass also refits each frame from this many random chain moves (slow)
+    refine_chunk_frames: int = 0        # >0: a pass refines chunks of about this many frames side by side (server.session)
 
     def __post_init__(self):
         if self.energy not in ENERGY_BACKENDS:
@@ -94,6 +95,8 @@ class FitOptions:
             raise ValueError("refine_search needs refine_passes >= 1: the search runs in the first pass")
         if self.refine_hops < 0:
             raise ValueError(f"refine_hops must be >= 0, got {self.refine_hops}")
+        if self.refine_chunk_frames < 0:
+            raise ValueError(f"refine_chunk_frames must be >= 0, got {self.refine_chunk_frames}")
         if self.refine_hops and not self.refine_passes:
             raise ValueError("refine_hops needs refine_passes >= 1: the hops run in the first pass")
         if not self.spine_twist_prior >= 0:  # NaN too

@@ -177,7 +177,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     command = ["fit", str(sequence), "--out", str(result), "--quiet", "--up", calib_settings["up"],
                "--iterations", str(fit["iterations"]), "--turn-hypotheses", str(fit["turn_hypotheses"]),
                "--polish-iterations", str(fit["polish_iterations"]), "--refine-passes", str(fit["refine_passes"]),
-               "--refine-hops", str(fit["refine_hops"]), "--energy", fit["energy"],
+               "--refine-hops", str(fit["refine_hops"]), "--refine-chunk-frames", str(fit["refine_chunk_frames"]),
+               "--energy", fit["energy"],
                "--actor-height", fit["actor_height"], "--threads", str(fit["threads"])]
     command += ["--frames", str(fit["frames"])] if fit["frames"] else []
     command += ["--units", calib_settings["units"]] if calib_settings["units"] else []

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -330,6 +331,15 @@ SETTLE_FRAMES = 10  # frames tracked after a first-frame search before it is ref
 # for about 13 s per pass.
 PASS_START_HOPS = 120
 
+def refine_chunks(order: list[int], chunk_frames: int) -> list[list[int]]:
+    """A refinement pass's frame indices, in its order, cut into chunks of about
+    ``chunk_frames`` (0: one chunk) in that order."""
+    count = len(order)
+    chunks = max(1, -(-count // chunk_frames)) if chunk_frames > 0 else 1
+    bounds = [round(j * count / chunks) for j in range(chunks + 1)]
+    return [order[bounds[j]:bounds[j + 1]] for j in range(chunks) if bounds[j + 1] > bounds[j]]
+
+
 def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
                 stats: RunStats, backward: bool = True, progress=None, search: bool = False,
                 hops: int = 0, anchor: np.ndarray | None = None) -> tuple[list[dict], int]:
@@ -345,42 +355,85 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     With ``hops`` > 0, every frame also gets that many hops, seeded by its frame number; a
     cluster's clients run them side by side.
 
+    ``options.refine_chunk_frames`` > 0 cuts the take into chunks of about that many frames
+    (``refine_chunks``) refined side by side on a single process's threads (one after another
+    on a cluster, whose clients take each frame's jobs). A chunk starts from the fit its
+    neighbour had before the pass; where chunks meet, the chunk's first frame is fitted again
+    from its neighbour's refined fit once every chunk is done. The chunks depend on the take and
+    the setting alone, so the poses are the same for any number of threads or clients.
+
     A replaced record keeps its tracking fit under "first_pass" (params, joints, energy); the
     pass's time and evaluations add to "refine_seconds" and "refine_evaluations" ("seconds" and
     "evaluations" stay tracking's); hops counted (dropped ones too) and their compute seconds go
     to ``stats``. Returns the records, changed, and how many were replaced."""
     out = [dict(r) for r in records]
-    order = range(len(out) - 1, -1, -1) if backward else range(len(out))
-    neighbour = None if anchor is None else np.asarray(anchor, dtype=np.float64)
-    beyond = None
-    replaced = 0
-    for done, i in enumerate(order):
+    before = [np.asarray(r["params"], dtype=np.float64) for r in records]  # the fits before this pass
+    step = -1 if backward else 1
+    order = list(range(len(out)))[::step]
+    threaded = isinstance(solver, LocalSolver) and solver.threads > 1
+    done, replaced, lock = [0], set(), threading.Lock()
+
+    def refine_one(i: int, neighbour, beyond, frame_hops: int, own_thread: bool = False):
+        """Frame i again from ``neighbour``; its record changed here; the search's result.
+        ``own_thread``: a chunk's frame, its jobs one after another in the chunk's thread."""
         r = out[i]
-        frame_hops = hops or (PASS_START_HOPS if neighbour is None else 0)
         t0 = time.perf_counter()
-        ahead = i - 1 if backward else i + 1  # the neighbour on the other side, not yet refined
-        other = np.asarray(out[ahead]["params"], dtype=np.float64) if 0 <= ahead < len(out) else None
+        ahead = i + step  # the neighbour on the other side, not yet refined in a pass without chunks
+        other = before[ahead] if 0 <= ahead < len(out) else None
         data = frame_data(model, seq, r["frame"])
         tracked = FrameResult(np.asarray(r["params"], dtype=np.float64), int(r["energy"]), 0, 0)
-        ctx = context(model, data, r["frame"], options, solver)
-        again = refine_frame(model, data, tracked, options, ctx.dispatch, neighbour, beyond, other, frame_hops,
-                             search, r["frame"], ctx.side_by_side)
+        if own_thread:
+            dispatch, at_once = solve_locally(model, data, options, int(r["frame"])), 1
+        else:
+            ctx = context(model, data, r["frame"], options, solver)
+            dispatch, at_once = ctx.dispatch, ctx.side_by_side
+        again = refine_frame(model, data, tracked, options, dispatch, neighbour, beyond, other, frame_hops,
+                             search, r["frame"], at_once)
         r["refine_seconds"] = r.get("refine_seconds", 0.0) + time.perf_counter() - t0
-        stats.add_chains([c for c in again.chains if is_chain_solve(c)])
-        hopped = [c for c in again.chains if c.chain in HOP_JOBS]
-        stats.hops_run += len(hopped)
-        stats.hop_seconds += sum(c.wall_seconds for c in hopped)
         r["refine_evaluations"] = r.get("refine_evaluations", 0) + again.evaluations
         if again.energy < r["energy"]:
             r.setdefault("first_pass", {"params": r["params"], "joints": r["joints"], "energy": r["energy"]})
             r["params"] = [float(v) for v in again.params]
             r["joints"] = user_joints(model, seq, again.params)
             r["energy"] = int(again.energy)
-            replaced += 1
-        beyond, neighbour = neighbour, np.asarray(r["params"], dtype=np.float64)
-        if progress:
-            progress(done + 1, len(out), f"refining {'backwards' if backward else 'forwards'}")
-    return out, replaced
+            with lock:
+                replaced.add(i)
+        with lock:
+            done[0] += 1
+            if progress:
+                progress(min(done[0], len(out)), len(out), f"refining {'backwards' if backward else 'forwards'}")
+        return again
+
+    searched = []
+    neighbour = None if anchor is None else np.asarray(anchor, dtype=np.float64)
+    if neighbour is None and order:  # the pass's first frame, by hops on every thread
+        searched.append(refine_one(order[0], None, None, hops or PASS_START_HOPS))
+        neighbour, order = np.asarray(out[order[0]]["params"], dtype=np.float64), order[1:]
+    chunks = refine_chunks(order, options.refine_chunk_frames)
+    side_by_side = threaded and len(chunks) > 1
+
+    def refine_chunk(c: int) -> list:
+        near = neighbour if c == 0 else before[chunks[c][0] - step]
+        far, results = None, []
+        for i in chunks[c]:
+            results.append(refine_one(i, near, far, hops, side_by_side))
+            far, near = near, np.asarray(out[i]["params"], dtype=np.float64)
+        return results
+
+    indices = range(len(chunks))
+    searched += [a for part in (solver.map(refine_chunk, indices) if side_by_side else map(refine_chunk, indices))
+                 for a in part]
+    # where chunks meet: each later chunk's first frame from its neighbour's refined fit
+    for chunk in chunks[1:]:
+        i = chunk[0]
+        far = np.asarray(out[i - 2 * step]["params"], dtype=np.float64) if 0 <= i - 2 * step < len(out) else None
+        searched.append(refine_one(i, np.asarray(out[i - step]["params"], dtype=np.float64), far, hops))
+    for again in searched:
+        stats.add_chains([c for c in again.chains if is_chain_solve(c)])
+        hopped = [c for c in again.chains if c.chain in HOP_JOBS]
+        stats.hops_run += len(hopped)
+        stats.hop_seconds += sum(c.wall_seconds for c in hopped)
+    return out, len(replaced)
 
 
 def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions, solver: Solver,

@@ -182,6 +182,33 @@ def test_threads_give_the_single_threads_poses(model, seq_path, tmp_path):
     assert three["refinement_passes"][0]["hops_run"] >= one["refinement_passes"][0]["hops_run"]
 
 
+@pytest.mark.timeout(300)
+def test_chunked_refinement_same_poses_for_threads_and_clients(model, seq_path, tmp_path):
+    """A refinement in chunks of one frame: side by side on three threads, one after another on
+    one thread, and with two clients taking each frame's jobs: the same poses."""
+    from server.session import LocalSolver
+
+    options = FitOptions(refine_passes=2, refine_chunk_frames=1)
+    seq = load_sequence(seq_path)
+    runs = {}
+    for threads in (1, 3):
+        solver = LocalSolver(model, options, threads=threads)
+        try:
+            runs[threads] = run_fit(model, seq, tmp_path / f"threads-{threads}", options, solver)
+        finally:
+            solver.close()
+    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    try:
+        with thread_workers(model, solver.endpoint, 2):
+            solver.wait_for_clients(2, timeout=10)
+            runs["cluster"] = run_fit(model, seq, tmp_path / "cluster", options, solver)
+    finally:
+        solver.close(shutdown="done")
+    np.testing.assert_array_equal(poses(tmp_path / "threads-3"), poses(tmp_path / "threads-1"))
+    np.testing.assert_array_equal(poses(tmp_path / "cluster"), poses(tmp_path / "threads-1"))
+    assert len({tuple(p["frames_replaced"] for p in r["refinement_passes"]) for r in runs.values()}) == 1
+
+
 def test_thread_count_from_the_environment(monkeypatch):
     from common.errors import UserError
     from server.session import THREADS_ENV, resolve_threads, usable_cores

@@ -525,6 +525,53 @@ def test_a_refinement_pass_refits_a_spoilt_frame_from_its_neighbour(model, five_
                        forward_kinematics(model, np.array(refined[spoilt_at]["params"])).joints[0])
 
 
+def test_refinement_chunks_cover_the_pass_in_its_order():
+    from server.session import refine_chunks
+
+    backward = list(range(9, -1, -1))
+    assert refine_chunks(backward, 0) == [backward]
+    assert refine_chunks(backward, 20) == [backward]
+    chunks = refine_chunks(backward, 4)  # 10 frames: three chunks of 3-4, in the pass's order
+    assert [i for c in chunks for i in c] == backward and len(chunks) == 3
+    assert all(3 <= len(c) <= 4 for c in chunks)
+    assert refine_chunks(list(range(5)), 1) == [[0], [1], [2], [3], [4]]
+    assert refine_chunks([], 4) == []
+
+
+@pytest.mark.timeout(300)
+def test_a_chunked_pass_meets_at_the_seams(model, five_frames, tmp_path, monkeypatch):
+    """Chunks of one frame after the hopped first frame: the first chunk starts from that frame's
+    refined fit, a later one from its neighbour's fit before the pass, and once every chunk is
+    done its frame is fitted again from the neighbour's refined fit; every frame keeps the
+    lowest energy."""
+    from common.sequence import load_sequence
+    from server import session
+    from server.session import LocalSolver, RunStats, refine_pass, run_fit
+
+    seq = load_sequence(five_frames)
+    options = FitOptions(refine_passes=0, refine_chunk_frames=1)
+    run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=3)
+    records = read_lines(tmp_path / "poses.jsonl")
+    starts = []
+    real = session.refine_frame
+
+    def spy(model_, data, tracked, options_, dispatch, neighbour, *rest):
+        starts.append((rest[-2], None if neighbour is None else np.array(neighbour)))
+        return real(model_, data, tracked, options_, dispatch, neighbour, *rest)
+
+    monkeypatch.setattr(session, "refine_frame", spy)
+    refined, _ = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats(), backward=True)
+    frames = [r["frame"] for r in records]
+    # the hopped last frame; chunk [1] from its refined fit, chunk [0] from the fit frame 1 had
+    # before the pass; then where they meet, frame 0 again from frame 1's refined fit
+    assert [f for f, _ in starts] == [frames[2], frames[1], frames[0], frames[0]]
+    assert starts[0][1] is None
+    np.testing.assert_array_equal(starts[1][1], refined[2]["params"])
+    np.testing.assert_array_equal(starts[2][1], records[1]["params"])  # not yet refined
+    np.testing.assert_array_equal(starts[3][1], refined[1]["params"])  # refined
+    assert all(r["energy"] <= r.get("first_pass", r)["energy"] for r in refined)
+
+
 @pytest.mark.timeout(300)
 def test_a_pass_given_an_anchor_starts_from_it_without_hops(model, five_frames, tmp_path):
     """The settle pass of a run without refinement: the frames before the last tracked one are

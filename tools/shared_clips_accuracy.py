@@ -2,11 +2,13 @@
 
     python tools/shared_clips_accuracy.py [--frames 100] [--jobs 2] [--preset default]
                                           [--init truth|auto] [--json FILE] [--work DIR]
+                                          [--fit-args "--refine-chunk-frames 10"]
 
 Each clip of ../shared/data/mocap (17) is synthesised into the 8-camera 320x240 studio with
 Cheung noise (seed 0), then fitted single-process with the preset's settings from the truth's
 first pose (``--init auto``: from a search of the first frame), as ``mocap bench accuracy``
-fits its three clips. Clips run ``--jobs`` at a time, one process each. Prints one row per
+fits its three clips, with any further ``mocap fit`` options (``--fit-args``). Clips run
+``--jobs`` at a time, one process each, the cores shared among them (``--threads``). Prints one row per
 clip (mean and worst joint error, frames with a joint over 40 mm, seconds per frame) and
 writes them as JSON.
 """
@@ -24,9 +26,11 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from server.benchmarks import MAX_ERROR_TARGET_MM, shared_clips, write_json  # noqa: E402
+from server.session import usable_cores  # noqa: E402
 
 
-def fit_clip(clip: Path, frames: int, work: Path, preset: str, init: str) -> dict:
+def fit_clip(clip: Path, frames: int, work: Path, preset: str, init: str, fit_args: tuple = (),
+             threads: int = 1) -> dict:
     from common.body import load_body_model
     from common.camera import circle_studio
     from common.sequence import load_sequence
@@ -36,10 +40,10 @@ def fit_clip(clip: Path, frames: int, work: Path, preset: str, init: str) -> dic
     seq_dir = work / f"seq-{clip.stem}"
     if not (seq_dir / "sequence.json").exists():
         synthesize(load_body_model(), circle_studio(), clip, seq_dir, SynthOptions(frames=frames, noise="cheung", seed=0))
-    out = work / f"fit-{clip.stem}-{preset}-{init}"
+    out = work / (f"fit-{clip.stem}-{preset}-{init}" + "".join(fit_args).replace("-", "_"))
     t0 = time.perf_counter()
     code = mocap(["fit", str(seq_dir), "--out", str(out), "--preset", preset, "--init", init, "--frames", str(frames),
-                  "--quiet", "--overwrite"])
+                  "--threads", str(threads), "--quiet", "--overwrite", *fit_args])
     wall = time.perf_counter() - t0
     if code:
         raise RuntimeError(f"mocap fit {seq_dir} failed ({code})")
@@ -62,6 +66,7 @@ def main(argv=None) -> int:
     ap.add_argument("--preset", default="default")
     ap.add_argument("--init", default="truth", choices=("truth", "auto"))
     ap.add_argument("--clips", default=None, help="comma-separated clip stems (default: all shared clips)")
+    ap.add_argument("--fit-args", default="", help="further mocap fit options, one string")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--work", type=Path, default=None, help="keep the sequences and results here")
     args = ap.parse_args(argv)
@@ -75,8 +80,10 @@ def main(argv=None) -> int:
         work = args.work or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         with ProcessPoolExecutor(args.jobs) as pool:
-            rows = list(pool.map(fit_clip, clips, [args.frames] * len(clips), [work] * len(clips),
-                                 [args.preset] * len(clips), [args.init] * len(clips)))
+            n = len(clips)
+            threads = max(1, usable_cores() // args.jobs)
+            rows = list(pool.map(fit_clip, clips, [args.frames] * n, [work] * n, [args.preset] * n, [args.init] * n,
+                                 [tuple(args.fit_args.split())] * n, [threads] * n))
     print(f"{'clip':16s} {'mean':>6s} {'max':>6s} {'>40':>4s} {'worst':>5s} {'s/frame':>8s} {'refine':>7s} {'wall':>6s}")
     for r in rows:
         print(f"{r['clip']:16s} {r['mean_joint_error_mm']:6.1f} {r['max_joint_error_mm']:6.1f} "

@@ -59,6 +59,9 @@ def add_fit_arguments(p) -> None:
                    help="the first refinement pass also fits every frame by N hops: one chain moved at random, "
                         "then the whole body fitted at once, the lowest energy kept (basin hopping; 60: about a "
                         "dozen times tracking's time, offline work; default 0)")
+    p.add_argument("--refine-chunk-frames", type=count(0), default=FitOptions.refine_chunk_frames, metavar="N",
+                   help="refine a long take in chunks of about N frames side by side on the threads, meeting "
+                        "where they join (default 0: the take as one)")
     p.add_argument("--spine-twist-prior", type=non_negative, default=FitOptions.spine_twist_prior, metavar="PX_PER_RAD2",
                    help="how hard the torso's fit resists twisting the chest against the pelvis, silhouette pixels "
                         f"per rad^2 (default {FitOptions.spine_twist_prior:g}; the twist hardly shows in silhouettes; "
@@ -90,7 +93,8 @@ def options_from_args(args) -> FitOptions:
                           turn_hypotheses=args.turn_hypotheses,
                           turn_step_rad=args.turn_step, polish_iterations=args.polish_iterations,
                           refine_passes=args.refine_passes, refine_search=args.refine_search,
-                          refine_hops=args.refine_hops, spine_twist_prior=args.spine_twist_prior,
+                          refine_hops=args.refine_hops, refine_chunk_frames=args.refine_chunk_frames,
+                          spine_twist_prior=args.spine_twist_prior,
                           redetect_limbs=not args.no_redetect)
     except ValueError as exc:  # a value out of range: say which option
         raise UserError(f"bad fit option: {exc}") from None
