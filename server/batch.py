@@ -47,8 +47,6 @@ def run_take_task(take: str) -> dict:
         return {"name": Path(take).name, "path": take, "status": "failed", "error": f"{type(exc).__name__}: {exc}"}
 
 
-
-
 def start_client(workers: int | None, scheduler: str | None):
     """(dask Client, LocalCluster or None): on ``scheduler``, else on a new local cluster."""
     os.environ.update(WORKER_ENV)  # inherited by the local worker processes

@@ -85,17 +85,21 @@ THREADS_ENV = "MOCAP_THREADS"
 SINGLE_THREAD_BACKENDS = ("gl", "coarse-to-fine")
 
 
+def backend_threads(threads: int, options: FitOptions) -> int:
+    """``threads`` (at least 1), or 1 for the backends bound to one GL context."""
+    return 1 if options.energy in SINGLE_THREAD_BACKENDS else max(1, int(threads))
+
+
 def resolve_threads(threads: int, options: FitOptions) -> int:
     """The threads a single-process fit runs: ``threads``, or where 0 $MOCAP_THREADS or every
     usable core; 1 for the GL backends."""
-    if options.energy in SINGLE_THREAD_BACKENDS:
-        return 1
-    if threads > 0:
-        return threads
-    try:
-        return max(1, int(os.environ.get(THREADS_ENV, "0"))) if os.environ.get(THREADS_ENV) else usable_cores()
-    except ValueError:
-        raise UserError(f"${THREADS_ENV}: expected a whole number of threads, got {os.environ[THREADS_ENV]!r}") from None
+    if threads <= 0:
+        value = os.environ.get(THREADS_ENV, "")
+        try:
+            threads = int(value) if value else usable_cores()
+        except ValueError:
+            raise UserError(f"${THREADS_ENV}: expected a whole number of threads, got {value!r}") from None
+    return backend_threads(threads, options)
 
 
 class LocalSolver:
@@ -109,7 +113,7 @@ class LocalSolver:
         self.model, self.options = model, options
         self.data: FrameData | None = None
         self.compute_seconds = 0.0
-        self.threads = 1 if options.energy in SINGLE_THREAD_BACKENDS else max(1, int(threads))
+        self.threads = backend_threads(threads, options)
         self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="fit") if self.threads > 1 else None
 
     def begin_frame(self, frame: int, data: FrameData, start: np.ndarray, options: FitOptions) -> None:
@@ -370,7 +374,6 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     before = [np.asarray(r["params"], dtype=np.float64) for r in records]  # the fits before this pass
     step = -1 if backward else 1
     order = list(range(len(out)))[::step]
-    threaded = isinstance(solver, LocalSolver) and solver.threads > 1
     done, replaced, lock = [0], set(), threading.Lock()
 
     def refine_one(i: int, neighbour, beyond, frame_hops: int, own_thread: bool = False):
@@ -410,7 +413,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
         searched.append(refine_one(order[0], None, None, hops or PASS_START_HOPS))
         neighbour, order = np.asarray(out[order[0]]["params"], dtype=np.float64), order[1:]
     chunks = refine_chunks(order, options.refine_chunk_frames)
-    side_by_side = threaded and len(chunks) > 1
+    side_by_side = isinstance(solver, LocalSolver) and solver.threads > 1 and len(chunks) > 1
 
     def refine_chunk(c: int) -> list:
         near = neighbour if c == 0 else before[chunks[c][0] - step]
