@@ -56,7 +56,10 @@ def test_client_killed_mid_frame(seq_path, reference, tmp_path):
         stop([server, good, doomed])
     check_complete(out, reference)
     timing = summary(out)["timing"]
-    assert timing["lost_clients"] >= 1 and timing["resent"] >= 1
+    assert timing["resent"] >= 1  # the killed client's chain was solved by another
+    # its loss is noticed once its silence outlasts the heartbeat timeout, which a three-frame
+    # run can finish before: then after the summary is written, still said in the log
+    assert timing["lost_clients"] >= 1 or log_has(tmp_path / "server.log", "client doomed silent")
 
 
 @pytest.mark.timeout(90)
