@@ -18,7 +18,7 @@ optimizers and options above.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from itertools import product
 from typing import Callable
 
@@ -148,6 +148,7 @@ class FrameResult:
     evaluations: int          # of every solve spent on it, dropped fits too
     chains: tuple = ()        # ChainResult of every solve this process saw, in order
     variant: str = "track"    # the fit options it was fitted with (``common.search.VARIANTS``)
+    start: np.ndarray | None = field(default=None, compare=False)  # (35,) the pose it was fitted from, where known
 
 
 def _limb_centre_segments(chain: str) -> tuple:

@@ -19,7 +19,8 @@ Schedules:
   ahead; the best polished by more rounds; its limbs re-detected over their whole range;
 - ``LIMBS_LOST``: a frame whose energy jumped: fitted again with every limb re-detected;
 - ``SEARCH``: a frame with no trusted start (a first frame, a recovery): wide fits from the
-  voxels' starts, the lowest refitted; the tracking fit; rotations about the pelvis; sides
+  voxels' starts (the lowest few also with their limbs re-detected the other way), the lowest
+  refitted; the tracking fit; rotations about the pelvis; sides
   swapped, limbs' other basins, arms' other twists; basin hopping;
 - ``REFINE`` (``REFINE_SEARCH``): a tracked frame again, from its neighbour's fit (turned,
   tilted ahead), then from halfway between its neighbours (turned), each polished and its limbs
@@ -181,8 +182,12 @@ LIMBS_LOST = Schedule((Stage(("start", "start_turns"), ("every",)), Stage(("agai
 REFITTED = Stage(("again",), None, rounds=3, min_gain=0.005, beam=3, score="upright", choose=True)
 WIDE = Schedule((Stage(("starts",), ("wide-round",), score="upright"), REFITTED))
 BODY_ROTATION_ROUNDS = 3
+# The starts fitted one way of re-detecting limbs, then the lowest WIDE_BOTH_STARTS of them the
+# other way too: fitting every start both ways was 62% of a search's time (a walk's first frame)
+WIDE_BOTH_STARTS = 4
 SEARCH = Schedule((
-    Stage(("starts",), ("wide-round", "wide-all"), score="upright"), REFITTED,
+    Stage(("starts",), ("wide-round",), score="upright"),
+    Stage(("origin",), ("wide-all",), beam=WIDE_BOTH_STARTS, score="upright"), REFITTED,
     Stage(("best", "turns")), *POLISHED,  # local grids and small windows refine what the wide fits found
     Stage(("rotations",), ("deep",), rounds=BODY_ROTATION_ROUNDS),
     Stage(("swaps", "basins", "twists"), ("deep",)), *POLISHED,
@@ -257,7 +262,10 @@ def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None =
     made = list(fits)       # every fit, for what was spent
     own = set()             # ids of the fits made here
     fitted = set()          # (variant, start bytes) already fitted here
-    proposed_from = set()   # (stage, source id): a source proposes once per stage
+    # (proposer, source id, variants): a proposer asked again from the same fit makes the same
+    # starts, fitted already, and a limb search's solves again: a refinement's second
+    # re-detection often has the first one's fit as its source
+    proposed = set()
     spent = _Spent()
     for s, stage in enumerate(schedule.stages):
         score = _scorer(ctx, stage.score)
@@ -268,18 +276,18 @@ def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None =
             sources = sorted(fits, key=score)[:stage.beam] if fits else [None]
             jobs, keys = [], []
             for source in sources:
-                key = (s, id(source))
-                if key in proposed_from:
-                    continue
-                proposed_from.add(key)
+                variants = stage.variants or ((source.variant,) if source is not None else ())
                 for name in stage.proposers:
+                    if (name, id(source), variants) in proposed:
+                        continue
+                    proposed.add((name, id(source), variants))
                     for start in PROPOSERS[name](ctx, source, spent, id(source) in own):
                         if isinstance(start, FrameResult):  # fitted by the proposer itself (hops)
                             fits.append(start)
                             made.append(start)
                             own.add(id(start))
                             continue
-                        for variant in stage.variants or (source.variant,):
+                        for variant in variants:
                             k = (variant, np.asarray(start, dtype=np.float64).tobytes())
                             if k not in fitted and VARIANTS[variant](ctx.options) is not None:
                                 fitted.add(k)
@@ -321,14 +329,14 @@ def fit_starts(ctx: Context, jobs: list[tuple[np.ndarray, str]]) -> list[FrameRe
     if len(jobs) == 1:
         start, variant = jobs[0]
         fit = fit_rounds(ctx.model, ctx.frame, start, VARIANTS[variant](ctx.options), ctx.dispatch)
-        return [replace(fit, variant=variant)]
+        return [replace(fit, variant=variant, start=start)]
     out = []
     for k in range(0, len(jobs), len(FIT_JOBS)):
         chunk = jobs[k:k + len(FIT_JOBS)]
         results = ctx.dispatch(list(FIT_JOBS[:len(chunk)]), [s for s, _ in chunk], 0,
                                [VARIANTS[v](ctx.options) for _, v in chunk])()
-        out += [FrameResult(r.params, r.energy, r.iterations, r.evaluations, (r,), variant)
-                for r, (_, variant) in zip(results, chunk)]
+        out += [FrameResult(r.params, r.energy, r.iterations, r.evaluations, (r,), variant, start)
+                for r, (start, variant) in zip(results, chunk)]
     return out
 
 
@@ -373,6 +381,11 @@ def _starts(ctx, source, spent, own):
 
 def _best(ctx, source, spent, own):
     return [] if source is None else [source.params]
+
+
+def _origin(ctx, source, spent, own):
+    """The start the fit was fitted from: to fit it again another way."""
+    return [] if source is None or source.start is None else [source.start]
 
 
 def _again(ctx, source, spent, own):
@@ -444,7 +457,7 @@ def _hops(ctx, source, spent, own):
 
 PROPOSERS = {
     "start": _start, "start_turns": _start_turns, "turns": _best_turns, "tilt_ahead": _tilt_ahead,
-    "midway": _midway, "midway_turns": _midway_turns, "starts": _starts, "best": _best, "again": _again, "redetected": _redetected,
+    "midway": _midway, "midway_turns": _midway_turns, "starts": _starts, "best": _best, "origin": _origin, "again": _again, "redetected": _redetected,
     "rotations": _rotations, "swaps": _swaps, "basins": _basins, "twists": _twists, "hops": _hops,
 }
 

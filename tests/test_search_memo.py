@@ -49,3 +49,49 @@ def test_the_first_frame_search_after_the_actor_size_search_is_unchanged(model, 
     reused = search.search_frame(model, data, size.starts, options, dispatch, frame, memo=dict(size.memo))
     assert np.array_equal(reused.params, plain.params)
     assert reused.energy == plain.energy and reused.evaluations == plain.evaluations
+
+
+def test_only_the_lowest_starts_are_fitted_the_other_way(monkeypatch, model):
+    """A search fits every start one way of re-detecting limbs (wide-round), then fits again
+    from their own starts only the WIDE_BOTH_STARTS fits of lowest score the other way."""
+    fitted = []
+
+    def fake_fit_starts(ctx, jobs):
+        fitted.extend(jobs)
+        return [FrameResult(np.asarray(s), 1000 + int(s[0]) * (7 if v == "wide-round" else 1), 1, 100, (), v,
+                            np.asarray(s)) for s, v in jobs]
+
+    monkeypatch.setattr(search, "fit_starts", fake_fit_starts)
+    monkeypatch.setattr(search, "inversion_cost", lambda model, frame, params: 0.0)
+    starts = tuple(np.full(35, float(k)) for k in (5, 0, 3, 1, 4, 2))
+    ctx = search.Context(model, frame=None, options=FitOptions(), dispatch=None, starts=starts)
+    schedule = search.Schedule(search.SEARCH.stages[:2])
+    best = search.run_schedule(ctx, schedule)
+    first_way = [s[0] for s, v in fitted if v == "wide-round"]
+    other_way = [s[0] for s, v in fitted if v == "wide-all"]
+    assert first_way == [5, 0, 3, 1, 4, 2]
+    assert sorted(other_way) == sorted([0, 1, 2, 3][:search.WIDE_BOTH_STARTS])
+    assert best.energy == 1000 and best.variant in ("wide-round", "wide-all")
+
+
+def test_a_proposer_is_asked_once_per_fit_and_variants(monkeypatch, model):
+    """A later stage whose best fit is still the one an earlier stage proposed from does not ask
+    the same proposer again for the same variants (its starts are fitted already, and a limb
+    search would run again); other variants still get their starts."""
+    asked = []
+
+    def fake_fit_starts(ctx, jobs):
+        return [FrameResult(np.asarray(s) + 1.0, 1000, 1, 100, (), v, np.asarray(s)) for s, v in jobs]
+
+    def probe(ctx, source, spent, own):
+        asked.append(None if source is None else float(source.params[0]))
+        return [np.full(35, 50.0)]  # fits to 51 at energy 1000: never lower than the start's fit
+
+    monkeypatch.setattr(search, "fit_starts", fake_fit_starts)
+    monkeypatch.setitem(search.PROPOSERS, "probe", probe)
+    ctx = search.Context(model, frame=None, options=FitOptions(), dispatch=None, starts=(np.zeros(35),))
+    start = search.Stage(("starts",))
+    schedule = search.Schedule((start, search.Stage(("probe",)), search.Stage(("probe",)),
+                                search.Stage(("probe",), ("polish",))))
+    search.run_schedule(ctx, schedule)
+    assert asked == [1.0, 1.0]  # the starts' fit (params 1): once for "track", once for "polish"
