@@ -267,7 +267,7 @@ def run_schedule(ctx: Context, schedule: Schedule, initial: FrameResult | None =
     # re-detection often has the first one's fit as its source
     proposed = set()
     spent = _Spent()
-    for s, stage in enumerate(schedule.stages):
+    for stage in schedule.stages:
         score = _scorer(ctx, stage.score)
         for _ in range(stage.rounds):
             if schedule.budget is not None and sum(f.evaluations for f in made) + spent.evaluations >= schedule.budget:
@@ -457,7 +457,8 @@ def _hops(ctx, source, spent, own):
 
 PROPOSERS = {
     "start": _start, "start_turns": _start_turns, "turns": _best_turns, "tilt_ahead": _tilt_ahead,
-    "midway": _midway, "midway_turns": _midway_turns, "starts": _starts, "best": _best, "origin": _origin, "again": _again, "redetected": _redetected,
+    "midway": _midway, "midway_turns": _midway_turns, "starts": _starts, "best": _best, "origin": _origin,
+    "again": _again, "redetected": _redetected,
     "rotations": _rotations, "swaps": _swaps, "basins": _basins, "twists": _twists, "hops": _hops,
 }
 
