@@ -165,9 +165,10 @@ class BodyModel:
     def kinematic_tables(self) -> tuple:
         """What forward kinematics needs besides the parameters, built once per model (it runs
         on every evaluation): rest offsets of the hinges (35,), the parameter-to-rotation-vector
-        map (35, 19, 3), segment offsets (16, 3), the head top's offset (3,)."""
+        map as each parameter's joint (35,) int (-1: none, the root position and the headings)
+        and its axis (35, 3), segment offsets (16, 3), the head top's offset (3,)."""
         key = np.ascontiguousarray(self.joint_rest, dtype=np.float64).tobytes()
-        return (_rest_offsets_vector(self), _axis_table(key), self.offsets,
+        return (_rest_offsets_vector(self), *_parameter_joints(key), self.offsets,
                 np.ascontiguousarray(self.head_top_offset))
 
     def scaled(self, factor: float) -> "BodyModel":
@@ -292,6 +293,18 @@ def _axis_table(joint_rest_bytes: bytes) -> np.ndarray:
     return M
 
 
+@lru_cache(maxsize=8)
+def _parameter_joints(joint_rest_bytes: bytes) -> tuple:
+    """``_axis_table`` as each parameter's one joint (35,) int (-1: none) and axis (35, 3):
+    a parameter moves one joint, so forward kinematics need not sum the other 18's zeros."""
+    M = _axis_table(joint_rest_bytes)
+    moved = np.abs(M).sum(axis=2) > 0                    # (35, 19)
+    assert (moved.sum(axis=1) <= 1).all(), "a parameter moves at most one joint"
+    joint = np.where(moved.any(axis=1), moved.argmax(axis=1), -1).astype(np.int64)
+    axis = np.ascontiguousarray(M[np.arange(PARAM_COUNT), np.maximum(joint, 0)] * (joint >= 0)[:, None])
+    return joint, axis
+
+
 def _rest_offsets_vector(model: BodyModel) -> np.ndarray:
     """(35,) subtracted from the parameters so that elbows and knees measure from straight."""
     f = joint_frames(model)
@@ -303,8 +316,9 @@ def _rest_offsets_vector(model: BodyModel) -> np.ndarray:
 
 def local_rotations(model: BodyModel, params: np.ndarray) -> np.ndarray:
     """(B, 35) parameters -> (B, 16, 3, 3) rotation of each segment relative to its parent."""
-    rest_offsets, axis_table = model.kinematic_tables[:2]
-    return _local_rotations(np.atleast_2d(np.asarray(params, dtype=np.float64)), rest_offsets, axis_table)
+    rest_offsets, param_joint, param_axis = model.kinematic_tables[:3]
+    return _local_rotations(np.atleast_2d(np.asarray(params, dtype=np.float64)), rest_offsets, param_joint,
+                            param_axis, _segment_mask(None))
 
 
 @lru_cache(maxsize=64)
@@ -339,9 +353,9 @@ def forward_kinematics(model: BodyModel, params: np.ndarray, segments: tuple | N
     if p.shape[1] != PARAM_COUNT:
         raise ValueError(f"expected {PARAM_COUNT} parameters, got {p.shape[1]}")
     needed = _segment_mask(None if segments is None else tuple(segments))
-    rest_offsets, axis_table, offsets, head_top_offset = model.kinematic_tables
-    rot, org, joints = _forward_kinematics(p, rest_offsets, axis_table, _SEGMENT_PARENTS, offsets, head_top_offset,
-                                           needed)
+    rest_offsets, param_joint, param_axis, offsets, head_top_offset = model.kinematic_tables
+    rot, org, joints = _forward_kinematics(p, rest_offsets, param_joint, param_axis, _SEGMENT_PARENTS, offsets,
+                                           head_top_offset, needed)
     return Pose(rot, org, joints)
 
 
@@ -405,43 +419,64 @@ def _rotations_z(angle: np.ndarray) -> np.ndarray:
     return out
 
 
+# The 19 rotation-vector joints each segment's local rotation is made of (first, count).
+_SEGMENT_JOINTS = np.array([(0, 1), (1, 1), (1, 1), (2, 1), (3, 1), (4, 1), (5, 2), (7, 1), (8, 1), (9, 2),
+                            (11, 1), (12, 1), (13, 2), (15, 1), (16, 1), (17, 2)], dtype=np.int64)
+
+
 @njit(cache=True, nogil=True)
-def _local_rotations(p: np.ndarray, rest_offsets: np.ndarray, axis_table: np.ndarray) -> np.ndarray:
-    """(B, 35) -> (B, 16, 3, 3): the 19 joint rotations (``_axis_table``) composed per segment."""
+def _local_rotations(p: np.ndarray, rest_offsets: np.ndarray, param_joint: np.ndarray, param_axis: np.ndarray,
+                     needed: np.ndarray) -> np.ndarray:
+    """(B, 35) -> (B, 16, 3, 3): the 19 joint rotations (``_axis_table``) composed per segment,
+    for the ``needed`` (16,) segments only (the others are left unset)."""
     B = p.shape[0]
     R = np.empty((B, 16, 3, 3))
     M = np.empty((19, 3, 3))
     Z = np.empty((3, 3))
     rv = np.zeros((19, 3))
+    joint_needed = np.zeros(19, np.bool_)
+    for s in range(16):
+        if needed[s]:
+            for k in range(_SEGMENT_JOINTS[s, 0], _SEGMENT_JOINTS[s, 0] + _SEGMENT_JOINTS[s, 1]):
+                joint_needed[k] = True
     for b in range(B):
         rv[:] = 0.0
         for i in range(35):
-            v = p[b, i] - rest_offsets[i]
-            if v != 0.0:
-                for k in range(19):
+            k = param_joint[i]
+            if k >= 0 and joint_needed[k]:
+                v = p[b, i] - rest_offsets[i]
+                if v != 0.0:
                     for c in range(3):
-                        rv[k, c] += v * axis_table[i, k, c]
+                        rv[k, c] += v * param_axis[i, c]
         for k in range(19):
-            _rodrigues(rv[k, 0], rv[k, 1], rv[k, 2], M[k])
-        _rot_z(p[b, 3], Z)
-        _matmul3(Z, M[0], R[b, 0])
-        R[b, 1] = M[1]
-        R[b, 2] = M[1]
-        _rot_z(p[b, 10], Z)
-        _matmul3(M[2], Z, R[b, 3])
+            if joint_needed[k]:
+                _rodrigues(rv[k, 0], rv[k, 1], rv[k, 2], M[k])
+        if needed[0]:
+            _rot_z(p[b, 3], Z)
+            _matmul3(Z, M[0], R[b, 0])
+        if needed[1]:
+            R[b, 1] = M[1]
+        if needed[2]:
+            R[b, 2] = M[1]
+        if needed[3]:
+            _rot_z(p[b, 10], Z)
+            _matmul3(M[2], Z, R[b, 3])
         for seg, first in ((4, 3), (7, 7), (10, 11), (13, 15)):  # a limb: root, middle, end (two joints)
-            R[b, seg] = M[first]
-            R[b, seg + 1] = M[first + 1]
-            _matmul3(M[first + 2], M[first + 3], R[b, seg + 2])
+            if needed[seg]:
+                R[b, seg] = M[first]
+            if needed[seg + 1]:
+                R[b, seg + 1] = M[first + 1]
+            if needed[seg + 2]:
+                _matmul3(M[first + 2], M[first + 3], R[b, seg + 2])
     return R
 
 
 @njit(cache=True, nogil=True)
-def _forward_kinematics(p, rest_offsets, axis_table, parents, offsets, head_top_offset, needed):
+def _forward_kinematics(p, rest_offsets, param_joint, param_axis, parents, offsets, head_top_offset, needed):
     """(B, 35) -> rotations (B, 16, 3, 3), origins (B, 16, 3), joints (B, 17, 3); segments not
     ``needed`` (16,) are NaN."""
     B = p.shape[0]
-    local = _local_rotations(p, rest_offsets, axis_table)
+    local = _local_rotations(p, rest_offsets, param_joint, param_axis, needed)
     rot = np.full((B, 16, 3, 3), np.nan)
     org = np.full((B, 16, 3), np.nan)
     joints = np.full((B, 17, 3), np.nan)

@@ -262,8 +262,8 @@ def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.nd
 
 
 @njit(cache=True, nogil=True)
-def pose_energies(p, rest_offsets, axis_table, parents, offsets, head_top_offset, needed, seg, local_centres,
-                  local_A, P, y0, x0, rows, width, prefix) -> np.ndarray:
+def pose_energies(p, rest_offsets, param_joint, param_axis, parents, offsets, head_top_offset, needed, seg,
+                  local_centres, local_A, P, y0, x0, rows, width, prefix) -> np.ndarray:
     """The moving parts' XOR sums of a batch of poses in one compiled call: forward kinematics,
     posed ellipsoids, conics and spans (each step the same arithmetic as its own kernel).
 
@@ -272,7 +272,8 @@ def pose_energies(p, rest_offsets, axis_table, parents, offsets, head_top_offset
     centres (S, 3) and axes scaled by radii (S, 3, 3); then as ``xor_span_sums`` -> (B,) int64.
     One call instead of four kernels and their numpy glue: the glue cost as much as the work.
     """
-    rot, org, _ = _forward_kinematics(p, rest_offsets, axis_table, parents, offsets, head_top_offset, needed)
+    rot, org, _ = _forward_kinematics(p, rest_offsets, param_joint, param_axis, parents, offsets, head_top_offset,
+                                      needed)
     centres, A = _pose_ellipsoids(rot, org, seg, local_centres, local_A)
     C, drawable = image_conics(P, centres, A)
     return xor_span_sums(C, drawable, y0, x0, rows, width, prefix)
@@ -413,7 +414,7 @@ class CpuEnergy:
         self.prefix, base = xor_prefix(M, inputs)
         self.base = int(base)
         seg = np.asarray(self.moving, dtype=np.int64)
-        self.kernel_tables = (*model.kinematic_tables[:2], _SEGMENT_PARENTS, *model.kinematic_tables[2:],
+        self.kernel_tables = (*model.kinematic_tables[:3], _SEGMENT_PARENTS, *model.kinematic_tables[3:],
                                _segment_mask(self.moving), seg,
                                np.ascontiguousarray(model.ellipsoid_centres[seg]),
                                model.ellipsoid_axes[seg] * model.ellipsoid_radii[seg][:, None, :],
