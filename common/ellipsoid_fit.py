@@ -32,8 +32,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 
-from common.body import (JOINT_NAMES, PARAM_LIMITS, BodyModel, clip_to_limits, forward_kinematics, load_body_model,
-                         rest_params)
+from common.body import (_SEGMENT_PARENTS, JOINT_NAMES, PARAM_LIMITS, BodyModel, _forward_kinematics, _segment_mask,
+                         clip_to_limits, forward_kinematics, load_body_model, rest_params)
 from common.retarget import heading_tilt
 
 SHELL_NAMES = ("torso", "head", "left_arm", "right_arm", "left_leg", "right_leg")
@@ -703,34 +703,33 @@ def _solve(model: BodyModel, p, idx, segments, target: VolumeTarget, weights, re
     pass through the chest.
     """
     idx, seg = np.array(idx), np.array(segments)
-    points = target.points
-    hull = _hull_scale(target)
+    points = np.ascontiguousarray(target.points, dtype=np.float64)
     fixed = np.full(len(points), np.inf)
     still = np.setdiff1d(np.arange(16), seg)
     if still.size and not robust:
         c, a, r = segment_ellipsoids(model, p)
         fixed = (shell_distances(points, c[still], a[still], r[still]) ** 2 * weights[still]).min(axis=1)
     lo, hi = PARAM_LIMITS[idx, 0], PARAM_LIMITS[idx, 1]
-    guarded = np.isin(seg, ARM_SEGMENTS)
-    allowed = rest_depth[seg[guarded]]
+    guarded = seg[np.isin(seg, ARM_SEGMENTS)]
+    trunk = np.array(TRUNK_CORE, dtype=np.int64)
+    rest_offsets, param_joint, param_axis, offsets, head_top_offset = model.kinematic_tables
+    problem = (rest_offsets, param_joint, param_axis, _SEGMENT_PARENTS, offsets, head_top_offset,
+               _segment_mask(tuple(int(i) for i in (*seg, *trunk))),
+               np.ascontiguousarray(model.ellipsoid_centres, dtype=np.float64),
+               np.ascontiguousarray(model.ellipsoid_axes, dtype=np.float64),
+               np.ascontiguousarray(model.ellipsoid_radii, dtype=np.float64),
+               seg.astype(np.int64), guarded.astype(np.int64), trunk, points, fixed,
+               np.ascontiguousarray(weights, dtype=np.float64), bool(robust), float(_hull_scale(target)),
+               np.ascontiguousarray(rest_depth[guarded], dtype=np.float64), _SEGMENT_SPHERE,
+               np.ascontiguousarray(target.outside, dtype=np.float32),
+               np.asarray(target.origin, dtype=np.float64), np.asarray(target.voxel_size, dtype=np.float64))
     count = [0]
 
     def energy(x):
         count[0] += 1
         q = p.copy()
         q[idx] = np.clip(x, lo, hi)
-        c, a, r = segment_ellipsoids(model, q)
-        d2 = (shell_distances(points, c[seg], a[seg], r[seg]) ** 2 * weights[seg]).min(axis=1)
-        if robust:
-            data = np.sum(ROBUST_DISTANCE ** 2 * d2 / (d2 + ROBUST_DISTANCE ** 2))
-        else:
-            data = np.minimum(fixed, d2).sum()
-        samples = _surface_samples(c[seg], a[seg], r[seg])
-        out = target.outside_distance(samples)
-        inside = np.maximum(_depth_inside(samples[guarded], c[TRUNK_CORE], a[TRUNK_CORE], r[TRUNK_CORE])
-                            - allowed, 0.0)
-        return float(data + hull * (np.sum(weights[seg, None] * out ** 2)
-                                    + GUARD_WEIGHT * np.sum(weights[seg[guarded], None] * inside ** 2)))
+        return _solve_objective(q, *problem)
 
     ranked = sorted(starts, key=energy)[:INIT_STARTS_KEPT] if len(starts) > 1 else starts
     if keep is not None:
@@ -743,3 +742,72 @@ def _solve(model: BodyModel, p, idx, segments, target: VolumeTarget, weights, re
     out = p.copy()
     out[idx] = np.clip(best.x, lo, hi)
     return out, float(best.fun), count[0]
+
+
+@njit(cache=True, nogil=True)
+def _solve_objective(q, rest_offsets, param_joint, param_axis, parents, offsets, head_top_offset, needed,
+                     local_centres, local_axes, radii, seg, guarded, trunk, points, fixed, weights, robust, hull,
+                     allowed, sphere, outside, origin, voxel_size) -> float:
+    """``_solve``'s energy of the pose q (35,), compiled (a first frame's voxel fit evaluates it
+    some 10,000 times; numpy's glue cost twice its arithmetic): D over the moving ``seg``
+    against the ``fixed`` (n,) weighted squared distances of the others (or ``robust``: the
+    bounded loss of ``seg`` alone), plus ``hull`` times the surface samples' squared distances
+    to the volume (``VolumeTarget.outside_distance``) and, for the ``guarded`` arm segments,
+    GUARD_WEIGHT times their depth inside the ``trunk`` segments beyond ``allowed`` (G, P)."""
+    rot, org, _ = _forward_kinematics(q.reshape(1, -1), rest_offsets, param_joint, param_axis, parents, offsets,
+                                      head_top_offset, needed)
+    centres = np.empty((16, 3))
+    axes = np.empty((16, 3, 3))
+    for s in range(16):
+        if needed[s]:
+            for i in range(3):
+                centres[s, i] = org[0, s, i] + (rot[0, s, i, 0] * local_centres[s, 0] + rot[0, s, i, 1]
+                                                * local_centres[s, 1] + rot[0, s, i, 2] * local_centres[s, 2])
+                for j in range(3):
+                    axes[s, i, j] = (rot[0, s, i, 0] * local_axes[s, 0, j] + rot[0, s, i, 1] * local_axes[s, 1, j]
+                                     + rot[0, s, i, 2] * local_axes[s, 2, j])
+    d = _shell_distances(points, centres[seg], axes[seg], radii[seg], NEWTON_STEPS, NEWTON_TOLERANCE)
+    data = 0.0
+    for k in range(points.shape[0]):
+        d2 = np.inf
+        for m in range(seg.shape[0]):
+            d2 = min(d2, d[k, m] ** 2 * weights[seg[m]])
+        if robust:
+            data += ROBUST_DISTANCE ** 2 * d2 / (d2 + ROBUST_DISTANCE ** 2)
+        else:
+            data += min(fixed[k], d2)
+    shape = outside.shape
+    sample = np.empty(3)
+    cell = np.empty(3, np.int64)
+    surface = 0.0
+    guard = 0.0
+    g = 0
+    for s in seg:
+        is_guarded = g < guarded.shape[0] and guarded[g] == s
+        for n in range(sphere.shape[0]):
+            for i in range(3):
+                sample[i] = centres[s, i] + (axes[s, i, 0] * (sphere[n, 0] * radii[s, 0]) + axes[s, i, 1]
+                                             * (sphere[n, 1] * radii[s, 1]) + axes[s, i, 2] * (sphere[n, 2] * radii[s, 2]))
+            beyond = 0.0
+            for i in range(3):
+                f = (sample[i] - origin[i]) / voxel_size[i] - 0.5
+                cell[i] = min(max(int(np.rint(f)), 0), shape[i] - 1)
+                if f < -0.5 or f > shape[i] - 0.5:
+                    beyond += ((f - cell[i]) * voxel_size[i]) ** 2
+            out = float(outside[cell[0], cell[1], cell[2]]) + np.sqrt(beyond)
+            surface += weights[s] * out * out
+            if is_guarded:
+                depth = 0.0
+                for e in trunk:
+                    rho2 = 0.0
+                    for i in range(3):
+                        rel = 0.0
+                        for j in range(3):
+                            rel += (sample[j] - centres[e, j]) * axes[e, j, i]
+                        rho2 += (rel / radii[e, i]) ** 2
+                    depth = max(depth, max(1.0 - np.sqrt(rho2), 0.0) * min(radii[e, 0], radii[e, 1], radii[e, 2]))
+                inside = max(depth - allowed[g, n], 0.0)
+                guard += weights[s] * inside * inside
+        if is_guarded:
+            g += 1
+    return data + hull * (surface + GUARD_WEIGHT * guard)
