@@ -58,6 +58,36 @@ def cut_window(mask: np.ndarray, w: Window) -> np.ndarray:
     return out
 
 
+@njit(cache=True, nogil=True)
+def centred_cuts(R: np.ndarray, t: np.ndarray, K: np.ndarray, sizes: np.ndarray, masks: np.ndarray,
+                 centre: np.ndarray, size: int) -> tuple:
+    """``centred_window`` around each camera's projection of ``centre`` and ``cut_window`` of
+    its mask, for all cameras in one compiled call (a fit cuts windows some 400 times a frame).
+
+    R (K, 3, 3), t (K, 3), K (K, 3, 3) pinhole cameras without distortion; sizes (K, 2) image
+    width and height; masks (K, H, W) bool; centre (3,) world -> corners (K, 2) int (x0, y0),
+    cuts (K, size, size) bool (zeros outside the image).
+    """
+    n = R.shape[0]
+    corners = np.empty((n, 2), np.int64)
+    cuts = np.zeros((n, size, size), np.bool_)
+    for k in range(n):
+        xc = np.empty(3)
+        for i in range(3):
+            xc[i] = centre[0] * R[k, i, 0] + centre[1] * R[k, i, 1] + centre[2] * R[k, i, 2] + t[k, i]
+        x, y = xc[0] / xc[2], xc[1] / xc[2]
+        u = K[k, 0, 0] * x + K[k, 0, 1] * y + K[k, 0, 2]
+        v = K[k, 1, 1] * y + K[k, 1, 2]
+        x0 = int(np.floor(u - size / 2 + 0.5))
+        y0 = int(np.floor(v - size / 2 + 0.5))
+        corners[k, 0], corners[k, 1] = x0, y0
+        xs, ys = max(x0, 0), max(y0, 0)
+        xe, ye = min(x0 + size, sizes[k, 0]), min(y0 + size, sizes[k, 1])
+        if xs < xe and ys < ye:
+            cuts[k, ys - y0:ye - y0, xs - x0:xe - x0] = masks[k, ys:ye, xs:xe]
+    return corners, cuts
+
+
 # --------------------------------------------------------------------------- geometry
 
 def ellipsoid_world(model: BodyModel, rotations: np.ndarray, origins: np.ndarray, segments) -> tuple:

@@ -11,7 +11,7 @@ import numpy as np
 
 from common.body import BodyModel, forward_kinematics, rest_params
 from common.camera import Camera, Studio, distort_normalized
-from common.energy import EnergySetup, Window, centred_window, cut_window
+from common.energy import EnergySetup, Window, centred_cuts
 from common.objective import make_energy
 from common.packing import clear_padding, downsample_masks, pad_stack
 
@@ -144,10 +144,15 @@ class FrameData:
         R, o = pose.rotations[0, list(segments)], pose.origins[0, list(segments)]
         # the mean of the parts' ellipsoid centres: the middle of the bones, not the joints
         centre = (np.einsum("sij,sj->si", R, self.model.ellipsoid_centres[list(segments)]) + o).mean(axis=0)
-        windows, cuts = [], []
-        for cam, mask in zip(self.studio, self.masks):
-            w = centred_window(cam.project(centre), size)
-            windows.append(w)
-            cuts.append(cut_window(mask[:cam.height, :cam.width], w))
-        return EnergySetup(self.studio, tuple(windows), np.stack(cuts), tuple(segments), np.asarray(params),
-                           prerender=prerender)
+        corners, cuts = centred_cuts(*self._pinholes, self.masks, centre, size)
+        windows = tuple(Window(int(x0), int(y0), size, size) for x0, y0 in corners)
+        return EnergySetup(self.studio, windows, cuts, tuple(segments), np.asarray(params), prerender=prerender)
+
+    @cached_property
+    def _pinholes(self) -> tuple:
+        """The undistorted cameras as arrays for ``centred_cuts``: R (K, 3, 3), t (K, 3),
+        K (K, 3, 3), image sizes (K, 2)."""
+        cams = self.studio.cameras
+        return (np.stack([c.R for c in cams]).astype(np.float64), np.stack([c.t for c in cams]).astype(np.float64),
+                np.stack([c.K for c in cams]).astype(np.float64),
+                np.array([(c.width, c.height) for c in cams], dtype=np.int64))
