@@ -41,28 +41,12 @@ class Window:
     height: int
 
 
-def centred_window(centre_uv: np.ndarray, size: int) -> Window:
-    x0 = int(np.floor(centre_uv[0] - size / 2 + 0.5))
-    y0 = int(np.floor(centre_uv[1] - size / 2 + 0.5))
-    return Window(x0, y0, size, size)
-
-
-def cut_window(mask: np.ndarray, w: Window) -> np.ndarray:
-    """(H, W) bool image -> (w.height, w.width) bool, zeros outside the image."""
-    H, W = mask.shape
-    out = np.zeros((w.height, w.width), dtype=bool)
-    xs, ys = max(w.x0, 0), max(w.y0, 0)
-    xe, ye = min(w.x0 + w.width, W), min(w.y0 + w.height, H)
-    if xs < xe and ys < ye:
-        out[ys - w.y0:ye - w.y0, xs - w.x0:xe - w.x0] = mask[ys:ye, xs:xe]
-    return out
-
-
 @njit(cache=True, nogil=True)
 def centred_cuts(R: np.ndarray, t: np.ndarray, K: np.ndarray, sizes: np.ndarray, masks: np.ndarray,
                  centre: np.ndarray, size: int) -> tuple:
-    """``centred_window`` around each camera's projection of ``centre`` and ``cut_window`` of
-    its mask, for all cameras in one compiled call (a fit cuts windows some 400 times a frame).
+    """A window of ``size`` pixels centred on each camera's projection of ``centre`` (its corner
+    at the pixel nearest to centre - size / 2), and that window of the camera's mask, for all
+    cameras in one compiled call (a fit cuts windows some 400 times a frame).
 
     R (K, 3, 3), t (K, 3), K (K, 3, 3) pinhole cameras without distortion; sizes (K, 2) image
     width and height; masks (K, H, W) bool; centre (3,) world -> corners (K, 2) int (x0, y0),

@@ -5,7 +5,7 @@ import pytest
 from common.body import (CHAINS, PARAM_COUNT, clip_to_limits, forward_kinematics, load_body_model, rest_params,
                          rigid_vertices)
 from common.camera import circle_studio
-from common.energy import (ARM_WINDOW, CpuEnergy, EnergySetup, Window, centred_window, cut_window, ellipsoid_world)
+from common.energy import ARM_WINDOW, CpuEnergy, EnergySetup, Window, ellipsoid_world
 from common.objective import make_energy
 from common.errors import UserError
 
@@ -53,7 +53,19 @@ def part_windows(model, studio, params, segments, size):
     """Windows of ``size`` pixels centred on the projected mean of the segments' ellipsoids."""
     pose = forward_kinematics(model, params)
     centre = ellipsoid_world(model, pose.rotations, pose.origins, segments)[0][0].mean(axis=0)
-    return tuple(centred_window(cam.project(centre[None])[0], size) for cam in studio)
+    corners = [np.floor(cam.project(centre[None])[0] - size / 2 + 0.5).astype(int) for cam in studio]
+    return tuple(Window(int(x0), int(y0), size, size) for x0, y0 in corners)
+
+
+def cut_window(mask, w: Window) -> np.ndarray:
+    """(H, W) bool image -> (w.height, w.width) bool, zeros outside the image."""
+    H, W = mask.shape
+    out = np.zeros((w.height, w.width), dtype=bool)
+    xs, ys = max(w.x0, 0), max(w.y0, 0)
+    xe, ye = min(w.x0 + w.width, W), min(w.y0 + w.height, H)
+    if xs < xe and ys < ye:
+        out[ys - w.y0:ye - w.y0, xs - w.x0:xe - w.x0] = mask[ys:ye, xs:xe]
+    return out
 
 
 def make_setup(studio, masks, windows, moving, params, prerender):
