@@ -29,8 +29,8 @@ from common.body import (
     hold_limbs_in_world,
 )
 from common import optimize
-from common.energy import ARM_WINDOW, SMALL_WINDOW, CpuEnergy
-from common.frame import FrameData
+from common.energy import ARM_WINDOW, MIN_DEPTH_M, SMALL_WINDOW, CpuEnergy
+from common.frame import HALF, FrameData
 from common.objective import HeldLimbs, SpinePrior, with_spine_prior
 from common.powell_cpu import powell_cpu
 
@@ -346,6 +346,21 @@ def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray,
     return best_x, current, best_e, n
 
 
+# A forearm's width in the half-resolution images (the median camera's), pixels, from which a
+# limb's search ranks its grid there: the 320x240 studio's walk has 2.2 (1.6-4.3), the real
+# seated take's 644x484 cameras 3.5-5.3, a 160x120 studio 1.2, where the half images lose the
+# forearm the grid is ranked by (a folded forearm's true basin 99 mm off instead of found)
+HALF_RESOLUTION_MIN_FOREARM_PX = 1.5
+
+
+def half_resolution_resolves_limbs(model: BodyModel, frame: FrameData, x: np.ndarray) -> bool:
+    """Whether a forearm at the pelvis of x (35,) is HALF_RESOLUTION_MIN_FOREARM_PX wide or more
+    in the median camera's half-resolution image."""
+    width_m = 2.0 * float(model.ellipsoid_radii[CHAINS["left_arm"].segments[1]].min())
+    widths = [HALF * cam.K[0, 0] * width_m / max(float(cam.depth(x[:3])), MIN_DEPTH_M) for cam in frame.studio]
+    return float(np.median(widths)) >= HALF_RESOLUTION_MIN_FOREARM_PX
+
+
 def search_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions,
                 starts: int, one_per_basin: bool):
     """One limb's whole range on the whole images, the other parts held at x: a grid, then
@@ -353,15 +368,21 @@ def search_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, o
     each of the ``starts`` best basins (a basin's points crowd the top of the grid otherwise).
     Returns ([(energy, params (35,)) per start, in grid order], the energy at x, evaluations)."""
     proximal, distal, _ = LIMB_PARTS[chain]
-    setup = replace(frame.full_setup(x), moving=CHAINS[chain].segments, prerender=True)
-    energy = frame.energy("cpu" if options.energy == "coarse-to-fine" else options.energy, setup)
+    backend = "cpu" if options.energy == "coarse-to-fine" else options.energy
+    energy = frame.energy(backend, replace(frame.full_setup(x), moving=CHAINS[chain].segments, prerender=True))
+    # the grid only ranks starting points for Powell: at half resolution, where a forearm is still
+    # wide enough there to be seen, it ranks them as well for a fraction of the cost (the grid
+    # was a fifth of a fit's time; docs/accuracy.md)
+    coarse = (frame.energy(backend, replace(frame.full_setup(x, half=True), moving=CHAINS[chain].segments,
+                                            prerender=True))
+              if half_resolution_resolves_limbs(model, frame, x) else energy)
     lo, hi = PARAM_LIMITS[list(proximal)].T
     pad = REDETECT_MARGIN * (hi - lo)
     axes = [np.linspace(lo[i] + pad[i], hi[i] - pad[i], REDETECT_STEPS if i < 3 else REDETECT_HINGE_STEPS)
             for i in range(4)]
     cand = np.repeat(x[None], np.prod([len(a) for a in axes]), axis=0)
     cand[:, list(proximal)] = np.array(list(product(*axes)))
-    order = np.argsort(energy(cand), kind="stable")
+    order = np.argsort(coarse(cand), kind="stable")
     if one_per_basin:
         # the basins' best points are almost always near the top: joints of the best few first
         kept = distinct_rows(limb_joints(model, chain, cand[order[:BASIN_SCAN_ROWS]]), starts)
