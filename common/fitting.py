@@ -532,15 +532,16 @@ def fit_converged(improved: float, energy: float, rounds: int, options: FitOptio
 
 
 def fit_rounds(model: BodyModel, frame: FrameData, start: np.ndarray, options: FitOptions,
-               dispatch: Dispatch) -> FrameResult:
+               dispatch: Dispatch, first_round: int = 0) -> FrameResult:
     """One hierarchical fit from ``start`` (35,): rounds of torso, then the four limbs side by
     side (``dispatch``, against the torso's result: Jacobi) and the head, until
     ``fit_converged`` or ``options.max_iterations`` rounds. A round whose energy is higher is
-    not taken."""
+    not taken. ``first_round``: the fit goes on from a fit stopped after that many rounds
+    (``start`` its result), as that fit would have gone on; its ``iterations`` count them all."""
     x = np.array(start, dtype=np.float64)
     best = full_energy(model, frame, x)
-    chains, evaluations, rounds = [], 0, 0
-    for it in range(options.max_iterations):
+    chains, evaluations, rounds = [], 0, first_round
+    for it in range(first_round, options.max_iterations):
         torso = solve_chain(model, frame, "torso", x, options)
         # the limbs go out first so that clients work while the server fits the head
         collect_limbs = dispatch(list(LIMB_CHAINS), torso.params, it, options)

@@ -36,8 +36,8 @@ from common.errors import InputFileError, UserError, print_warning
 from common.fitting import HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult, fit_rounds
 from common.proposals import voxel_starts
 from common.scoring import accuracy, frame_quality, quality_summary
-from common.search import (FIT_JOBS, LIMBS_LOST, WIDE, VARIANTS, Context, fit_frame, is_chain_solve, lowest,
-                           refine_frame, run_schedule, search_frame, solve_locally, tracking_lost,
+from common.search import (FIT_JOBS, LIMBS_LOST, WIDE, VARIANTS, Context, descend_outward, fit_frame,
+                           is_chain_solve, lowest, refine_frame, run_schedule, search_frame, solve_locally, tracking_lost,
                            LIMB_LOSS_ENERGY_RATIO)
 from common.sequence import Sequence
 from server.output import write_text
@@ -238,9 +238,12 @@ class ActorSize:
 def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, threads: int = 1) -> ActorSize:
     """The actor's size over ``model``'s, chosen by the silhouettes of the first frame: the
     first frame searched once at the model's size (the WIDE schedule: every start, one way of
-    re-detecting limbs), then its best pose fitted again at each of ACTOR_SCALES (the pelvis
-    height scaled along), and the size whose fit explains the masks best (lowest XOR energy)
-    kept if it beats the model's own size by ACTOR_SCALE_MIN_GAIN.
+    re-detecting limbs), then its best pose fitted again at ACTOR_SCALES outward from the
+    model's size while the energy keeps falling (the pelvis height scaled along;
+    ``descend_outward``), and the size whose fit explains the masks best (lowest XOR energy)
+    kept if it beats the model's own size by ACTOR_SCALE_MIN_GAIN. The energy falls steadily
+    towards the actor's size (the seated take: 42.3k at 0.9 down to 25.3k at 1.4), so stopping
+    where it rises fits two sizes for an actor of the model's size instead of five.
     Why: real subjects are not the body model's size, and a body too small for its silhouettes
     folds into them wrongly (the seated take, fitted at 1.66 m, stood). ``threads``: the
     starts and the sizes are fitted that many at once."""
@@ -251,14 +254,14 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, thr
     try:
         starts, memo = tuple(voxel_starts(model, data)), {}
         found = run_schedule(context(model, data, frame, options, solver, starts=starts), WIDE, memo=memo)
-        scales = [s for s in ACTOR_SCALES if s != 1.0]
-        fits = solver.map(lambda scale: fit_at_scale(model, seq, frame, found.params, scale, options)[2], scales)
+        energies = descend_outward(ACTOR_SCALES, 1.0, found.energy, lambda scales: solver.map(
+            lambda scale: fit_at_scale(model, seq, frame, found.params, scale, options)[2].energy, scales))
     finally:
         solver.close()
     best_scale, best_energy = 1.0, found.energy * (1.0 - ACTOR_SCALE_MIN_GAIN)
-    for scale, fit in zip(scales, fits):
-        if fit.energy < best_energy:
-            best_scale, best_energy = scale, fit.energy
+    for scale in sorted(energies):
+        if energies[scale] < best_energy:
+            best_scale, best_energy = scale, energies[scale]
     return ActorSize(best_scale, frame, starts, memo, time.perf_counter() - t0)
 
 

@@ -12,7 +12,8 @@ import pytest
 
 from common.body import CHAINS, JOINT_NAMES, LIMB_CHAINS, LIMB_ROOTS, P, PARAM_COUNT, PARAM_LIMITS, forward_kinematics
 from common.fitting import HOP_JOBS, FitOptions, FrameData, full_energy, hop_fit, solve_chain
-from common.search import POLISHED, Context, Schedule, Stage, fit_frame, run_schedule, solve_locally
+from common.search import (POLISHED, Context, Schedule, Stage, descend_outward, fit_frame, run_schedule,
+                           solve_locally)
 from server.cli import main
 
 from conftest import SMALL_FRAMES
@@ -238,6 +239,21 @@ def test_limb_alternatives_find_a_forearm_folded_away(model, small_loaded):
     options = FitOptions(turn_hypotheses=0, redetect_limbs=False)  # the refits alone
     best = alternatives[int(np.argmin(off_mm))]
     assert fit_frame(model, data, best, options).energy < fit_frame(model, data, folded, options).energy
+
+
+@pytest.mark.parametrize("scores,expected", [
+    ({0.9: 5.0, 1.1: 6.0, 1.2: 1.0}, {1.0: 4.0, 0.9: 5.0, 1.1: 6.0}),  # up on both sides: stop there
+    ({0.9: 3.0, 0.8: 3.5, 1.1: 3.9, 1.2: 3.0, 1.3: 3.0}, {1.0: 4.0, 0.9: 3.0, 0.8: 3.5, 1.1: 3.9, 1.2: 3.0, 1.3: 3.0}),
+])
+def test_descend_outward_scores_each_side_while_it_falls(scores, expected):
+    batches = []
+
+    def score_many(values):
+        batches.append(list(values))
+        return [scores[v] for v in values]
+
+    assert descend_outward((0.8, 0.9, 1.1, 1.2, 1.3), 1.0, 4.0, score_many) == expected
+    assert all(len(b) <= 2 for b in batches)  # the nearest untried value of each side at once
 
 
 def test_distinct_rows_keeps_one_row_per_basin():
@@ -616,9 +632,9 @@ def test_a_refinement_pass_fits_each_inner_frame_from_halfway_between_its_neighb
     starts = []
     fits = search.fit_starts
 
-    def spy(ctx, jobs):
+    def spy(ctx, jobs, *rest):
         starts.extend((ctx.frame_number, np.array(s)) for s, _ in jobs)
-        return fits(ctx, jobs)
+        return fits(ctx, jobs, *rest)
 
     monkeypatch.setattr(search, "fit_starts", spy)
     monkeypatch.setattr(session, "PASS_START_HOPS", 0)
@@ -1041,7 +1057,7 @@ def test_the_search_loop_refits_the_lowest_few_and_stops_when_a_round_gains_too_
     ENERGY = {12: 120, 10: 100, 13: 130, 11: 110, 20: 90}
     fitted = []
 
-    def fake_fit_starts(ctx, jobs):
+    def fake_fit_starts(ctx, jobs, *_):
         fitted.extend((int(start[0]), variant) for start, variant in jobs)
         return [FrameResult(np.array([float(FIT[int(start[0])])]),
                             ENERGY[FIT[int(start[0])]] - 5 * (variant == "every"), 1, 1, variant=variant)

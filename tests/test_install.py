@@ -1,5 +1,6 @@
 """A clean install: the wheel builds without packaging warnings, installs in a fresh virtual
-environment outside the repository, and ``mocap demo`` runs there on its bundled data.
+environment outside the repository, and ``mocap demo`` runs there on its bundled data; a
+developer's editable install (``make venv``) warns of nothing either.
 
 Slow (a venv with every dependency): ``make install-test``, which CI runs."""
 from __future__ import annotations
@@ -39,3 +40,8 @@ def test_wheel_installs_outside_the_repo_and_runs_the_demo(tmp_path):
     assert json.loads((result / "summary.json").read_text())["frames"] == DEMO_FRAMES
     assert (result / "report.html").is_file() and (result / "motion.bvh").is_file()
     assert "mean joint error" in demo.stdout
+    # the editable install `make venv` makes, into the same environment: no setuptools warning
+    editable = subprocess.run([str(env_dir / "bin" / "pip"), "install", "--no-deps", "-e", str(ROOT)],
+                              capture_output=True, text=True, timeout=600)
+    assert editable.returncode == 0, editable.stderr[-2000:]
+    assert "Warning" not in editable.stdout + editable.stderr, (editable.stdout + editable.stderr)[-3000:]

@@ -14,7 +14,7 @@ def _ctx(model):
 def test_a_remembered_start_is_not_fitted_again(monkeypatch, model):
     fitted = []
 
-    def fake_fit_starts(ctx, jobs):
+    def fake_fit_starts(ctx, jobs, *_):
         fitted.extend(jobs)
         return [FrameResult(np.asarray(s), int(np.sum(s)) + 10, 1, 100, (), v) for s, v in jobs]
 
@@ -56,7 +56,7 @@ def test_only_the_lowest_starts_are_fitted_the_other_way(monkeypatch, model):
     from their own starts only the WIDE_BOTH_STARTS fits of lowest score the other way."""
     fitted = []
 
-    def fake_fit_starts(ctx, jobs):
+    def fake_fit_starts(ctx, jobs, *_):
         fitted.extend(jobs)
         return [FrameResult(np.asarray(s), 1000 + int(s[0]) * (7 if v == "wide-round" else 1), 1, 100, (), v,
                             np.asarray(s)) for s, v in jobs]
@@ -80,7 +80,7 @@ def test_a_proposer_is_asked_once_per_fit_and_variants(monkeypatch, model):
     search would run again); other variants still get their starts."""
     asked = []
 
-    def fake_fit_starts(ctx, jobs):
+    def fake_fit_starts(ctx, jobs, *_):
         return [FrameResult(np.asarray(s) + 1.0, 1000, 1, 100, (), v, np.asarray(s)) for s, v in jobs]
 
     def probe(ctx, source, spent, own):
@@ -95,3 +95,40 @@ def test_a_proposer_is_asked_once_per_fit_and_variants(monkeypatch, model):
                                 search.Stage(("probe",), ("polish",))))
     search.run_schedule(ctx, schedule)
     assert asked == [1.0, 1.0]  # the starts' fit (params 1): once for "track", once for "polish"
+
+
+def test_starts_far_behind_after_the_first_rounds_stop_there(monkeypatch, model):
+    """With a stage's ``drop`` (rounds, ratio), starts are fitted that many rounds; those above
+    ratio times the lowest keep what they reached, the others go on from there to the end, as
+    a fit never stopped would (the rounds counted on), their evaluations summed."""
+    calls = []
+
+    def fake_fit_rounds(model_, frame, start, options, dispatch, first_round=0):
+        calls.append((float(start[0]), first_round, options.max_iterations))
+        rounds = options.max_iterations - first_round
+        # a start's energy after r rounds: its first number, less one per round
+        return FrameResult(start - rounds, int(start[0]) - rounds, options.max_iterations, 10 * rounds)
+
+    monkeypatch.setattr(search, "fit_rounds", fake_fit_rounds)
+    monkeypatch.setattr(search, "full_energy", lambda model_, frame, params: int(params[0]))
+    options = FitOptions()
+    ctx = search.Context(model, None, options, search.solve_locally(model, None, options))
+    jobs = [(np.full(35, e), "wide-round") for e in (102.0, 300.0, 150.0)]
+    fits = search.fit_starts(ctx, jobs, drop=(2, 1.5))
+    full = search.VARIANTS["wide-round"](options).max_iterations
+    assert [f.energy for f in fits] == [102 - full, 298, 150 - full]  # 298 > 1.5 x 100: stopped
+    assert [f.iterations for f in fits] == [full, 2, full]
+    assert [f.evaluations for f in fits] == [10 * full, 20, 10 * full]
+    assert [len(f.chains) for f in fits] == [2, 1, 2]
+    assert all(f.variant == "wide-round" and f.start is s for f, (s, _) in zip(fits, jobs))
+    assert sorted(c for c in calls if c[1] == 2) == [(100.0, 2, full), (148.0, 2, full)]
+    assert search.fit_starts(ctx, [], drop=(2, 1.5)) == []  # every start remembered: nothing to fit
+    calls.clear()
+    plain = search.fit_starts(ctx, jobs)
+    assert [f.energy for f in plain] == [102 - full, 300 - full, 150 - full] and len(calls) == 3
+
+
+def test_the_search_and_the_actor_size_search_drop_starts_alike():
+    """Both fit the voxel starts by the same stage, so the size search's fits are the search's."""
+    assert search.SEARCH.stages[0] is search.WIDE_STARTS is search.WIDE.stages[0]
+    assert search.WIDE_STARTS.drop is not None

@@ -131,6 +131,32 @@ def test_the_actor_size_changes_only_for_a_clear_gain(monkeypatch, model, energi
     assert session.choose_actor_scale(model, seq, FitOptions()).scale == chosen
 
 
+@pytest.mark.parametrize("energies,fitted", [
+    ({0.9: 104.0, 1.1: 103.0}, {0.9, 1.1}),  # higher on both sides: two sizes fitted
+    ({0.9: 104.0, 1.1: 97.0, 1.2: 96.0, 1.3: 98.0}, {0.9, 1.1, 1.2, 1.3}),
+    ({0.9: 120.0, 1.1: 90.0, 1.2: 80.0, 1.3: 72.0, 1.4: 66.0}, {0.9, 1.1, 1.2, 1.3, 1.4}),
+])
+def test_sizes_are_fitted_outward_while_the_energy_falls(monkeypatch, model, energies, fitted):
+    from common.fitting import FitOptions, FrameResult
+    from server import session
+
+    seq = type("Seq", (), {"frames": [0]})()
+    monkeypatch.setattr(session, "frame_data", lambda *_: None)
+    monkeypatch.setattr(session, "voxel_starts", lambda *_: [])
+    monkeypatch.setattr(session, "run_schedule", lambda ctx, schedule, memo: FrameResult(np.zeros(35), 100.0, 1, 1))
+    seen = []
+
+    def fake_fit(actor, data, start, options, dispatch):
+        seen.append(round(actor.height / model.height, 2))
+        return FrameResult(start, energies[seen[-1]], 1, 1)
+
+    monkeypatch.setattr(session, "fit_rounds", fake_fit)
+    for threads in (1, 2):
+        seen.clear()
+        session.choose_actor_scale(model, seq, FitOptions(), threads)
+        assert set(seen) == fitted and len(seen) == len(fitted)
+
+
 @pytest.mark.parametrize("posture", ["crouching", "seated", "lying_side"])
 def test_posture_starts_face_the_way_the_actor_does(tmp_path, model, posture):
     """The best posture start of a crouch, a seat or a side-lying body stands where the actor is
