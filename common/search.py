@@ -20,8 +20,8 @@ Schedules:
 - ``LIMBS_LOST``: a frame whose energy jumped: fitted again with every limb re-detected;
 - ``SEARCH``: a frame with no trusted start (a first frame, a recovery): wide fits from the
   voxels' starts (those far behind after two rounds stopped there; the lowest few also with
-  their limbs re-detected the other way), the lowest refitted; the tracking fit; rotations about the pelvis; sides
-  swapped, limbs' other basins, arms' other twists; basin hopping;
+  their limbs re-detected the other way), the lowest refitted; the tracking fit; rotations
+  about the pelvis; sides swapped, limbs' other basins, arms' other twists; basin hopping;
 - ``REFINE`` (``REFINE_SEARCH``): a tracked frame again, from its neighbour's fit (turned,
   tilted ahead), then from halfway between its neighbours (turned), each polished and its limbs
   re-detected; its arms' other twists (and its limbs' other basins); hops where asked.
@@ -61,7 +61,8 @@ def solve_job(model: BodyModel, frame: FrameData, job: str, params: np.ndarray, 
     ``iteration``), whose energies are the full energy at the start and at the fit."""
     if job in FIT_JOBS:
         wall0, cpu0 = time.perf_counter(), time.thread_time()
-        fit = fit_rounds(model, frame, params, options, solve_locally(model, frame, options, frame_number), iteration)
+        local = solve_locally(model, frame, options, frame_number)
+        fit = fit_rounds(model, frame, params, options, local, first_round=iteration)
         return ChainResult(job, fit.params, full_energy(model, frame, params), fit.energy, fit.evaluations,
                            fit.iterations, time.perf_counter() - wall0, time.thread_time() - cpu0)
     if job in HOP_JOBS:
@@ -376,8 +377,10 @@ def fit_starts(ctx: Context, jobs: list[tuple[np.ndarray, str]], drop: tuple[int
         fits = _fit_jobs(ctx, starts, [replace(o, max_iterations=min(rounds, o.max_iterations)) for o in options])
         score = score or (lambda f: f.energy)
         bar = ratio * min(score(f) for f in fits)
-        going = [i for i, f in enumerate(fits) if f.iterations == rounds < options[i].max_iterations
-                 and score(f) <= bar]
+        # a fit that stopped before its last round had converged; one whose options allow no
+        # more rounds is done
+        going = [i for i, f in enumerate(fits)
+                 if f.iterations == rounds and rounds < options[i].max_iterations and score(f) <= bar]
         rest = _fit_jobs(ctx, [fits[i].params for i in going], [options[i] for i in going], rounds)
         for i, late in zip(going, rest):
             fits[i] = replace(late, evaluations=fits[i].evaluations + late.evaluations,

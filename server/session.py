@@ -37,8 +37,8 @@ from common.fitting import HOP_JOBS, ChainResult, FitOptions, FrameData, FrameRe
 from common.proposals import voxel_starts
 from common.scoring import accuracy, frame_quality, quality_summary
 from common.search import (FIT_JOBS, LIMBS_LOST, WIDE, VARIANTS, Context, descend_outward, fit_frame,
-                           is_chain_solve, lowest, refine_frame, run_schedule, search_frame, solve_locally, tracking_lost,
-                           LIMB_LOSS_ENERGY_RATIO)
+                           is_chain_solve, lowest, refine_frame, run_schedule, search_frame, solve_locally,
+                           tracking_lost, LIMB_LOSS_ENERGY_RATIO)
 from common.sequence import Sequence
 from server.output import write_text
 from server.results import (POSES_FILE, SUMMARY_FILE, prepare_result_folder, read_done_frames,
@@ -258,11 +258,9 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, thr
             lambda scale: fit_at_scale(model, seq, frame, found.params, scale, options)[2].energy, scales))
     finally:
         solver.close()
-    best_scale, best_energy = 1.0, found.energy * (1.0 - ACTOR_SCALE_MIN_GAIN)
-    for scale in sorted(energies):
-        if energies[scale] < best_energy:
-            best_scale, best_energy = scale, energies[scale]
-    return ActorSize(best_scale, frame, starts, memo, time.perf_counter() - t0)
+    lowest_scale = min(sorted(energies), key=energies.get)  # on a tie, the smaller size
+    clear_gain = energies[lowest_scale] < found.energy * (1.0 - ACTOR_SCALE_MIN_GAIN)
+    return ActorSize(lowest_scale if clear_gain else 1.0, frame, starts, memo, time.perf_counter() - t0)
 
 
 def fit_at_scale(model: BodyModel, seq: Sequence, frame: int, params: np.ndarray, scale: float,

@@ -109,6 +109,24 @@ def test_a_fitted_motion_in_a_z_down_world_is_drawn_z_up(model):
     np.testing.assert_allclose(motion.fit_joints, fit, atol=1e-12)
 
 
+def _fake_size_search(monkeypatch, model, energies: dict, seen: list):
+    """``choose_actor_scale`` with its fits replaced: 100 at the model's size, ``energies[size]``
+    at another; each size fitted is appended to ``seen``. Returns a one-frame sequence."""
+    from common.fitting import FrameResult
+    from server import session
+
+    monkeypatch.setattr(session, "frame_data", lambda *_: None)
+    monkeypatch.setattr(session, "voxel_starts", lambda *_: [])
+    monkeypatch.setattr(session, "run_schedule", lambda ctx, schedule, memo: FrameResult(np.zeros(35), 100.0, 1, 1))
+
+    def fake_fit(actor, data, start, options, dispatch):
+        seen.append(round(actor.height / model.height, 2))
+        return FrameResult(start, energies[seen[-1]], 1, 1)
+
+    monkeypatch.setattr(session, "fit_rounds", fake_fit)
+    return type("Seq", (), {"frames": [0]})()
+
+
 @pytest.mark.parametrize("energies,chosen", [
     ({0.9: 99.0, 1.1: 97.0, 1.2: 96.0, 1.3: 98.0, 1.4: 99.0}, 1.0),  # a few per cent either way: the model's size
     ({0.9: 120.0, 1.1: 90.0, 1.2: 80.0, 1.3: 72.0, 1.4: 75.0}, 1.3),  # much less energy at 1.3: the actor is larger
@@ -116,18 +134,10 @@ def test_a_fitted_motion_in_a_z_down_world_is_drawn_z_up(model):
     ({0.9: 80.0, 1.1: 110.0, 1.2: 130.0, 1.3: 150.0, 1.4: 170.0}, 0.9),
 ])
 def test_the_actor_size_changes_only_for_a_clear_gain(monkeypatch, model, energies, chosen):
-    from common.fitting import FitOptions, FrameResult
+    from common.fitting import FitOptions
     from server import session
 
-    seq = type("Seq", (), {"frames": [0]})()
-    monkeypatch.setattr(session, "frame_data", lambda *_: None)
-    monkeypatch.setattr(session, "voxel_starts", lambda *_: [])
-    monkeypatch.setattr(session, "run_schedule", lambda ctx, schedule, memo: FrameResult(np.zeros(35), 100.0, 1, 1))
-
-    def fake_fit(actor, data, start, options, dispatch):
-        return FrameResult(start, energies[round(actor.height / model.height, 2)], 1, 1)
-
-    monkeypatch.setattr(session, "fit_rounds", fake_fit)
+    seq = _fake_size_search(monkeypatch, model, energies, [])
     assert session.choose_actor_scale(model, seq, FitOptions()).scale == chosen
 
 
@@ -137,20 +147,11 @@ def test_the_actor_size_changes_only_for_a_clear_gain(monkeypatch, model, energi
     ({0.9: 120.0, 1.1: 90.0, 1.2: 80.0, 1.3: 72.0, 1.4: 66.0}, {0.9, 1.1, 1.2, 1.3, 1.4}),
 ])
 def test_sizes_are_fitted_outward_while_the_energy_falls(monkeypatch, model, energies, fitted):
-    from common.fitting import FitOptions, FrameResult
+    from common.fitting import FitOptions
     from server import session
 
-    seq = type("Seq", (), {"frames": [0]})()
-    monkeypatch.setattr(session, "frame_data", lambda *_: None)
-    monkeypatch.setattr(session, "voxel_starts", lambda *_: [])
-    monkeypatch.setattr(session, "run_schedule", lambda ctx, schedule, memo: FrameResult(np.zeros(35), 100.0, 1, 1))
     seen = []
-
-    def fake_fit(actor, data, start, options, dispatch):
-        seen.append(round(actor.height / model.height, 2))
-        return FrameResult(start, energies[seen[-1]], 1, 1)
-
-    monkeypatch.setattr(session, "fit_rounds", fake_fit)
+    seq = _fake_size_search(monkeypatch, model, energies, seen)
     for threads in (1, 2):
         seen.clear()
         session.choose_actor_scale(model, seq, FitOptions(), threads)
