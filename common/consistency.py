@@ -5,12 +5,22 @@ moved board. A blob seen by one camera only has no 3D object behind it: the visu
 views (the voxels inside every camera's mask that sees them) does not project onto it. Each
 connected blob of a camera's mask is kept when enough of it is covered by the hull's projection
 into that camera, and dropped otherwise. Objects really in the scene (a chair the person sits
-on) are in every view and stay: the fit's energy has to live with them.
+on) are in every view and stay, unless they stand apart from the actor and still.
+
+A static prop beside the actor (a box, a stool) is an object in every view: its blob is
+supported, and a body fitted by silhouettes alone can be drawn onto it (a box larger than a
+crouching actor's hull explains more foreground than the actor). ``static_props`` looks at the
+visual hull in frames across the take: a separate 3D component whose cells all stay occupied,
+while another component moves, is a prop, and ``supported_masks`` removes the pixels it covers
+that the rest of the hull (the actor) does not. A chair the actor sits on touches the actor's
+hull and stays.
 """
 from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
+
+from dataclasses import dataclass
 
 from common.camera import Studio
 
@@ -24,6 +34,44 @@ SPLAT_RADIUS_PX = 4          # the hull's projection is dilated by this much (vo
 MIN_SUPPORTED_FRACTION = 0.3  # a blob is kept when at least this share of its pixels is supported,
 MIN_SUPPORT_OF_BEST = 0.5     # or when it is supported at least half as much as the camera's best-supported
                               # blob (noise speckles that touch the actor join its blob and dilute its share)
+PROP_SAMPLES = 8             # frames, evenly across the take, in which the hull's components are compared
+PROP_MIN_VOLUME_M3 = 0.01    # steady components smaller than this are not props (noise)
+PROP_SPREAD = 0.04           # a component is static when the share of its cells occupied varies by at most this
+                             # over the samples (a box: 0.01-0.02, with or without Cheung noise, which takes
+                             # 7% of its cells in every frame alike; a crouching, kneeling or lying actor over
+                             # 20 frames: 0.11-0.21)
+PROP_MIN_HELD = 0.8          # ... and at least this share of its cells is occupied in every sample
+ACTOR_MIN_VOLUME_M3 = 0.03   # props are removed only where every sample keeps a component this large apart
+                             # from them (a person's hull is 0.06-0.08 m^3): a take where nothing moves, the
+                             # actor included, keeps its masks
+
+
+@dataclass(frozen=True)
+class StaticProps:
+    """Hull cells of static objects apart from the actor. origin (3,) metres: the lower corner of
+    cell (0, 0, 0); step: cell edge, metres; cells (G, G, G) bool, True where a prop is."""
+
+    origin: np.ndarray
+    step: float
+    cells: np.ndarray
+
+    @property
+    def points(self) -> np.ndarray:
+        """(n, 3) centres of the prop's cells, metres."""
+        return self.origin + (np.argwhere(self.cells) + 0.5) * self.step
+
+    @property
+    def volume_m3(self) -> float:
+        return float(self.cells.sum() * self.step ** 3)
+
+    def near(self, points: np.ndarray) -> np.ndarray:
+        """(n,) bool: points (n, 3) in a prop's cell or one beside it (26-connected)."""
+        grown = ndimage.binary_dilation(self.cells, np.ones((3, 3, 3), dtype=bool))
+        index = np.floor((points - self.origin) / self.step).astype(np.int64)
+        inside = np.all((index >= 0) & (index < np.array(self.cells.shape)), axis=1)
+        out = np.zeros(len(points), dtype=bool)
+        out[inside] = grown[tuple(index[inside].T)]
+        return out
 
 
 def hull_points(studio: Studio, masks: np.ndarray, centre: np.ndarray) -> np.ndarray:
@@ -36,6 +84,11 @@ def hull_points(studio: Studio, masks: np.ndarray, centre: np.ndarray) -> np.nda
             np.linspace(centre[1] - half, centre[1] + half, HULL_GRID),
             np.linspace(0.0, HULL_EXTENT_M, HULL_GRID)]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    return points[carved(studio, masks, points)]
+
+
+def carved(studio: Studio, masks: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(n,) bool: the points (n, 3) inside the visual hull of masks (K, H, W) bool (``hull_points``'s rule)."""
     misses = np.zeros(len(points), dtype=np.int64)
     views = np.zeros(len(points), dtype=np.int64)
     for cam, mask in zip(studio, masks):
@@ -47,11 +100,71 @@ def hull_points(studio: Studio, masks: np.ndarray, centre: np.ndarray) -> np.nda
         misses += seen & ~on
         views += seen
     allowed = np.where(views >= 3, HULL_MISSES, 0)
-    return points[(misses <= allowed) & (views >= HULL_MIN_VIEWS)]
+    return (misses <= allowed) & (views >= HULL_MIN_VIEWS)
 
 
-def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """masks (K, H, W) bool -> (the masks with unsupported blobs removed, (K,) pixels removed).
+def static_props(studio: Studio, samples: list, centre: np.ndarray | None) -> StaticProps | None:
+    """The static props of a take (see the module's docstring), or None when there are none.
+
+    samples: masks (K, H, W) bool of PROP_SAMPLES or fewer frames across the take, the first
+    one's silhouettes around ``centre`` (3,), metres (None: no props). The hull is carved on one
+    lattice of HULL_GRID cells per side for all samples, so its cells compare across frames; its
+    steady part (cells occupied in half the samples or more) is split into components, and a
+    component is static when the share of its cells occupied hardly varies over the samples."""
+    if centre is None or len(samples) < 2:
+        return None
+    step = HULL_EXTENT_M / HULL_GRID
+    origin = np.floor((np.asarray(centre, dtype=np.float64) - HULL_EXTENT_M / 2) / step) * step
+    origin[2] = 0.0
+    shape = (HULL_GRID,) * 3
+    centres = origin + (np.indices(shape).reshape(3, -1).T + 0.5) * step
+    occupied = np.stack([carved(studio, masks, centres).reshape(shape) for masks in samples])
+    connected = np.ones((3, 3, 3), dtype=bool)
+    labels, count = ndimage.label(occupied.mean(axis=0) >= 0.5, connected)
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)
+    props = np.zeros(shape, dtype=bool)
+    for label in range(1, count + 1):
+        if sizes[label] * step ** 3 < PROP_MIN_VOLUME_M3:
+            continue
+        component = labels == label
+        held = occupied[:, component].sum(axis=1) / sizes[label]
+        if held.min() >= PROP_MIN_HELD and held.max() - held.min() <= PROP_SPREAD:
+            props |= component
+    if not props.any():
+        return None
+    apart = occupied & ~ndimage.binary_dilation(props, connected)
+    for cells in apart:
+        labels, count = ndimage.label(cells, connected)
+        if count == 0 or np.bincount(labels.ravel())[1:].max() * step ** 3 < ACTOR_MIN_VOLUME_M3:
+            return None
+    return StaticProps(origin, step, props)
+
+
+def footprint(cam, points: np.ndarray, shape: tuple, radius: int) -> np.ndarray:
+    """(H, W) bool: the pixels of camera ``cam`` within ``radius`` (4-connected steps) of the
+    projections of points (n, 3) in front of it."""
+    out = np.zeros(shape, dtype=bool)
+    uv = np.rint(cam.project(points)).astype(np.int64)
+    ok = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
+    ok &= cam.depth(points) > 0
+    out[uv[ok, 1], uv[ok, 0]] = True
+    return ndimage.binary_dilation(out, ndimage.generate_binary_structure(2, 1), iterations=radius) if ok.any() else out
+
+
+def cell_radius_px(cam, points: np.ndarray, step: float) -> int:
+    """Pixels from a cell's projected centre to its edge (cells of edge ``step`` metres at the
+    median depth of points (n, 3) from ``cam``), SPLAT_RADIUS_PX or more."""
+    depth = cam.depth(points)
+    depth = depth[depth > 0]
+    if len(depth) == 0:
+        return SPLAT_RADIUS_PX
+    return max(SPLAT_RADIUS_PX, int(np.ceil(0.5 * cam.K[0, 0] * step / np.median(depth))) + 1)
+
+
+def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None,
+                    props: StaticProps | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """masks (K, H, W) bool -> (the masks with unsupported blobs and the pixels of ``props``
+    (``static_props``) that the rest of the hull does not cover removed, (K,) pixels removed).
 
     ``centre`` (3,) is where the actor is (``common.voxels.silhouette_centre``); None leaves
     the masks as they are (nothing to carve around)."""
@@ -63,13 +176,8 @@ def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None
     if len(points) == 0:
         return masks, removed
     out = masks.copy()
-    disk = ndimage.generate_binary_structure(2, 1)
     for k, (cam, mask) in enumerate(zip(studio, masks)):
-        uv = np.rint(cam.project(points)).astype(np.int64)
-        ok = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-        support = np.zeros(mask.shape, dtype=bool)
-        support[uv[ok, 1], uv[ok, 0]] = True
-        support = ndimage.binary_dilation(support, disk, iterations=SPLAT_RADIUS_PX)
+        support = footprint(cam, points, mask.shape, SPLAT_RADIUS_PX)
         labels, count = ndimage.label(mask)
         if count == 0:
             continue
@@ -80,5 +188,14 @@ def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None
         keep &= covered > 0
         keep[0] = False
         out[k] = keep[labels]
-        removed[k] = int(mask.sum() - out[k].sum())
+    if props is not None:
+        actor = points[~props.near(points)]
+        step = HULL_EXTENT_M / (HULL_GRID - 1)
+        for k, cam in enumerate(studio):
+            shape, prop = masks[k].shape, props.points
+            covered = footprint(cam, prop, shape, cell_radius_px(cam, prop, props.step))
+            if len(actor):
+                covered &= ~footprint(cam, actor, shape, cell_radius_px(cam, actor, step))
+            out[k] &= ~covered
+    removed[:] = masks.sum(axis=(1, 2)) - out.sum(axis=(1, 2))
     return out, removed

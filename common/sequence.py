@@ -41,7 +41,7 @@ from PIL import Image, UnidentifiedImageError
 from common.body import JOINT_NAMES, PARAM_NAMES
 from common.calibration import EASYMOCAP_FILES, MAX_IMAGE_PIXELS, load_calibration, natural_key, with_image_sizes
 from common.camera import Studio
-from common.consistency import supported_masks
+from common.consistency import PROP_SAMPLES, StaticProps, static_props, supported_masks
 from common.errors import FieldChecks, InputFileError, UserError
 from common.packing import pad_stack
 from common.voxels import silhouette_centre
@@ -229,6 +229,7 @@ class Sequence:
         self._cleaned: OrderedDict = OrderedDict()  # frame -> (packed masks, width, pixels removed per camera)
         self._cleaned_bytes = 0
         self._cleaned_lock = threading.Lock()
+        self._props: tuple[StaticProps | None] | None = None  # (props,) once looked for
         meta_path = self.path / "sequence.json"
         self.meta = read_sequence_meta(meta_path) if meta_path.exists() else {}
         self.fps = self.meta.get("fps", DEFAULT_FPS)
@@ -316,12 +317,14 @@ class Sequence:
 
     def cleaned(self, frame: int) -> tuple[np.ndarray, np.ndarray]:
         """(masks (K, Hmax, Wmax) bool, (K,) pixels removed): one frame's masks without the blobs
-        the other cameras do not support (``common.consistency.supported_masks``); the most
-        recent frames' are kept, packed, up to CLEANED_BYTES_KEPT."""
+        the other cameras do not support and without the take's static props
+        (``common.consistency.supported_masks``); the most recent frames' are kept, packed, up
+        to CLEANED_BYTES_KEPT."""
         with self._cleaned_lock:  # a fit's threads may ask for a frame at once
             if frame not in self._cleaned:
                 raw = self.raw_silhouettes(frame)
-                masks, removed = supported_masks(self.studio, raw, silhouette_centre(self.studio, raw))
+                masks, removed = supported_masks(self.studio, raw, silhouette_centre(self.studio, raw),
+                                                 self._static_props())
                 self._cleaned[frame] = (np.packbits(masks, axis=-1), masks.shape[-1], removed)
                 self._cleaned_bytes += self._cleaned[frame][0].nbytes
                 while self._cleaned_bytes > CLEANED_BYTES_KEPT and len(self._cleaned) > 1:
@@ -329,6 +332,20 @@ class Sequence:
             self._cleaned.move_to_end(frame)
             packed, width, removed = self._cleaned[frame]
         return np.unpackbits(packed, axis=-1, count=width).astype(bool), removed
+
+    @property
+    def static_props(self) -> StaticProps | None:
+        """The take's static props (``common.consistency.static_props``), None when it has none."""
+        with self._cleaned_lock:
+            return self._static_props()
+
+    def _static_props(self) -> StaticProps | None:
+        """``static_props`` with the lock held; looked for once, in PROP_SAMPLES frames across the take."""
+        if self._props is None:
+            picks = np.unique(np.linspace(0, len(self.frames) - 1, PROP_SAMPLES).round().astype(int))
+            samples = [self.raw_silhouettes(self.frames[i]) for i in picks]
+            self._props = (static_props(self.studio, samples, silhouette_centre(self.studio, samples[0])),)
+        return self._props[0]
 
     def images(self, frame: int) -> np.ndarray:
         """(K, Hmax, Wmax, 3) uint8 colour images of one frame; camera k's in ``[k, :h_k, :w_k]``, zero padded."""
