@@ -140,25 +140,27 @@ def static_props(studio: Studio, samples: list, centre: np.ndarray | None) -> St
     return StaticProps(origin, step, props)
 
 
-def footprint(cam, points: np.ndarray, shape: tuple, radius: int) -> np.ndarray:
-    """(H, W) bool: the pixels of camera ``cam`` within ``radius`` (4-connected steps) of the
-    projections of points (n, 3) in front of it."""
+def footprint(cam, points: np.ndarray, shape: tuple, radius: int, square: bool = False) -> np.ndarray:
+    """(H, W) bool: the pixels of camera ``cam`` within ``radius`` steps (4-connected, or
+    8-connected with ``square``) of the projections of points (n, 3) in front of it."""
     out = np.zeros(shape, dtype=bool)
     uv = np.rint(cam.project(points)).astype(np.int64)
     ok = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
     ok &= cam.depth(points) > 0
     out[uv[ok, 1], uv[ok, 0]] = True
-    return ndimage.binary_dilation(out, ndimage.generate_binary_structure(2, 1), iterations=radius) if ok.any() else out
+    structure = ndimage.generate_binary_structure(2, 2 if square else 1)
+    return ndimage.binary_dilation(out, structure, iterations=radius) if ok.any() else out
 
 
 def cell_radius_px(cam, points: np.ndarray, step: float) -> int:
-    """Pixels from a cell's projected centre to its edge (cells of edge ``step`` metres at the
-    median depth of points (n, 3) from ``cam``), SPLAT_RADIUS_PX or more."""
+    """Pixels from a cell's projected centre to its edge, and one more (cells of edge ``step``
+    metres at the nearest of points (n, 3) to ``cam``), SPLAT_RADIUS_PX or more: square
+    splats this wide cover the cells' projection without gaps."""
     depth = cam.depth(points)
     depth = depth[depth > 0]
     if len(depth) == 0:
         return SPLAT_RADIUS_PX
-    return max(SPLAT_RADIUS_PX, int(np.ceil(0.5 * cam.K[0, 0] * step / np.median(depth))) + 1)
+    return max(SPLAT_RADIUS_PX, int(np.ceil(0.5 * cam.K[0, 0] * step / depth.min())) + 1)
 
 
 def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None,
@@ -193,9 +195,9 @@ def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None
         step = HULL_EXTENT_M / (HULL_GRID - 1)
         for k, cam in enumerate(studio):
             shape, prop = masks[k].shape, props.points
-            covered = footprint(cam, prop, shape, cell_radius_px(cam, prop, props.step))
+            covered = footprint(cam, prop, shape, cell_radius_px(cam, prop, props.step), square=True)
             if len(actor):
-                covered &= ~footprint(cam, actor, shape, cell_radius_px(cam, actor, step))
+                covered &= ~footprint(cam, actor, shape, cell_radius_px(cam, actor, step), square=True)
             out[k] &= ~covered
     removed[:] = masks.sum(axis=(1, 2)) - out.sum(axis=(1, 2))
     return out, removed
