@@ -48,6 +48,7 @@ EM_ITERATIONS = 3  # E/M rounds per frame when tracking from the previous frame
 EM_POINTS = 1500  # surface voxels the E/M rounds use at most
 ACTIVATION_ITERATIONS = 5  # E/M rounds after each activated shell
 NEWTON_STEPS = 30  # most iterations of the closest-point solve (monotone, quadratic near the root)
+BOUND_SLACK_M = 1e-6  # metres taken off the lower bound of a shell distance before it skips the solve
 NEWTON_TOLERANCE = 1e-9  # |F(t) - 1| at which it stops (distance error ~1e-9 of the radii)
 MOMENT_STEPS = 8  # fixed-point iterations from surface moments to radii (converges in about 5)
 SPHERE_SAMPLES = 512  # quadrature points on the unit sphere for surface moments (error ~1e-4)
@@ -133,32 +134,37 @@ def shell_distances(points, centres, axes, radii) -> np.ndarray:
 def _shell_distances(points, centres, axes, radii, steps, tolerance):
     n, E = points.shape[0], centres.shape[0]
     out = np.empty((n, E))
-    y = np.empty(3)
     for e in range(E):
-        r = radii[e]
         for k in range(n):
-            t = -np.inf
-            for i in range(3):  # the point in the shell's frame, off its symmetry planes
-                v = 0.0
-                for j in range(3):
-                    v += (points[k, j] - centres[e, j]) * axes[e, j, i]
-                y[i] = max(abs(v), 1e-6 * r[i])
-                t = max(t, -r[i] * r[i] + r[i] * y[i])  # each term alone is 1 here, so F >= 1
-            for _ in range(steps):
-                f, df = -1.0, 0.0
-                for i in range(3):
-                    d = t + r[i] * r[i]
-                    term = (r[i] * y[i]) ** 2 / (d * d)
-                    f += term
-                    df -= 2.0 * term / d
-                t -= f / df
-                if abs(f) < tolerance:
-                    break
-            dist2 = 0.0
-            for i in range(3):  # y - x, x_i = r_i^2 y_i / (t + r_i^2)
-                dist2 += (y[i] * t / (t + r[i] * r[i])) ** 2
-            out[k, e] = np.sqrt(dist2)
+            out[k, e] = _shell_distance(points[k], centres[e], axes[e], radii[e], steps, tolerance)
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _shell_distance(point, centre, axes, r, steps, tolerance) -> float:
+    """``shell_distances`` of one point (3,) to one shell: centre (3,), axes (3, 3) columns, radii (3,)."""
+    y = np.empty(3)
+    t = -np.inf
+    for i in range(3):  # the point in the shell's frame, off its symmetry planes
+        v = 0.0
+        for j in range(3):
+            v += (point[j] - centre[j]) * axes[j, i]
+        y[i] = max(abs(v), 1e-6 * r[i])
+        t = max(t, -r[i] * r[i] + r[i] * y[i])  # each term alone is 1 here, so F >= 1
+    for _ in range(steps):
+        f, df = -1.0, 0.0
+        for i in range(3):
+            d = t + r[i] * r[i]
+            term = (r[i] * y[i]) ** 2 / (d * d)
+            f += term
+            df -= 2.0 * term / d
+        t -= f / df
+        if abs(f) < tolerance:
+            break
+    dist2 = 0.0
+    for i in range(3):  # y - x, x_i = r_i^2 y_i / (t + r_i^2)
+        dist2 += (y[i] * t / (t + r[i] * r[i])) ** 2
+    return np.sqrt(dist2)
 
 
 def _unit_sphere(count: int) -> np.ndarray:
@@ -702,27 +708,9 @@ def _solve(model: BodyModel, p, idx, segments, target: VolumeTarget, weights, re
     hidden in the trunk's voxels costs nothing in D or the hull term, but an arm does not
     pass through the chest.
     """
-    idx, seg = np.array(idx), np.array(segments)
-    points = np.ascontiguousarray(target.points, dtype=np.float64)
-    fixed = np.full(len(points), np.inf)
-    still = np.setdiff1d(np.arange(16), seg)
-    if still.size and not robust:
-        c, a, r = segment_ellipsoids(model, p)
-        fixed = (shell_distances(points, c[still], a[still], r[still]) ** 2 * weights[still]).min(axis=1)
+    idx = np.array(idx)
     lo, hi = PARAM_LIMITS[idx, 0], PARAM_LIMITS[idx, 1]
-    guarded = seg[np.isin(seg, ARM_SEGMENTS)]
-    trunk = np.array(TRUNK_CORE, dtype=np.int64)
-    rest_offsets, param_joint, param_axis, offsets, head_top_offset = model.kinematic_tables
-    problem = (rest_offsets, param_joint, param_axis, _SEGMENT_PARENTS, offsets, head_top_offset,
-               _segment_mask(tuple(int(i) for i in (*seg, *trunk))),
-               np.ascontiguousarray(model.ellipsoid_centres, dtype=np.float64),
-               np.ascontiguousarray(model.ellipsoid_axes, dtype=np.float64),
-               np.ascontiguousarray(model.ellipsoid_radii, dtype=np.float64),
-               seg.astype(np.int64), guarded.astype(np.int64), trunk, points, fixed,
-               np.ascontiguousarray(weights, dtype=np.float64), bool(robust), float(_hull_scale(target)),
-               np.ascontiguousarray(rest_depth[guarded], dtype=np.float64), _SEGMENT_SPHERE,
-               np.ascontiguousarray(target.outside, dtype=np.float32),
-               np.asarray(target.origin, dtype=np.float64), np.asarray(target.voxel_size, dtype=np.float64))
+    problem = _objective_problem(model, p, segments, target, weights, rest_depth, robust)
     count = [0]
 
     def energy(x):
@@ -742,6 +730,34 @@ def _solve(model: BodyModel, p, idx, segments, target: VolumeTarget, weights, re
     out = p.copy()
     out[idx] = np.clip(best.x, lo, hi)
     return out, float(best.fun), count[0]
+
+
+def _objective_problem(model: BodyModel, p, segments, target: VolumeTarget, weights, rest_depth, robust: bool,
+                       hull_scale: float | None = None) -> tuple:
+    """The arguments after the pose of ``_solve_objective`` for moving ``segments`` from the pose
+    p (35,): the other segments' distances fixed at p (none with ``robust``); ``hull_scale``
+    (default ``_hull_scale(target)``) weighs the hull and guard terms."""
+    seg = np.array(segments)
+    points = np.ascontiguousarray(target.points, dtype=np.float64)
+    fixed = np.full(len(points), np.inf)
+    still = np.setdiff1d(np.arange(16), seg)
+    if still.size and not robust:
+        c, a, r = segment_ellipsoids(model, p)
+        fixed = (shell_distances(points, c[still], a[still], r[still]) ** 2 * weights[still]).min(axis=1)
+    guarded = seg[np.isin(seg, ARM_SEGMENTS)]
+    trunk = np.array(TRUNK_CORE, dtype=np.int64)
+    rest_offsets, param_joint, param_axis, offsets, head_top_offset = model.kinematic_tables
+    return (rest_offsets, param_joint, param_axis, _SEGMENT_PARENTS, offsets, head_top_offset,
+            _segment_mask(tuple(int(i) for i in (*seg, *trunk))),
+            np.ascontiguousarray(model.ellipsoid_centres, dtype=np.float64),
+            np.ascontiguousarray(model.ellipsoid_axes, dtype=np.float64),
+            np.ascontiguousarray(model.ellipsoid_radii, dtype=np.float64),
+            seg.astype(np.int64), guarded.astype(np.int64), trunk, points, fixed,
+            np.ascontiguousarray(weights, dtype=np.float64), bool(robust),
+            float(_hull_scale(target) if hull_scale is None else hull_scale),
+            np.ascontiguousarray(rest_depth[guarded], dtype=np.float64), _SEGMENT_SPHERE,
+            np.ascontiguousarray(target.outside, dtype=np.float32),
+            np.asarray(target.origin, dtype=np.float64), np.asarray(target.voxel_size, dtype=np.float64))
 
 
 @njit(cache=True, nogil=True)
@@ -766,12 +782,26 @@ def _solve_objective(q, rest_offsets, param_joint, param_axis, parents, offsets,
                 for j in range(3):
                     axes[s, i, j] = (rot[0, s, i, 0] * local_axes[s, 0, j] + rot[0, s, i, 1] * local_axes[s, 1, j]
                                      + rot[0, s, i, 2] * local_axes[s, 2, j])
-    d = _shell_distances(points, centres[seg], axes[seg], radii[seg], NEWTON_STEPS, NEWTON_TOLERANCE)
+    # a shell's distance is only solved for where it can be the point's lowest: |p - centre| less
+    # the largest radius (outside) or the smallest radius less it (inside) bounds it from below
+    # (less BOUND_SLACK_M, far beyond the solve's error), so the sum is the same as solving all
+    reach = np.empty(seg.shape[0])
+    core = np.empty(seg.shape[0])
+    for m in range(seg.shape[0]):
+        reach[m] = max(radii[seg[m], 0], radii[seg[m], 1], radii[seg[m], 2])
+        core[m] = min(radii[seg[m], 0], radii[seg[m], 1], radii[seg[m], 2])
     data = 0.0
     for k in range(points.shape[0]):
         d2 = np.inf
         for m in range(seg.shape[0]):
-            d2 = min(d2, d[k, m] ** 2 * weights[seg[m]])
+            s = seg[m]
+            rho = np.sqrt((points[k, 0] - centres[s, 0]) ** 2 + (points[k, 1] - centres[s, 1]) ** 2
+                          + (points[k, 2] - centres[s, 2]) ** 2)
+            low = max(rho - reach[m], core[m] - rho, 0.0) - BOUND_SLACK_M
+            if low > 0.0 and low * low * weights[s] >= (d2 if robust else min(d2, fixed[k])):
+                continue
+            dist = _shell_distance(points[k], centres[s], axes[s], radii[s], NEWTON_STEPS, NEWTON_TOLERANCE)
+            d2 = min(d2, dist * dist * weights[s])
         if robust:
             data += ROBUST_DISTANCE ** 2 * d2 / (d2 + ROBUST_DISTANCE ** 2)
         else:

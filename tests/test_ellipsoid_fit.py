@@ -135,6 +135,37 @@ def test_volume_energy_is_bottinos_distance():
     assert volume_energy(model, moved, on_surface) > 10 * volume_energy(model, p, lifted)
 
 
+@pytest.mark.parametrize("segments", [tuple(range(16)), (0, 1, 2, 3), (4, 5, 6), (13, 14, 15), (3,)])
+def test_the_compiled_fit_objective_skips_only_shells_that_cannot_be_nearest(segments):
+    """The voxel fit's objective solves a shell's distance only where its lower bound could be
+    a point's lowest: its data term, the moving segments against the others held fixed, is the
+    sum over points of the lowest weighted squared distance to any segment, however many shells
+    it skipped (and the robust term, of the moving segments alone, the bounded loss of their
+    full distances)."""
+    from common.ellipsoid_fit import ROBUST_DISTANCE, _objective_problem, _solve_objective
+
+    model = load_body_model()
+    rng = np.random.default_rng(11)
+    weights = rng.uniform(0.5, 2.0, 16)
+    base = rest_params(model)
+    c, a, r = segment_ellipsoids(model, base)
+    points = np.concatenate([shell_points(c[j], a[j], r[j], 40, rng, noise=0.03) for j in range(16)])
+    target = VolumeTarget(points, np.zeros((4, 4, 4), np.float32), np.zeros(3), np.full(3, 0.5))
+    rest_depth = np.zeros((16, 24))
+    for _ in range(5):
+        p = base.copy()
+        p[6:] += rng.normal(scale=0.4, size=29)
+        cp, ap, rp = segment_ellipsoids(model, p)
+        problem = _objective_problem(model, p, segments, target, weights, rest_depth, robust=False, hull_scale=0.0)
+        every = (shell_distances(points, cp, ap, rp) ** 2 * weights).min(axis=1).sum()
+        assert _solve_objective(p, *problem) == pytest.approx(every, rel=1e-12)
+        robust = _objective_problem(model, p, segments, target, weights, rest_depth, robust=True, hull_scale=0.0)
+        seg = list(segments)
+        d2 = (shell_distances(points, cp[seg], ap[seg], rp[seg]) ** 2 * weights[seg]).min(axis=1)
+        expected = np.sum(ROBUST_DISTANCE ** 2 * d2 / (d2 + ROBUST_DISTANCE ** 2))
+        assert _solve_objective(p, *robust) == pytest.approx(expected, rel=1e-12)
+
+
 def test_initial_pose_recovers_a_standing_actor():
     truth_model = load_body_model().scaled(1.05)
     p = rest_params(truth_model, position=(0.2, -0.1, truth_model.joint_rest[0, 2]), heading=0.8)
