@@ -46,6 +46,20 @@ def rotated_about_pelvis(model: BodyModel, params: np.ndarray, axis: int, angle:
     return x
 
 
+def pelvis_twisted(model: BodyModel, params: np.ndarray, angle: float) -> np.ndarray:
+    """(35,) the pose with the pelvis alone turned by ``angle`` (rad) about the vertical: the
+    chest and the thighs keep their orientation in the world (the spine and the hips turn back
+    by as much), so the shoulders and the legs stay where they were."""
+    x = np.array(params, dtype=np.float64)
+    R = forward_kinematics(model, x, segments=(0,)).rotations[0, 0]
+    x[P["root_heading"]] += angle
+    back = R.T @ rotvec_to_matrix(np.array([0.0, 0.0, -angle])) @ R  # the old pelvis in the new one's frame
+    for name in ("spine", "l_hip", "r_hip"):
+        idx = [P[f"{name}_x"], P[f"{name}_y"], P[f"{name}_z"]]
+        x[idx] = matrix_to_rotvec(back @ rotvec_to_matrix(x[idx]))
+    return clip_to_limits(x)
+
+
 def midway(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     """(35,) the pose halfway between two poses (35,) parameter by parameter, within the joint
     limits: a frame's start between its neighbours' fits."""

@@ -24,7 +24,8 @@ Schedules:
   about the pelvis; sides swapped, limbs' other basins, arms' other twists; basin hopping;
 - ``REFINE`` (``REFINE_SEARCH``): a tracked frame again, from its neighbour's fit (turned,
   tilted ahead), then from halfway between its neighbours (turned), each polished and its limbs
-  re-detected; its arms' other twists (and its limbs' other basins); hops where asked.
+  re-detected; its pelvis turned alone; its arms' other twists (and its limbs' other basins);
+  hops where asked.
 
 One module of about 570 lines: the schedules, the loop that runs them, the jobs their fits go
 out as and the proposers are read together (a stage names its proposers and variants, the
@@ -44,7 +45,7 @@ from common.fitting import (HOP_JOBS, REDETECT_ROUND, ChainResult, Dispatch, Fit
                             full_energy, hop, hop_fit, merge_chains, solve_chain)
 from common.frame import FrameData
 from common.proposals import (ARM_CHAINS, arm_twist_alternative, inversion_cost, limb_alternatives, midway,
-                              rotated_about_pelvis, tilted_ahead, turned)
+                              pelvis_twisted, rotated_about_pelvis, tilted_ahead, turned)
 
 # The jobs of one round of starts, fitted side by side (the protocol's FIT_JOB_NAMES): job k is
 # the round's k-th start; a round with more starts goes out in several.
@@ -213,8 +214,11 @@ SEARCH = Schedule((
 # (2 frames), the same tracking refined; leaner still (no turns, no re-detection), a walk's pass
 # took 0.39 s a frame instead of 0.62 but the error was worse on 15 of the 16 shared clips other
 # than the cartwheel (by up to 1.3 mm; docs/accuracy.md).
+# Then the best's pelvis turned alone (``pelvis_twisted``): the worst frames of 05_13, 05_17 and
+# 06_15 (41-45 mm, the right hip the worst joint) had the pelvis turned 0.18-0.24 rad with the
+# spine and hips turned back, which no chain alone undoes.
 REFINE = Schedule((Stage(("start", "start_turns", "tilt_ahead")), *POLISHED, Stage(("midway", "midway_turns")),
-                   *POLISHED, Stage(("twists",), ("deep",)), Stage(("hops",))))
+                   *POLISHED, Stage(("pelvis_twists",)), Stage(("twists",), ("deep",)), Stage(("hops",))))
 REFINE_SEARCH = Schedule((*REFINE.stages[:-2], Stage(("basins", "twists"), ("deep",)), REFINE.stages[-1]))
 
 
@@ -426,6 +430,13 @@ def _midway_turns(ctx, source, spent, own):
     return [] if ctx.start is None or ctx.other is None else _turns(midway(ctx.start, ctx.other), ctx.options)
 
 
+PELVIS_TWISTS_RAD = (-0.15, 0.15)
+
+
+def _pelvis_twists(ctx, source, spent, own):
+    return [] if source is None else [pelvis_twisted(ctx.model, source.params, a) for a in PELVIS_TWISTS_RAD]
+
+
 def _tilt_ahead(ctx, source, spent, own):
     return [] if ctx.start is None else list(tilted_ahead(ctx.start, ctx.before))
 
@@ -516,8 +527,8 @@ def _hops(ctx, source, spent, own):
 
 PROPOSERS = {
     "start": _start, "start_turns": _start_turns, "turns": _best_turns, "tilt_ahead": _tilt_ahead,
-    "midway": _midway, "midway_turns": _midway_turns, "starts": _starts, "best": _best, "origin": _origin,
-    "again": _again, "redetected": _redetected,
+    "midway": _midway, "midway_turns": _midway_turns, "pelvis_twists": _pelvis_twists, "starts": _starts,
+    "best": _best, "origin": _origin, "again": _again, "redetected": _redetected,
     "rotations": _rotations, "swaps": _swaps, "basins": _basins, "twists": _twists, "hops": _hops,
 }
 

@@ -1138,6 +1138,25 @@ def test_rotated_about_pelvis_carries_the_whole_body_about_the_pelvis_axes(model
     np.testing.assert_allclose(rotated_about_pelvis(model, upright, 2, 0.3), turned(upright, 0.3), atol=1e-12)
 
 
+def test_a_pelvis_twisted_alone_leaves_the_chest_and_the_legs_as_they_were(model, frames):
+    from common.body import rotvec_to_matrix
+    from common.proposals import pelvis_twisted
+
+    _, truth = frames
+    x = truth[2].params.copy()
+    x[P["root_tilt_x"]], x[P["root_tilt_y"]] = 0.2, -0.1
+    before = forward_kinematics(model, x)
+    y = pelvis_twisted(model, x, 0.2)
+    after = forward_kinematics(model, y)
+    assert y[P["root_heading"]] == pytest.approx(x[P["root_heading"]] + 0.2)
+    np.testing.assert_allclose(after.rotations[0, 0], rotvec_to_matrix(np.array([0.0, 0.0, 0.2])) @ before.rotations[0, 0],
+                               atol=1e-12)
+    chest_and_beyond = [s for s in range(16) if s not in (0, 1)]  # all but the pelvis and the abdomen
+    np.testing.assert_allclose(after.rotations[0, chest_and_beyond], before.rotations[0, chest_and_beyond], atol=1e-9)
+    np.testing.assert_array_equal(y[P["root_x"]:P["root_z"] + 1], x[P["root_x"]:P["root_z"] + 1])
+    assert not np.allclose(after.rotations[0, 0], before.rotations[0, 0])
+
+
 @pytest.mark.timeout(300)
 def test_a_body_rotated_off_the_truth_is_rotated_back(model, five_frames):
     """Frame 2 fitted from its true pose leaned 0.6 rad forward about the pelvis, limbs carried
