@@ -40,8 +40,10 @@ def reference_fit(seq_path: Path, out: Path, max_frames: int | None = None) -> n
 
 
 def records(out: Path) -> list[dict]:
+    """The complete records of a result's poses.jsonl, which a running fit may be appending to:
+    its last line counts once its newline is written (``server.results.read_done_frames``)."""
     path = Path(out) / "poses.jsonl"
-    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+    return [json.loads(line) for line in path.read_text().split("\n")[:-1]] if path.exists() else []
 
 
 def poses(out: Path) -> np.ndarray:
