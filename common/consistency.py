@@ -10,17 +10,17 @@ on) are in every view and stay, unless they stand apart from the actor and still
 A static prop beside the actor (a box, a stool) is an object in every view: its blob is
 supported, and a body fitted by silhouettes alone can be drawn onto it (a box larger than a
 crouching actor's hull explains more foreground than the actor). ``static_props`` looks at the
-visual hull in frames across the take: a separate 3D component whose cells all stay occupied,
-while another component moves, is a prop, and ``supported_masks`` removes the pixels it covers
+visual hull in frames across the take: a separate 3D component whose share of occupied cells
+hardly varies, while another component stays apart from it, is a prop, and ``supported_masks`` removes the pixels it covers
 that the rest of the hull (the actor) does not. A chair the actor sits on touches the actor's
 hull and stays.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import ndimage
-
-from dataclasses import dataclass
 
 from common.camera import Studio
 
@@ -191,13 +191,13 @@ def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None
         keep[0] = False
         out[k] = keep[labels]
     if props is not None:
-        actor = points[~props.near(points)]
-        step = HULL_EXTENT_M / (HULL_GRID - 1)
+        actor, prop = points[~props.near(points)], props.points
+        hull_step = HULL_EXTENT_M / (HULL_GRID - 1)  # hull_points' spacing
         for k, cam in enumerate(studio):
-            shape, prop = masks[k].shape, props.points
+            shape = masks[k].shape
             covered = footprint(cam, prop, shape, cell_radius_px(cam, prop, props.step), square=True)
             if len(actor):
-                covered &= ~footprint(cam, actor, shape, cell_radius_px(cam, actor, step), square=True)
+                covered &= ~footprint(cam, actor, shape, cell_radius_px(cam, actor, hull_step), square=True)
             out[k] &= ~covered
     removed[:] = masks.sum(axis=(1, 2)) - out.sum(axis=(1, 2))
     return out, removed

@@ -548,7 +548,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "world_up": seq.world.up,
         "masks_cleaned": seq.clean_masks,
         # the volume of the static props removed from the masks (common.consistency), m^3; 0 without
-        "static_props_m3": round(seq.static_props.volume_m3, 4) if seq.clean_masks and seq.static_props else 0.0,
+        "static_props_m3": round(props.volume_m3, 4) if seq.clean_masks and (props := seq.static_props) else 0.0,
         "actor_scale": model_scale(model),
         "frames": len(records),
         "frames_fitted_this_run": len(stats.seconds),
