@@ -13,7 +13,8 @@ import os
 import sys
 from pathlib import Path
 
-KERNEL_SOURCES = ("body.py", "energy.py", "ellipsoid_fit.py", "optimize.py", "powell_cpu.py")  # files whose kernels numba caches
+# files whose kernels numba caches
+KERNEL_SOURCES = ("body.py", "consistency.py", "energy.py", "ellipsoid_fit.py", "optimize.py", "powell_cpu.py")
 
 
 def _kernel_cache_dir() -> str | None:

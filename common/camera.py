@@ -86,6 +86,18 @@ class Camera:
         """(..., 3) world points -> (...,) depth along the optical axis, metres."""
         return self.to_camera(np.asarray(points, dtype=np.float64))[..., 2]
 
+    def rays(self, uv: np.ndarray) -> np.ndarray:
+        """(..., 2) pixel coordinates (with distortion) -> (..., 3) unit world directions of the
+        rays through them, from ``center``."""
+        uv = np.asarray(uv, dtype=np.float64)
+        K = self.K
+        y = (uv[..., 1] - K[1, 2]) / K[1, 1]
+        x = (uv[..., 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        if self.has_distortion:
+            x, y = undistort_normalized(x, y, self.dist)
+        d = np.stack([x, y, np.ones_like(x)], axis=-1) @ self.R  # R^T d for row vectors
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
     def scaled(self, factor: float) -> "Camera":
         """The same camera at ``factor`` times the resolution (0.5 = half resolution).
 
@@ -104,6 +116,17 @@ def distort_normalized(x: np.ndarray, y: np.ndarray, dist: np.ndarray):
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
     return xd, yd
+
+
+def undistort_normalized(x: np.ndarray, y: np.ndarray, dist: np.ndarray, iterations: int = 20):
+    """Normalised distorted coordinates -> undistorted (fixed-point inversion of
+    ``distort_normalized``)."""
+    xu, yu = np.array(x, dtype=np.float64), np.array(y, dtype=np.float64)
+    for _ in range(iterations):
+        xd, yd = distort_normalized(xu, yu, dist)
+        xu = xu - (xd - x)
+        yu = yu - (yd - y)
+    return xu, yu
 
 
 def make_camera(name: str, K, dist, R, t, width, height, source: str = "<memory>") -> Camera:

@@ -191,28 +191,10 @@ def _hash01(*ints: np.ndarray) -> np.ndarray:
     return (h >> np.uint64(40)).astype(np.float64) / float(1 << 24)
 
 
-def _undistort(x: np.ndarray, y: np.ndarray, dist: np.ndarray):
-    """Normalised distorted coordinates -> undistorted (fixed-point inversion of OpenCV's model)."""
-    if not np.any(dist != 0.0):
-        return x, y
-    from common.camera import distort_normalized
-    xu, yu = x.copy(), y.copy()
-    for _ in range(20):
-        xd, yd = distort_normalized(xu, yu, dist)
-        xu = xu - (xd - x)
-        yu = yu - (yd - y)
-    return xu, yu
-
-
 def pixel_rays(camera: Camera) -> np.ndarray:
     """(H, W, 3) unit world directions of the rays through each pixel centre."""
     v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
-    K = camera.K
-    y = (v - K[1, 2]) / K[1, 1]
-    x = (u - K[0, 2] - K[0, 1] * y) / K[0, 0]
-    x, y = _undistort(x, y, camera.dist)
-    d = np.stack([x, y, np.ones_like(x)], axis=-1) @ camera.R  # R^T d for row vectors
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+    return camera.rays(np.stack([u, v], axis=-1))
 
 
 def _smooth_noise(p: np.ndarray, q: np.ndarray, rng: np.random.Generator, scale: float) -> np.ndarray:

@@ -9,6 +9,9 @@ backwards then forwards alternately (``refine_pass``); with none, a run that sta
 hops, whole fits) go to a ``Solver``: this process, or a cluster of clients; ``mocap fit`` is this
 loop with the local solver: single-process mode is the server with zero clients.
 
+One module of about 600 lines: the frame loop, the actor-size search and the refinement passes
+share the solver, the records and the result folder, and are read together.
+
 Result folder (``server.results``):
     poses.jsonl   one line per frame: frame, params, joints, energy, seconds, ... (appended
                   per frame, so an interrupted run keeps what it had and --resume continues

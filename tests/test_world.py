@@ -83,6 +83,31 @@ def test_blobs_one_camera_sees_alone_are_dropped_and_the_actor_kept():
     assert removed[0] == 80 and removed[3] == 18 * 18 and removed[1] == 0
 
 
+@pytest.mark.parametrize("posture", ["rest", "seated"])
+def test_a_streak_joined_to_the_actor_in_one_view_is_cut_off_and_the_actor_kept(posture):
+    """A floor seam or shadow touching the actor's blob is one blob with it: kept as a blob, its
+    pixels whose rays no other camera supports go; every pixel of the body stays, thin forearms
+    that the coarse hull misses included."""
+    from common.body import rest_params
+    from common.energy import EnergySetup, Window
+    from common.objective import make_energy
+    model = load_body_model()
+    studio = circle_studio(6, 160, 120)
+    params = rest_params(model) if posture == "rest" else posture_params(model, "seated")
+    setup = EnergySetup(studio, tuple(Window(0, 0, 160, 120) for _ in studio), np.zeros((6, 120, 160), bool),
+                        tuple(range(16)), params, prerender=False)
+    masks = make_energy("cpu", model, setup).render(params)
+    rows, cols = np.nonzero(masks[2])
+    bottom = rows.max()
+    left = cols[rows == bottom].min()
+    noisy = masks.copy()
+    noisy[2, bottom - 2:bottom + 1, :left + 1] = True  # a streak along the floor out to the image's edge
+    cleaned, removed = supported_masks(studio, noisy, np.array([0.0, 0.0, 0.6]))
+    assert not np.any(masks & ~cleaned)                      # the actor whole, in every view
+    assert not cleaned[2, bottom - 2:bottom + 1, :left - 30].any()  # the streak's far part gone
+    assert removed[2] > 3 * (left - 30) and not removed[[0, 1, 3, 4, 5]].any()
+
+
 def test_a_sequence_cleans_its_masks_unless_asked_not_to(small_sequence):
     from common.sequence import load_sequence
 
