@@ -16,9 +16,9 @@ A static prop beside the actor (a box, a stool) is an object in every view: its 
 supported, and a body fitted by silhouettes alone can be drawn onto it (a box larger than a
 crouching actor's hull explains more foreground than the actor). ``static_props`` looks at the
 visual hull in frames across the take: a separate 3D component whose share of occupied cells
-hardly varies, while another component stays apart from it, is a prop, and ``supported_masks`` removes the pixels it covers
-that the rest of the hull (the actor) does not. A chair the actor sits on touches the actor's
-hull and stays.
+hardly varies, while another component stays apart from it, is a prop, and ``supported_masks``
+removes the pixels it covers that the rest of the hull (the actor) does not. A chair the actor
+sits on touches the actor's hull and stays.
 """
 from __future__ import annotations
 
@@ -264,7 +264,8 @@ def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None
         sizes = np.bincount(labels.ravel(), minlength=count + 1)
         covered = np.bincount(labels.ravel(), weights=(support & mask).ravel(), minlength=count + 1)
         covered[0] = 0.0
-        keep = (covered >= MIN_SUPPORTED_FRACTION * np.maximum(sizes, 1)) | (covered >= MIN_SUPPORT_OF_BEST * covered.max())
+        keep = ((covered >= MIN_SUPPORTED_FRACTION * np.maximum(sizes, 1))
+                | (covered >= MIN_SUPPORT_OF_BEST * covered.max()))
         keep &= covered > 0
         keep[0] = False
         out[k] = keep[labels]
