@@ -1,11 +1,12 @@
 """Accuracy and time on every shared clip: the check every accuracy change is measured by.
 
     python tools/shared_clips_accuracy.py [--frames 100] [--jobs 2] [--preset default]
-                                          [--init truth|auto] [--json FILE] [--work DIR]
+                                          [--init truth|auto] [--seed 0] [--json FILE] [--work DIR]
                                           [--fit-args "--refine-chunk-frames 10"]
 
 Each clip of ../shared/data/mocap (17) is synthesised into the 8-camera 320x240 studio with
-Cheung noise (seed 0), then fitted single-process with the preset's settings from the truth's
+Cheung noise (``--seed``, default 0: another seed draws other noise, to tell a change's effect
+from chance), then fitted single-process with the preset's settings from the truth's
 first pose (``--init auto``: from a search of the first frame), as ``mocap bench accuracy``
 fits its three clips, with any further ``mocap fit`` options (``--fit-args``). Clips run
 ``--jobs`` at a time, one process each, the cores shared among them (``--threads``). Prints one row per
@@ -30,17 +31,19 @@ from server.session import usable_cores  # noqa: E402
 
 
 def fit_clip(clip: Path, frames: int, work: Path, preset: str, init: str, fit_args: tuple = (),
-             threads: int = 1) -> dict:
+             threads: int = 1, seed: int = 0) -> dict:
     from common.body import load_body_model
     from common.camera import circle_studio
     from common.sequence import load_sequence
     from common.synth import SynthOptions, synthesize
     from server.cli import main as mocap
 
-    seq_dir = work / f"seq-{clip.stem}"
+    named = clip.stem + (f"-seed{seed}" if seed else "")
+    seq_dir = work / f"seq-{named}"
     if not (seq_dir / "sequence.json").exists():
-        synthesize(load_body_model(), circle_studio(), clip, seq_dir, SynthOptions(frames=frames, noise="cheung", seed=0))
-    out = work / (f"fit-{clip.stem}-{preset}-{init}" + "".join(fit_args).replace("-", "_"))
+        synthesize(load_body_model(), circle_studio(), clip, seq_dir,
+                   SynthOptions(frames=frames, noise="cheung", seed=seed))
+    out = work / (f"fit-{named}-{preset}-{init}" + "".join(fit_args).replace("-", "_"))
     t0 = time.perf_counter()
     code = mocap(["fit", str(seq_dir), "--out", str(out), "--preset", preset, "--init", init, "--frames", str(frames),
                   "--threads", str(threads), "--quiet", "--overwrite", *fit_args])
@@ -67,6 +70,7 @@ def main(argv=None) -> int:
     ap.add_argument("--init", default="truth", choices=("truth", "auto"))
     ap.add_argument("--clips", default=None, help="comma-separated clip stems (default: all shared clips)")
     ap.add_argument("--fit-args", default="", help="further mocap fit options, one string")
+    ap.add_argument("--seed", type=int, default=0, help="the synthesised noise's seed")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--work", type=Path, default=None, help="keep the sequences and results here")
     args = ap.parse_args(argv)
@@ -83,7 +87,7 @@ def main(argv=None) -> int:
             n = len(clips)
             threads = max(1, usable_cores() // args.jobs)
             rows = list(pool.map(fit_clip, clips, [args.frames] * n, [work] * n, [args.preset] * n, [args.init] * n,
-                                 [tuple(args.fit_args.split())] * n, [threads] * n))
+                                 [tuple(args.fit_args.split())] * n, [threads] * n, [args.seed] * n))
     print(f"{'clip':16s} {'mean':>6s} {'max':>6s} {'>40':>4s} {'worst':>5s} {'s/frame':>8s} {'refine':>7s} {'wall':>6s}")
     for r in rows:
         print(f"{r['clip']:16s} {r['mean_joint_error_mm']:6.1f} {r['max_joint_error_mm']:6.1f} "
