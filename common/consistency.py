@@ -85,15 +85,21 @@ class StaticProps:
         return out
 
 
-def hull_points(studio: Studio, masks: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """(n, 3) centres of the voxels inside the visual hull, in a HULL_EXTENT_M box on the floor
-    around ``centre`` (3,). masks (K, H, W) bool in the studio's (distorted) images, padded
-    beyond each camera's own size. A voxel outside a camera's image is not carved by it, and one
-    outside HULL_MISSES of the masks that see it is still kept where at least three see it."""
+def hull_box(centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lower corner (3,), upper corner (3,)), metres: the HULL_EXTENT_M box on the floor around
+    ``centre`` (3,) in which the hull is carved and rays are tested."""
     half = HULL_EXTENT_M / 2
-    axes = [np.linspace(centre[0] - half, centre[0] + half, HULL_GRID),
-            np.linspace(centre[1] - half, centre[1] + half, HULL_GRID),
-            np.linspace(0.0, HULL_EXTENT_M, HULL_GRID)]
+    return (np.array([centre[0] - half, centre[1] - half, 0.0]),
+            np.array([centre[0] + half, centre[1] + half, HULL_EXTENT_M]))
+
+
+def hull_points(studio: Studio, masks: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """(n, 3) centres of the voxels inside the visual hull, in ``hull_box(centre)``. masks
+    (K, H, W) bool in the studio's (distorted) images, padded beyond each camera's own size. A
+    voxel outside a camera's image is not carved by it, and one outside HULL_MISSES of the masks
+    that see it is still kept where at least three see it."""
+    lo, hi = hull_box(centre)
+    axes = [np.linspace(a, b, HULL_GRID) for a, b in zip(lo, hi)]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     return points[carved(studio, masks, points)]
 
@@ -114,34 +120,37 @@ def carved(studio: Studio, masks: np.ndarray, points: np.ndarray) -> np.ndarray:
     return (misses <= allowed) & (views >= HULL_MIN_VIEWS)
 
 
-def ray_supported(studio: Studio, masks: np.ndarray, k: int, pixels: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """(n,) bool: camera ``k``'s pixels (n, 2) (row, column) whose rays pass through the visual
-    hull of the other cameras' masks (K, H, W) bool inside the HULL_EXTENT_M box on the floor
-    around ``centre`` (3,): some point on the ray, every RAY_STEP_M, seen by another camera and
-    outside no more of the others' masks than ``carved`` allows (camera k's own mask holds it)."""
-    from common.frame import undistort_masks  # the others looked at as pinhole images
+def ray_supported(studio: Studio, masks: np.ndarray, pixels: list, centre: np.ndarray) -> list:
+    """[(n_k,) bool per camera k]: camera k's pixels (n_k, 2) (row, column) whose rays pass
+    through the visual hull of the other cameras' masks (K, H, W) bool inside ``hull_box(centre)``:
+    some point on the ray, every RAY_STEP_M, seen by another camera and outside no more of the
+    others' masks than ``carved`` allows (camera k's own mask holds it)."""
+    from common.frame import undistort_masks  # the others looked at as pinhole images, once a frame
 
-    cam = studio[k]
-    half = HULL_EXTENT_M / 2
-    lo = np.array([centre[0] - half, centre[1] - half, 0.0])
-    hi = np.array([centre[0] + half, centre[1] + half, HULL_EXTENT_M])
-    origin = cam.center
-    dirs = cam.rays(np.asarray(pixels, dtype=np.float64)[:, ::-1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t0, t1 = (lo - origin) / dirs, (hi - origin) / dirs
-    near = np.nanmax(np.minimum(t0, t1), axis=1).clip(min=0.0)
-    far = np.nanmin(np.maximum(t0, t1), axis=1)
-    far[~(far >= near)] = -1.0  # a ray that misses the box: no point of it is tested
+    lo, hi = hull_box(centre)
     pinhole, flat = undistort_masks(studio, masks)
     projections = np.stack([c.projection_matrix for c in pinhole])
     sizes = np.array([(c.width, c.height) for c in pinhole], dtype=np.int64)
-    return _rays_supported(origin, dirs, near, far, np.asarray(centre, dtype=np.float64), RAY_STEP_M, projections,
-                           sizes, flat, k, HULL_MISSES, HULL_MIN_VIEWS)
+    out = []
+    for k, (cam, rows_cols) in enumerate(zip(studio, pixels)):
+        if len(rows_cols) == 0:
+            out.append(np.zeros(0, dtype=bool))
+            continue
+        origin = cam.center
+        dirs = cam.rays(np.asarray(rows_cols, dtype=np.float64)[:, ::-1])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t0, t1 = (lo - origin) / dirs, (hi - origin) / dirs
+        near = np.nanmax(np.minimum(t0, t1), axis=1).clip(min=0.0)
+        far = np.nanmin(np.maximum(t0, t1), axis=1)
+        far[~(far >= near)] = -1.0  # a ray that misses the box: no point of it is tested
+        out.append(_rays_supported(origin, dirs, near, far, np.asarray(centre, dtype=np.float64), RAY_STEP_M,
+                                   projections, sizes, flat, k, HULL_MISSES, HULL_MIN_VIEWS))
+    return out
 
 
 @njit(cache=True, nogil=True)
 def _rays_supported(origin, dirs, near, far, start, step, projections, sizes, masks, k, misses_allowed, min_views):
-    """``ray_supported``'s march: each ray's points from ``near`` to ``far`` (n,) metres along
+    """``ray_supported``'s march for camera ``k``: each ray's points from ``near`` to ``far`` (n,) metres along
     ``dirs`` (n, 3) from ``origin`` (3,), visited outward from its point nearest ``start`` (3,)
     (the actor: a pixel of the actor is found supported within a few steps), stopping at the
     first inside the other cameras' masks (K, H, W) bool, pinhole ``projections`` (K, 3, 4),
@@ -269,17 +278,17 @@ def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None
         keep &= covered > 0
         keep[0] = False
         out[k] = keep[labels]
+    # the kept pixels far from the hull tested by their rays against the other cameras' kept
+    # blobs (a floor seam two cameras see does not hold itself up); one within EDGE_TOLERANCE_PX
+    # of a pixel that stays, stays
     blobs = out.copy()
-    for k in range(len(studio)):
-        # the kept pixels far from the hull tested by their rays against the other cameras' kept
-        # blobs (a floor seam two cameras see does not hold itself up); one within
-        # EDGE_TOLERANCE_PX of a pixel that stays, stays
-        far_off = blobs[k] & ~footprint(studio[k], points, masks[k].shape,
-                                         NEAR_CELLS * cell_radius_px(studio[k], points, hull_step), square=True)
-        pixels = np.argwhere(far_off)
+    far_off = [np.argwhere(blobs[k] & ~footprint(cam, points, masks[k].shape,
+                                                  NEAR_CELLS * cell_radius_px(cam, points, hull_step), square=True))
+               for k, cam in enumerate(studio)]
+    for k, (pixels, supported) in enumerate(zip(far_off, ray_supported(studio, blobs, far_off, centre))):
         if len(pixels):
             unsupported = np.zeros_like(blobs[k])
-            unsupported[tuple(pixels[~ray_supported(studio, blobs, k, pixels, centre)].T)] = True
+            unsupported[tuple(pixels[~supported].T)] = True
             near_kept = ndimage.binary_dilation(blobs[k] & ~unsupported, iterations=EDGE_TOLERANCE_PX)
             out[k] &= ~(unsupported & ~near_kept)
     if props is not None:
