@@ -35,13 +35,22 @@ def accuracy(records: list[dict], truth: dict | None) -> dict:
 QUALITY_FLAG_SHARE = 0.3  # a frame whose XOR is above this share of a camera's silhouette is flagged
 
 
-def frame_quality(data: FrameData, params: np.ndarray) -> dict:
-    """How well the pose ``params`` (35,) explains one frame's masks, per camera: the XOR (model
-    xor silhouette) as a share of the silhouette's area (undistorted images, the fit's own), the
-    whole frame's share, and whether (and which cameras) it is above QUALITY_FLAG_SHARE."""
+def silhouette_disagreement(data: FrameData, params: np.ndarray) -> np.ndarray:
+    """(C, 2) pixel counts per camera of the pose ``params`` (35,) drawn against the frame's
+    masks (undistorted images, the fit's own): [model pixels outside the silhouette, silhouette
+    pixels the model misses]. Their sum is the camera's XOR."""
     rendered = data.whole_image_energy().render(np.asarray(params))
     sizes = [(c.height, c.width) for c in data.studio]
-    xor = [int(np.count_nonzero(r[:h, :w] ^ m[:h, :w])) for r, m, (h, w) in zip(rendered, data.masks, sizes)]
+    return np.array([[np.count_nonzero(r[:h, :w] & ~m[:h, :w]), np.count_nonzero(m[:h, :w] & ~r[:h, :w])]
+                     for r, m, (h, w) in zip(rendered, data.masks, sizes)], dtype=np.int64).reshape(-1, 2)
+
+
+def frame_quality(data: FrameData, params: np.ndarray) -> dict:
+    """How well the pose ``params`` (35,) explains one frame's masks, per camera: the XOR (model
+    xor silhouette) as a share of the silhouette's area, the whole frame's share, and whether
+    (and which cameras) it is above QUALITY_FLAG_SHARE."""
+    xor = [int(v) for v in silhouette_disagreement(data, params).sum(axis=1)]
+    sizes = [(c.height, c.width) for c in data.studio]
     area = [int(np.count_nonzero(m[:h, :w])) for m, (h, w) in zip(data.masks, sizes)]
     share = [x / a if a else (0.0 if x == 0 else 1.0) for x, a in zip(xor, area)]
     flagged = [c.name for c, v in zip(data.studio, share) if v > QUALITY_FLAG_SHARE]

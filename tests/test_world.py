@@ -149,6 +149,7 @@ def _fake_size_search(monkeypatch, model, energies: dict, seen: list):
         return FrameResult(start, energies[seen[-1]], 1, 1)
 
     monkeypatch.setattr(session, "fit_rounds", fake_fit)
+    monkeypatch.setattr(session, "size_score", lambda actor, data, fit: fit.energy)
     return type("Seq", (), {"frames": [0]})()
 
 
@@ -181,6 +182,24 @@ def test_sizes_are_fitted_outward_while_the_energy_falls(monkeypatch, model, ene
         seen.clear()
         session.choose_actor_scale(model, seq, FitOptions(), threads)
         assert set(seen) == fitted and len(seen) == len(fitted)
+
+
+def test_a_chair_sat_on_does_not_make_the_actor_larger(tmp_path, model, monkeypatch):
+    """A seated body on a chair, the model's own size: a larger body covers more of the chair
+    while staying inside the silhouettes, so the plain XOR chose 1.1 (6.5% less); the size
+    score, which counts model pixels outside the silhouettes twice, keeps 1.0."""
+    from common.camera import circle_studio
+    from common.fitting import FitOptions
+    from common.sequence import load_sequence
+    from common.synth import SynthOptions, synthesize
+    from server import session
+
+    synthesize(model, circle_studio(8, 320, 240), None, tmp_path / "seq",
+               SynthOptions(frames=1, posture="seated", prop="chair"))
+    seq = load_sequence(tmp_path / "seq")
+    assert session.choose_actor_scale(model, seq, FitOptions(), threads=2).scale == 1.0
+    monkeypatch.setattr(session, "SIZE_OUTSIDE_WEIGHT", 1.0)  # the plain XOR
+    assert session.choose_actor_scale(model, seq, FitOptions(), threads=2).scale == 1.1
 
 
 @pytest.mark.parametrize("posture", ["crouching", "seated", "lying_side"])

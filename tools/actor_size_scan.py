@@ -4,9 +4,9 @@
 
 The first frame is searched at the model's size (the WIDE schedule from the voxel starts, as
 ``server.session.choose_actor_scale`` does), then that pose is fitted again at each size
-(``server.session.fit_at_scale``). Per
-size it prints the XOR energy and its two parts: model pixels outside the silhouettes and
-silhouette pixels the model misses. Where the XOR keeps falling while the model stays inside
+(``server.session.fit_at_scale``). Per size it prints the XOR energy, its two parts (model
+pixels outside the silhouettes and silhouette pixels the model misses) and the size search's
+score (``server.session.size_score``). Where the XOR keeps falling while the model stays inside
 the silhouettes, the masks hold foreground that no body explains (a prop, a mask, loose clothes).
 """
 from __future__ import annotations
@@ -22,10 +22,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common.body import load_body_model  # noqa: E402
 from common.fitting import FitOptions, full_energy  # noqa: E402
 from common.proposals import voxel_starts  # noqa: E402
+from common.scoring import silhouette_disagreement  # noqa: E402
 from common.search import WIDE, run_schedule  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
 from common.voxels import silhouette_centre  # noqa: E402
-from server.session import ACTOR_SCALES, LocalSolver, context, fit_at_scale, frame_data  # noqa: E402
+from server.session import ACTOR_SCALES, LocalSolver, context, fit_at_scale, frame_data, size_score  # noqa: E402
 
 RULER_STEP = 0.25     # the sequence's world units (metres) per ruler segment
 RULER_LENGTH = 2.5    # ... the ruler's length
@@ -68,11 +69,9 @@ def main() -> None:
     print(f"frame {frame}: silhouette {int(np.count_nonzero(data.masks))} px")
     for scale in (float(s) for s in args.scales.split(",")):
         actor, actor_data, fit = fit_at_scale(model, seq, frame, found.params, scale, options)
-        drawn = actor_data.energy("cpu", actor_data.full_setup(fit.params)).render(fit.params)
-        masks = actor_data.masks[:, :drawn.shape[1], :drawn.shape[2]]
-        outside, missed = int(np.count_nonzero(drawn & ~masks)), int(np.count_nonzero(masks & ~drawn))
-        print(f"scale {scale:.2f}: XOR {full_energy(actor, actor_data, fit.params)}  model {int(drawn.sum())} px, "
-              f"{outside} outside the silhouettes ({outside / max(int(drawn.sum()), 1):.1%}), {missed} missed")
+        outside, missed = (int(v) for v in silhouette_disagreement(actor_data, fit.params).sum(axis=0))
+        print(f"scale {scale:.2f}: XOR {full_energy(actor, actor_data, fit.params)}  {outside} model pixels "
+              f"outside the silhouettes, {missed} missed; size score {size_score(actor, actor_data, fit):.0f}")
 
 
 if __name__ == "__main__":
