@@ -264,9 +264,9 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, thr
     try:
         starts, memo = tuple(voxel_starts(model, data)), {}
         found = run_schedule(context(model, data, frame, options, solver, starts=starts), WIDE, memo=memo)
-        own = size_score(model, data, found)
+        own = size_score(data, found)
         scores = descend_outward(ACTOR_SCALES, 1.0, own, lambda scales: solver.map(
-            lambda scale: size_score(*fit_at_scale(model, seq, frame, found.params, scale, options)), scales))
+            lambda scale: size_score(*fit_at_scale(model, seq, frame, found.params, scale, options)[1:]), scales))
     finally:
         solver.close()
     lowest_scale = min(sorted(scores), key=scores.get)  # on a tie, the smaller size
@@ -274,9 +274,9 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, thr
     return ActorSize(lowest_scale if clear_gain else 1.0, frame, starts, memo, time.perf_counter() - t0)
 
 
-def size_score(actor: BodyModel, data: FrameData, fit: FrameResult) -> float:
-    """How well ``fit``, made at ``actor``'s size, explains the frame's masks for the size
-    search: its XOR with pixels outside the silhouettes counted SIZE_OUTSIDE_WEIGHT times."""
+def size_score(data: FrameData, fit: FrameResult) -> float:
+    """How well ``fit``, made at the size of the actor whose ``data`` it is, explains the
+    frame's masks for the size search: its XOR with pixels outside the silhouettes counted SIZE_OUTSIDE_WEIGHT times."""
     outside, missed = silhouette_disagreement(data, fit.params).sum(axis=0)
     return float(SIZE_OUTSIDE_WEIGHT * outside + missed)
 

@@ -149,7 +149,7 @@ def _fake_size_search(monkeypatch, model, energies: dict, seen: list):
         return FrameResult(start, energies[seen[-1]], 1, 1)
 
     monkeypatch.setattr(session, "fit_rounds", fake_fit)
-    monkeypatch.setattr(session, "size_score", lambda actor, data, fit: fit.energy)
+    monkeypatch.setattr(session, "size_score", lambda data, fit: fit.energy)
     return type("Seq", (), {"frames": [0]})()
 
 
