@@ -38,7 +38,7 @@ from common.body import P, BodyModel, forward_kinematics, joints_dict, load_body
 from common.errors import InputFileError, UserError, print_warning
 from common.fitting import HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult, fit_rounds
 from common.proposals import voxel_starts
-from common.scoring import accuracy, frame_quality, quality_summary, silhouette_disagreement
+from common.scoring import accuracy, frame_quality, quality_summary, size_score
 from common.search import (FIT_JOBS, LIMBS_LOST, WIDE, VARIANTS, Context, descend_outward, fit_frame,
                            is_chain_solve, lowest, refine_frame, run_schedule, search_frame, solve_locally,
                            tracking_lost, LIMB_LOSS_ENERGY_RATIO)
@@ -215,13 +215,6 @@ ACTOR_SCALES = (0.9, 1.0, 1.1, 1.2, 1.3, 1.4)
 # (a crouch with Cheung noise, 1.0 truth: 1.7% less at 0.9), a body really too small by much
 # more (the seated take: 28% less at 1.4).
 ACTOR_SCALE_MIN_GAIN = 0.05
-# A size is scored by its fit's XOR with each model pixel outside the silhouettes counted this
-# many times. Masks hold foreground no body explains (a chair sat on, a mask worn, loose
-# clothes), which a larger body covers while staying inside them, so the plain XOR falls past
-# the actor's size (a seated body on a chair, truth 1.0: 6,275 at 1.0, 5,867 at 1.1); a body
-# poking out of the silhouettes is wrong wherever the masks are whole. Every take of
-# docs/accuracy.md's size table picks its size for weights 1.5-2.5.
-SIZE_OUTSIDE_WEIGHT = 2.0
 
 
 def context(model: BodyModel, data: FrameData, frame: int, options: FitOptions, solver: Solver,
@@ -272,13 +265,6 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, thr
     lowest_scale = min(sorted(scores), key=scores.get)  # on a tie, the smaller size
     clear_gain = scores[lowest_scale] < own * (1.0 - ACTOR_SCALE_MIN_GAIN)
     return ActorSize(lowest_scale if clear_gain else 1.0, frame, starts, memo, time.perf_counter() - t0)
-
-
-def size_score(data: FrameData, fit: FrameResult) -> float:
-    """How well ``fit``, made at the size of the actor whose ``data`` it is, explains the
-    frame's masks for the size search: its XOR with pixels outside the silhouettes counted SIZE_OUTSIDE_WEIGHT times."""
-    outside, missed = silhouette_disagreement(data, fit.params).sum(axis=0)
-    return float(SIZE_OUTSIDE_WEIGHT * outside + missed)
 
 
 def fit_at_scale(model: BodyModel, seq: Sequence, frame: int, params: np.ndarray, scale: float,

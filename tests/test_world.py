@@ -191,6 +191,7 @@ def test_a_chair_sat_on_does_not_make_the_actor_larger(tmp_path, model, monkeypa
     from common.camera import circle_studio
     from common.fitting import FitOptions
     from common.sequence import load_sequence
+    from common import scoring
     from common.synth import SynthOptions, synthesize
     from server import session
 
@@ -198,7 +199,7 @@ def test_a_chair_sat_on_does_not_make_the_actor_larger(tmp_path, model, monkeypa
                SynthOptions(frames=1, posture="seated", prop="chair"))
     seq = load_sequence(tmp_path / "seq")
     assert session.choose_actor_scale(model, seq, FitOptions(), threads=2).scale == 1.0
-    monkeypatch.setattr(session, "SIZE_OUTSIDE_WEIGHT", 1.0)  # the plain XOR
+    monkeypatch.setattr(scoring, "SIZE_OUTSIDE_WEIGHT", 1.0)  # the plain XOR
     assert session.choose_actor_scale(model, seq, FitOptions(), threads=2).scale == 1.1
 
 

@@ -6,7 +6,7 @@ The first frame is searched at the model's size (the WIDE schedule from the voxe
 ``server.session.choose_actor_scale`` does), then that pose is fitted again at each size
 (``server.session.fit_at_scale``). Per size it prints the XOR energy, its two parts (model
 pixels outside the silhouettes and silhouette pixels the model misses) and the size search's
-score (``server.session.size_score``). Where the XOR keeps falling while the model stays inside
+score (``common.scoring.size_score``). Where the XOR keeps falling while the model stays inside
 the silhouettes, the masks hold foreground that no body explains (a prop, a mask, loose clothes).
 """
 from __future__ import annotations
@@ -22,11 +22,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common.body import load_body_model  # noqa: E402
 from common.fitting import FitOptions, full_energy  # noqa: E402
 from common.proposals import voxel_starts  # noqa: E402
-from common.scoring import silhouette_disagreement  # noqa: E402
+from common.scoring import silhouette_disagreement, size_score  # noqa: E402
 from common.search import WIDE, run_schedule  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
 from common.voxels import silhouette_centre  # noqa: E402
-from server.session import ACTOR_SCALES, LocalSolver, context, fit_at_scale, frame_data, size_score  # noqa: E402
+from server.session import ACTOR_SCALES, LocalSolver, context, fit_at_scale, frame_data  # noqa: E402
 
 RULER_STEP = 0.25     # the sequence's world units (metres) per ruler segment
 RULER_LENGTH = 2.5    # ... the ruler's length
