@@ -93,16 +93,18 @@ LIMB_ALTERNATIVES = 2  # per limb: other basins refitted after a first frame's s
 
 
 def limb_alternatives(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions,
-                      count: int = LIMB_ALTERNATIVES) -> list[np.ndarray]:
-    """(35,) poses: x with one limb moved into up to ``count`` of its other basins, the lowest
-    energy first. Given a wrong torso the true limb can explain the images worse than a wrong
-    one (a forearm folded into its upper arm's silhouette, when it lies in front of the
-    trunk); fitted again as a whole, the true limb wins (``server.session.search_frame``)."""
-    found, _, _ = search_limb(model, frame, chain, x, options, REDETECT_STARTS_FIRST_FRAME, one_per_basin=True)
+                      count: int = LIMB_ALTERNATIVES) -> tuple[list[np.ndarray], int]:
+    """((35,) poses: x with one limb moved into up to ``count`` of its other basins, the lowest
+    energy first; the evaluations the limb's search spent). Given a wrong torso the true limb can
+    explain the images worse than a wrong one (a forearm folded into its upper arm's silhouette,
+    when it lies in front of the trunk); fitted again as a whole, the true limb wins
+    (``server.session.search_frame``)."""
+    found, _, evaluations = search_limb(model, frame, chain, x, options, REDETECT_STARTS_FIRST_FRAME,
+                                        one_per_basin=True)
     found.sort(key=lambda ey: ey[0])
     poses = np.array([y for _, y in found]).reshape(-1, len(x))
     keep = distinct_rows(limb_joints(model, chain, poses), count, taken=limb_joints(model, chain, x))
-    return [poses[k] for k in keep]
+    return [poses[k] for k in keep], evaluations
 
 
 # A nearly straight arm's twist about the upper arm hardly shows in silhouettes, and in the
@@ -140,26 +142,28 @@ def shoulder_turn_rad(params: np.ndarray, other: np.ndarray, chain: str) -> floa
 
 
 def arm_twist_alternative(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions,
-                          neighbour: np.ndarray | None = None) -> np.ndarray | None:
-    """(35,) ``x`` with ``chain``'s arm solved (``solve_chain`` without its grid) from each of
-    its ``arm_twists``, the lowest, where that is below the arm solved from ``x`` itself; None
-    where none is, or where the arm is bent ARM_TWIST_MAX_ELBOW_RAD or more (its twist shows).
+                          neighbour: np.ndarray | None = None) -> tuple[np.ndarray | None, list]:
+    """((35,) ``x`` with ``chain``'s arm solved (``solve_chain`` without its grid) from each of
+    its ``arm_twists``, the lowest, where that is below the arm solved from ``x`` itself, else
+    None; the solves made, ChainResults). None and no solves where the arm is bent
+    ARM_TWIST_MAX_ELBOW_RAD or more (its twist shows).
     Given the ``neighbour`` frame's fit (35,), only the solved arms whose shoulder rotation is
     nearer the neighbour's than ``x``'s count: an arm does not turn half a turn between
     frames, and a wrong twist can have less energy (walk frame 12: 15,404 against 15,473 for
     the arm as tracked, 62 mm off at the wrist against 26)."""
     if x[CHAINS[chain].params[3]] >= ARM_TWIST_MAX_ELBOW_RAD:
-        return None
+        return None, []
     local = replace(options, grid_steps=1)  # the turned starts are the grid; a 3^4 grid each costs 4x
-    turned = [solve_chain(model, frame, chain, y, local, iteration=1) for y in arm_twists(model, chain, x)]
+    solves = [solve_chain(model, frame, chain, y, local, iteration=1) for y in arm_twists(model, chain, x)]
+    turned = solves
     if neighbour is not None:
         away = shoulder_turn_rad(x, neighbour, chain)
         turned = [r for r in turned if shoulder_turn_rad(r.params, neighbour, chain) < away]
     if not turned:
-        return None
+        return None, solves
     lowest = min(turned, key=lambda r: r.energy)
     own = solve_chain(model, frame, chain, x, local, iteration=1)
-    return lowest.params if lowest.energy < own.energy else None
+    return (lowest.params if lowest.energy < own.energy else None), [*solves, own]
 
 
 

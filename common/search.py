@@ -207,7 +207,8 @@ SEARCH = Schedule((
     Stage(("rotations",), ("deep",), rounds=BODY_ROTATION_ROUNDS),
     Stage(("swaps", "basins", "twists"), ("deep",)), *POLISHED,
     Stage(("hops",)),
-), budget=4_000_000)  # evaluations: twice the most any of the 34 first frames of `mocap bench init` spent (1.97M)
+), budget=4_000_000)  # evaluations: about twice the most any of the 34 first frames of `mocap bench init` spent
+# (1.97M before the limb basins' and arm twists' own solves were counted, which add 1-2%)
 # The neighbour's fit, then the pose halfway, each turned either way as tracking turns its start,
 # each group's best polished and its limbs re-detected, as tracking does. With one polish and one
 # re-detection for both, the dance was 10.6 / 60.3 mm (3 frames over 40) instead of 10.4 / 45.9
@@ -504,17 +505,26 @@ def _basins(ctx, source, spent, own):
     explains that limb, and neither can move alone."""
     if source is None:
         return []
-    return [a for chain in LIMB_CHAINS for a in limb_alternatives(ctx.model, ctx.frame, chain, source.params,
-                                                                    ctx.options)]
+    starts = []
+    for chain in LIMB_CHAINS:
+        alternatives, evaluations = limb_alternatives(ctx.model, ctx.frame, chain, source.params, ctx.options)
+        spent.evaluations += evaluations
+        starts += alternatives
+    return starts
 
 
 def _twists(ctx, source, spent, own):
     """Each nearly straight arm at its lower twist (towards the neighbour's, in a refinement)."""
     if source is None:
         return []
-    return [alt for chain in ARM_CHAINS
-            if (alt := arm_twist_alternative(ctx.model, ctx.frame, chain, source.params, ctx.options,
-                                             ctx.start)) is not None]
+    starts = []
+    for chain in ARM_CHAINS:
+        alternative, solves = arm_twist_alternative(ctx.model, ctx.frame, chain, source.params, ctx.options,
+                                                    ctx.start)
+        spent.add(solves)
+        if alternative is not None:
+            starts.append(alternative)
+    return starts
 
 
 def _hops(ctx, source, spent, own):

@@ -224,8 +224,9 @@ def test_limb_alternatives_find_a_forearm_folded_away(model, small_loaded):
     folded = true.copy()
     folded[P["l_elbow"]] = PARAM_LIMITS[P["l_elbow"], 1]
     data = FrameData(model, seq.studio, seq.silhouettes(f))
-    alternatives = limb_alternatives(model, data, "left_arm", folded, FitOptions(), count=2)
+    alternatives, evaluations = limb_alternatives(model, data, "left_arm", folded, FitOptions(), count=2)
     assert 1 <= len(alternatives) <= 2
+    assert evaluations > 1000  # the whole range's grid and the Powell solves from its basins
     joints = limb_joints(model, "left_arm", np.array([folded, *alternatives]))
     assert len(distinct_rows(joints, 3)) == len(joints)  # basins apart from x and each other
     true_joints = limb_joints(model, "left_arm", true)[0]
@@ -732,13 +733,16 @@ def test_a_straight_arm_twisted_half_a_turn_is_turned_back(model, five_frames):
         best = one_stage(model, data, Stage(("twists",)), twisted, start=neighbour)
         assert best.energy < twisted.energy
         assert joint_errors_mm(model, best.params, truth).max() < 30.0
-    # a neighbour whose arm is twisted as this one is: no turn is towards it, nothing fitted
+    # a neighbour whose arm is twisted as this one is: no turn is towards it, nothing fitted,
+    # but the turned arms' solves were made and count
     kept = one_stage(model, data, Stage(("twists",)), twisted, start=twisted.params)
     np.testing.assert_array_equal(kept.params, twisted.params)
-    assert kept.evaluations == twisted.evaluations
+    _, solves = arm_twist_alternative(model, data, "left_arm", twisted.params, options, twisted.params)
+    assert kept.evaluations > twisted.evaluations and len(solves) == len(arm_twists(model, "left_arm", start))
+    assert kept.evaluations - twisted.evaluations >= sum(r.evaluations for r in solves)
     bent = twisted.params.copy()
     bent[P["l_elbow"]] = ARM_TWIST_MAX_ELBOW_RAD
-    assert arm_twist_alternative(model, data, "left_arm", bent, options) is None
+    assert arm_twist_alternative(model, data, "left_arm", bent, options) == (None, [])
 
 
 @pytest.mark.timeout(120)
