@@ -478,9 +478,15 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     # a run that starts from a search goes back over its first frames once tracking has settled;
     # the refinement passes after tracking do that and more
     settle_index = min(SETTLE_FRAMES, len(frames) - 1) if init != "truth" and not options.refine_passes else -1
+    # the next frame's masks cleaned (seq.cleaned, 0.07 s for 8 cameras of 320x240) on a thread of
+    # their own while this frame is fitted: a cluster's server waits for its clients then, and a
+    # single process has a core to spare during the torso's solves
+    ahead = ThreadPoolExecutor(1, thread_name_prefix="masks") if seq.clean_masks else None
     for n, frame in enumerate(frames[len(done):], start=len(done)):
         t0 = time.perf_counter()
         data = frame_data(model, seq, frame)
+        if ahead is not None and n + 1 < len(frames):
+            ahead.submit(seq.cleaned, frames[n + 1])
         if x is None and init == "truth":
             x = initial_starts(model, seq, data, init)[0]
         if x is None:
@@ -530,6 +536,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
             energies = [int(r["energy"]) for r in settled]
         if progress:
             progress(n + 1, len(frames), f"E={result.energy}")
+    if ahead is not None:
+        ahead.shutdown(wait=True)
     records = read_done_frames(poses_path)
     passes = []
     for k in range(options.refine_passes if len(records) > 1 else 0):

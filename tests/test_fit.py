@@ -511,6 +511,36 @@ def test_a_lost_body_is_found_again_from_the_voxels(model, five_frames, tmp_path
 
 
 @pytest.mark.timeout(300)
+def test_the_next_frames_masks_are_cleaned_while_a_frame_is_fitted(model, five_frames, tmp_path):
+    """Tracking cleans the next frame's masks on a thread of its own; the poses are those of a
+    run whose masks were all cleaned beforehand."""
+    import threading
+
+    from common.sequence import load_sequence
+    from server.session import LocalSolver, run_fit
+
+    options = FitOptions(refine_passes=0)
+    seq = load_sequence(five_frames)
+    calls, clean = [], seq.cleaned
+
+    def watched(frame):
+        calls.append((frame, threading.current_thread().name, frame in seq._cleaned))
+        return clean(frame)
+
+    seq.cleaned = watched
+    run_fit(model, seq, tmp_path / "ahead", options, LocalSolver(model, options), max_frames=4)
+    ahead = {frame for frame, thread, cached in calls if thread.startswith("masks") and not cached}
+    assert ahead and ahead <= set(seq.frames[1:4])
+    before = load_sequence(five_frames)
+    for frame in before.frames[:4]:
+        before.cleaned(frame)
+    run_fit(model, before, tmp_path / "before", options, LocalSolver(model, options), max_frames=4)
+    assert read_lines(tmp_path / "ahead" / "poses.jsonl") and (
+        [r["params"] for r in read_lines(tmp_path / "ahead" / "poses.jsonl")]
+        == [r["params"] for r in read_lines(tmp_path / "before" / "poses.jsonl")])
+
+
+@pytest.mark.timeout(300)
 @pytest.mark.parametrize("backward", [True, False])
 def test_a_refinement_pass_refits_a_spoilt_frame_from_its_neighbour(model, five_frames, tmp_path, backward):
     """Three tracked frames, the one at the far end of the pass then spoilt (its left arm swung
