@@ -479,9 +479,10 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     # the refinement passes after tracking do that and more
     settle_index = min(SETTLE_FRAMES, len(frames) - 1) if init != "truth" and not options.refine_passes else -1
     # the next frame's masks cleaned (seq.cleaned, 0.07 s for 8 cameras of 320x240) on a thread of
-    # their own while this frame is fitted: a cluster's server waits for its clients then, and a
-    # single process has a core to spare during the torso's solves
-    ahead = ThreadPoolExecutor(1, thread_name_prefix="masks") if seq.clean_masks else None
+    # their own while this frame is fitted: a single process has a core to spare during the
+    # torso's solves. Not on a cluster's server: the cleaning holds the interpreter's lock for
+    # milliseconds at a time (scipy.ndimage), which its broker thread would wait through
+    ahead = ThreadPoolExecutor(1, thread_name_prefix="masks") if seq.clean_masks and solver.mode == "single" else None
     for n, frame in enumerate(frames[len(done):], start=len(done)):
         t0 = time.perf_counter()
         data = frame_data(model, seq, frame)
