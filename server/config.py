@@ -192,7 +192,12 @@ FIT_OPTION_DESTS = {
 
 # Named speed settings ([fit] keys over the defaults); `mocap bench presets` measures each.
 PRESETS = {
-    "fast": {"turn_hypotheses": 0, "polish_iterations": 0, "refine_passes": 0},  # online: one fit a frame
+    # online: no polish, no refinement; the start also turned either way by one step. With no
+    # turns (one fit a frame) the dance, walk and basketball were 17.0, 13.0 and 15.0 mm mean
+    # for the same wall time on two cores (0.36 s a frame over the three): a frame tracked
+    # turned from the truth is lost more often, and a lost frame's search costs more than the
+    # turns (docs/accuracy.md, "The fast preset turns its start")
+    "fast": {"turn_hypotheses": 1, "polish_iterations": 0, "refine_passes": 0},
     "default": {},
     "best": {"refine_passes": 2, "refine_search": True, "refine_hops": 60},  # offline work
 }

@@ -248,4 +248,4 @@ def test_presets_under_the_config_file_under_the_options(tmp_path, small_sequenc
     config = tmp_path / "Config.toml"
     config.write_text("[fit]\npolish_iterations = 1\n")
     both = options_of("--preset", "fast", "--config", str(config))
-    assert (both["polish_iterations"], both["turn_hypotheses"]) == (1, 0)
+    assert (both["polish_iterations"], both["turn_hypotheses"]) == (1, PRESETS["fast"]["turn_hypotheses"])
