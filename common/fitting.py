@@ -320,7 +320,12 @@ REDETECT_STEPS = 9
 REDETECT_HINGE_STEPS = 4
 REDETECT_MARGIN = 0.15    # the grid keeps this fraction of each joint range away from its limits
 REDETECT_STARTS = 2       # grid points refined by Powell, one per basin (see distinct_rows)
-REDETECT_STARTS_FIRST_FRAME = 8  # ... on a first frame, the best 8, where no limb is tracked yet
+# ... on a first frame's wide fits, where no limb is tracked yet: one per basin, 3 basins. The best
+# 8 grid points crowd one or two basins; with 3 basins (and 20 hops instead of 30) the 34 first
+# frames of `mocap bench init --first-frame-only` took 11% fewer evaluations, all within 50 mm,
+# mean error 12.70 -> 12.93 mm (docs/accuracy.md)
+REDETECT_STARTS_FIRST_FRAME = 3
+BASIN_STARTS = 8          # grid points (one per basin) a limb's search for its other basins refines
 REDETECT_STEP_RAD = 0.3   # Powell's first step from a grid point, rad
 REDETECT_GAIN = 0.01      # the alternative must lower the whole-image energy by this fraction
 BASIN_SEPARATION_M = 0.15  # limb poses whose elbow/knee or wrist/ankle lie this far apart: two basins
@@ -334,8 +339,7 @@ def redetect_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray,
     Returns (params (35,), whole-image energy at x, at the result, evaluations)."""
     tracking = options.redetect_turn in TRACKING_TURNS
     found, current, n = search_limb(model, frame, chain, x, options,
-                                    REDETECT_STARTS if tracking else REDETECT_STARTS_FIRST_FRAME,
-                                    one_per_basin=tracking)
+                                    REDETECT_STARTS if tracking else REDETECT_STARTS_FIRST_FRAME)
     # a clear gain only: an alternative a few pixels better is as often a mirror pose of the limb
     # (on a first frame the tracked limb is no better than any other: no threshold)
     best_x, best_e = x, current
@@ -362,10 +366,10 @@ def half_resolution_resolves_limbs(model: BodyModel, frame: FrameData, x: np.nda
 
 
 def search_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions,
-                starts: int, one_per_basin: bool):
+                starts: int):
     """One limb's whole range on the whole images, the other parts held at x: a grid, then
-    Powell from its ``starts`` best points, or with ``one_per_basin`` from the best point of
-    each of the ``starts`` best basins (a basin's points crowd the top of the grid otherwise).
+    Powell from the best point of each of the ``starts`` best basins (a basin's points crowd
+    the top of the grid otherwise).
     Returns ([(energy, params (35,)) per start, in grid order], the energy at x, evaluations)."""
     proximal, distal, _ = LIMB_PARTS[chain]
     backend = "cpu" if options.energy == "coarse-to-fine" else options.energy
@@ -383,12 +387,11 @@ def search_limb(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, o
     cand = np.repeat(x[None], np.prod([len(a) for a in axes]), axis=0)
     cand[:, list(proximal)] = np.array(list(product(*axes)))
     order = np.argsort(coarse(cand), kind="stable")
-    if one_per_basin:
-        # the basins' best points are almost always near the top: joints of the best few first
-        kept = distinct_rows(limb_joints(model, chain, cand[order[:BASIN_SCAN_ROWS]]), starts)
-        if len(kept) < starts:
-            kept = distinct_rows(limb_joints(model, chain, cand[order]), starts)
-        order = order[kept]
+    # the basins' best points are almost always near the top: joints of the best few first
+    kept = distinct_rows(limb_joints(model, chain, cand[order[:BASIN_SCAN_ROWS]]), starts)
+    if len(kept) < starts:
+        kept = distinct_rows(limb_joints(model, chain, cand[order]), starts)
+    order = order[kept]
     n = len(cand) + 1
     found = []
     for k in order[:starts]:

@@ -21,8 +21,7 @@ from common import voxels
 from common.body import (CHAINS, JOINT_NAMES, P, PARAM_LIMITS, BodyModel, clip_to_limits,
                          forward_kinematics, matrix_to_rotvec, rest_params, rotvec_to_matrix)
 from common.errors import UserError
-from common.fitting import (FitOptions, distinct_rows, limb_joints, powell, search_limb, solve_chain,
-                            REDETECT_STARTS_FIRST_FRAME)
+from common.fitting import BASIN_STARTS, FitOptions, distinct_rows, limb_joints, powell, search_limb, solve_chain
 from common.frame import FrameData, spot_grid
 from common.postures import SEARCH_POSTURES, posture_params
 from common.retarget import heading_tilt, nearest_turn
@@ -99,8 +98,7 @@ def limb_alternatives(model: BodyModel, frame: FrameData, chain: str, x: np.ndar
     explain the images worse than a wrong one (a forearm folded into its upper arm's silhouette,
     when it lies in front of the trunk); fitted again as a whole, the true limb wins
     (``server.session.search_frame``)."""
-    found, _, evaluations = search_limb(model, frame, chain, x, options, REDETECT_STARTS_FIRST_FRAME,
-                                        one_per_basin=True)
+    found, _, evaluations = search_limb(model, frame, chain, x, options, BASIN_STARTS)
     found.sort(key=lambda ey: ey[0])
     poses = np.array([y for _, y in found]).reshape(-1, len(x))
     keep = distinct_rows(limb_joints(model, chain, poses), count, taken=limb_joints(model, chain, x))
