@@ -321,9 +321,8 @@ REDETECT_HINGE_STEPS = 4
 REDETECT_MARGIN = 0.15    # the grid keeps this fraction of each joint range away from its limits
 REDETECT_STARTS = 2       # grid points refined by Powell, one per basin (see distinct_rows)
 # ... on a first frame's wide fits, where no limb is tracked yet: one per basin, 3 basins. The best
-# 8 grid points crowd one or two basins; with 3 basins (and 20 hops instead of 30) the 34 first
-# frames of `mocap bench init --first-frame-only` took 11% fewer evaluations, all within 50 mm,
-# mean error 12.70 -> 12.93 mm (docs/accuracy.md)
+# 8 grid points crowd one or two basins; with 3 basins the 34 first frames of `mocap bench init
+# --first-frame-only` took fewer evaluations, all within 50 mm (docs/accuracy.md)
 REDETECT_STARTS_FIRST_FRAME = 3
 BASIN_STARTS = 8          # grid points (one per basin) a limb's search for its other basins refines
 REDETECT_STEP_RAD = 0.3   # Powell's first step from a grid point, rad

@@ -556,10 +556,11 @@ def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: Fi
     return run_schedule(ctx, TRACKING)
 
 
-# hops that end a search: 06_02 from source frame 262 (five of eight views) 54 -> 27 mm with 30.
-# Logged hop by hop on the 34 first frames of `mocap bench init --first-frame-only`, the mean
-# error after 0, 10, 20 and 30 hops was 14.6, 13.7, 13.1 and 12.7 mm, at about 0.1 s a hop
-SEARCH_HOPS = 20
+# hops that end a search: 06_02 from source frame 262 (five of eight views) 54 -> 27 mm. Logged
+# hop by hop on the 34 first frames of `mocap bench init --first-frame-only`, the mean error
+# after 0, 10, 20 and 30 hops was 14.6, 13.7, 13.1 and 12.7 mm, at about 0.1 s a hop; with 20,
+# the cartwheel's (05_06) recoveries went wrong: 13.8 / 103 mm, 18 frames over 40 -> 14.0 / 150, 27
+SEARCH_HOPS = 30
 
 
 def search_frame(model: BodyModel, frame: FrameData, starts: list, options: FitOptions, dispatch: Dispatch,
