@@ -242,6 +242,31 @@ def test_limb_alternatives_find_a_forearm_folded_away(model, small_loaded):
     assert fit_frame(model, data, best, options).energy < fit_frame(model, data, folded, options).energy
 
 
+def test_a_first_frames_limb_search_refines_one_grid_point_per_basin(model, small_loaded, monkeypatch):
+    """A first frame's re-detection (no tracked limb) fits Powell from REDETECT_STARTS_FIRST_FRAME
+    grid points, each in a basin of its own: the grid's best points crowd one basin."""
+    import common.fitting as fitting
+
+    seq, truth = small_loaded
+    f = seq.frames[1]
+    data = FrameData(model, seq.studio, seq.silhouettes(f))
+    options = replace(FitOptions(), redetect_turn="round")  # a first frame's wide fits re-detect so
+    proximal = list(fitting.LIMB_PARTS["left_arm"][0])
+    starts = []
+    powell = fitting.powell
+
+    def recording(energy, x0, indices, *args, **kwargs):
+        if list(indices) == proximal:
+            starts.append(np.array(x0))
+        return powell(energy, x0, indices, *args, **kwargs)
+
+    monkeypatch.setattr(fitting, "powell", recording)
+    fitting.redetect_limb(model, data, "left_arm", truth[f].params, options)
+    assert len(starts) == fitting.REDETECT_STARTS_FIRST_FRAME
+    joints = fitting.limb_joints(model, "left_arm", np.array(starts))
+    assert fitting.distinct_rows(joints, len(starts)) == list(range(len(starts)))  # each in its own basin
+
+
 @pytest.mark.parametrize("scores,expected", [
     ({0.9: 5.0, 1.1: 6.0, 1.2: 1.0}, {1.0: 4.0, 0.9: 5.0, 1.1: 6.0}),  # up on both sides: stop there
     ({0.9: 3.0, 0.8: 3.5, 1.1: 3.9, 1.2: 3.0, 1.3: 3.0}, {1.0: 4.0, 0.9: 3.0, 0.8: 3.5, 1.1: 3.9, 1.2: 3.0, 1.3: 3.0}),

@@ -30,8 +30,9 @@ def add_fit_arguments(p) -> None:
                    help="defaults from this file's [fit] and [calibration] sections (see mocap config keys); "
                         "options given here win")
     p.add_argument("--preset", choices=tuple(PRESETS), default=None,
-                   help="fast (online: the previous pose and its turns either way fitted once, no refinement), default, or best (offline: two "
-                        "refinement passes with limb search and 60 hops); the file and options given win")
+                   help="fast (online: the previous pose and its turns either way fitted once, no refinement), "
+                        "default, or best (offline: two refinement passes with limb search and 60 hops); the file "
+                        "and options given win")
     p.set_defaults(command_parser=p)  # server.cli re-parses with the preset's and file's values as defaults
     p.add_argument("--out", type=Path, required=True, help="result folder")
     p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
