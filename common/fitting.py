@@ -63,7 +63,7 @@ class FitOptions:
     max_evals_extremity: int = 60
     prerender: bool = True
     torso_half_resolution: bool = True  # the paper's 160x120 torso energy
-    spine_twist_prior: float = 1500.0   # energy units (pixels) per rad^2 of spine twist
+    spine_twist_prior: float = 1500.0   # full-resolution pixels per rad^2 of spine twist
     limb_window_px: int = ARM_WINDOW    # the paper's 128x128 limb windows
     hinge_grid_full_range: bool = False  # grid elbows/knees over their whole range (rough starts)
     torso_grid_steps: int = 1           # >1: grid over pelvis heading x spine twist before Powell (off: measured worse on the walk)
@@ -228,7 +228,9 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
         if chain == "torso":
             whole = (frame.whole_image_energy(options.torso_half_resolution) if backend == "cpu"
                      else frame.energy(backend, frame.full_setup(x, half=options.torso_half_resolution)))
-            energy = with_spine_prior(whole, options.spine_twist_prior if backend != "volume" else 0.0)
+            # the prior is in full-resolution pixels: a half-resolution energy counts a quarter as many
+            scale = HALF ** 2 if options.torso_half_resolution else 1.0
+            energy = with_spine_prior(whole, scale * options.spine_twist_prior if backend != "volume" else 0.0)
             before = before if before is not None else int(energy(x)[0])
             idx = CHAINS["torso"].params
             steps = np.array([options.torso_step_m] * 3 + [options.torso_step_rad] * 6)

@@ -64,8 +64,8 @@ def add_fit_arguments(p) -> None:
                    help="refine a long take in chunks of about N frames side by side on the threads, meeting "
                         "where they join (default 0: the take as one)")
     p.add_argument("--spine-twist-prior", type=non_negative, default=FitOptions.spine_twist_prior, metavar="PX_PER_RAD2",
-                   help="how hard the torso's fit resists twisting the chest against the pelvis, silhouette pixels "
-                        f"per rad^2 (default {FitOptions.spine_twist_prior:g}; the twist hardly shows in silhouettes; "
+                   help="how hard the torso's fit resists twisting the chest against the pelvis, full-resolution "
+                        f"silhouette pixels per rad^2 (default {FitOptions.spine_twist_prior:g}; the twist hardly shows in silhouettes; "
                         "lower it for dancers who twist a lot, 0: off)")
     p.add_argument("--turn-step", type=real(0.0, math.pi, exclusive_minimum=True), default=FitOptions.turn_step_rad, metavar="RAD",
                    help=f"the turn step, rad (default {FitOptions.turn_step_rad})")
