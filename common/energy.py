@@ -8,19 +8,23 @@ One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``)
 - Parts that do not move during a sub-optimization are pre-rendered into a static mask M.
   With the input I and the moving parts' render R, inside a window
       |(R or M) xor I| = |M xor I| + sum over R of v,   v = 0 where M, else 1 - 2 I,
-  so each evaluation only needs the moving parts and per-row prefix sums of v.
+  so each evaluation only needs the moving parts and, per window row, two bit masks: the
+  pixels where v = +1 and where v = -1.
 - The cpu backend renders each segment's ellipsoid exactly as an image conic
-  C = (P Q* P^T)^-1, takes one covered span per (camera, segment, row), merges spans per row
-  and sums v over the merged spans with the prefix sums: no per-pixel work per evaluation.
-  The conics and the spans' sums of an evaluation are compiled loops (numba): numpy's
-  per-call overhead, not arithmetic, was most of an evaluation's time.
+  C = (P Q* P^T)^-1 and takes one covered span per (camera, segment, row); the spans are ORed
+  into a bit mask per row, so spans that overlap count once, and the sum of v is two
+  population counts per 64 pixels: no per-pixel work per evaluation. (Merging sorted spans
+  over prefix sums gave the same sums at twice the time on a 16-part torso: the sorting's
+  branches, not the arithmetic, cost.) The conics and the sums of an evaluation are compiled
+  loops (numba): numpy's per-call overhead, not arithmetic, was most of an evaluation's time.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import intrinsic
 
 from common.body import _SEGMENT_PARENTS, PARAM_COUNT, BodyModel, _forward_kinematics, _segment_mask, forward_kinematics
 from common.camera import Studio
@@ -29,6 +33,7 @@ from common.packing import inside_images, padded_shape
 ARM_WINDOW = 128   # pixels, windows for upper arm + forearm, thigh + shin
 SMALL_WINDOW = 64  # pixels, windows for head, hands, feet
 MIN_DEPTH_M = 0.1  # ellipsoids closer to a camera than this are not drawn
+POSE_CHUNK = 32    # poses whose conics one compiled evaluation makes at once (pose_energies)
 
 
 @dataclass(frozen=True)
@@ -177,16 +182,24 @@ def _conic_rows(C: np.ndarray, drawable: bool, y0: float, rows: int) -> tuple:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _conic_span(C: np.ndarray, y: float, x0: float, width: int) -> tuple:
-    """Window columns [start, end) a conic covers on image row y (end <= start: none)."""
-    a = C[0, 0]
-    b = 2.0 * (C[0, 1] * y + C[0, 2])
-    c = (C[1, 1] * y + 2.0 * C[1, 2]) * y + C[2, 2]
-    root = np.sqrt(max(b * b - 4.0 * a * c, 0.0))
-    inv2a = 0.5 / a
-    start = int(min(max(np.ceil((-b - root) * inv2a - x0), 0.0), float(width)))
-    end = int(min(max(np.floor((-b + root) * inv2a - x0) + 1.0, 0.0), float(width)))
-    return start, end
+def _conic_row_form(C: np.ndarray, x0: float) -> tuple:
+    """A conic C (3, 3) drawn on rows (``_conic_rows``) as its span on image row y: centre
+    cu + cv y and squared half-width q0 + y (q1 + y q2), window columns (x0 the window's
+    left edge). -> (cu, cv, q0, q1, q2)."""
+    c00, c01, c02 = C[0, 0], C[0, 1], C[0, 2]
+    inv = 1.0 / c00
+    inv2 = inv * inv
+    return (-c02 * inv - x0, -c01 * inv, (c02 * c02 - c00 * C[2, 2]) * inv2,
+            2.0 * (c01 * c02 - c00 * C[1, 2]) * inv2, (c01 * c01 - c00 * C[1, 1]) * inv2)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_span(cu: float, cv: float, q0: float, q1: float, q2: float, y: float, width: float) -> tuple:
+    """Window columns [start, end) a conic in row form covers on image row y (end <= start: none)."""
+    centre = cu + cv * y
+    half = np.sqrt(max(q0 + y * (q1 + y * q2), 0.0))
+    return (int(min(max(np.ceil(centre - half), 0.0), width)),
+            int(min(max(np.floor(centre + half) + 1.0, 0.0), width)))
 
 
 @njit(cache=True, nogil=True)
@@ -200,84 +213,103 @@ def conic_coverage(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.n
         for k in range(K):
             for s in range(S):
                 first, last = _conic_rows(C[b, k, s], drawable[b, k, s], y0[k], rows)
+                if last <= first:
+                    continue
+                cu, cv, q0, q1, q2 = _conic_row_form(C[b, k, s], x0[k])
                 for row in range(first, last):
-                    start, end = _conic_span(C[b, k, s], float(row) + y0[k], x0[k], width)
+                    start, end = _row_span(cu, cv, q0, q1, q2, float(row) + y0[k], float(width))
                     out[b, k, row, start:end] = True
     return out
 
 
+@intrinsic
+def _popcount(typingctx, x):
+    """The set bits of a uint64 (LLVM's ctpop: one instruction where the CPU has one)."""
+    def codegen(context, builder, signature, args):
+        return builder.ctpop(args[0])
+    return types.uint64(types.uint64), codegen
+
+
+_ALL_BITS = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
 @njit(cache=True, nogil=True)
-def xor_prefix(static: np.ndarray, inputs: np.ndarray) -> tuple:
-    """static, inputs (K, h, w) bool -> per-row prefix sums (K, h, w + 1) int32 of the value a
-    moving part adds by covering a pixel (0 where static covers it, else 1 - 2 * input), and
-    the static parts' own XOR count |static xor inputs|."""
+def xor_bits(static: np.ndarray, inputs: np.ndarray) -> tuple:
+    """static, inputs (K, h, w) bool -> the value a moving part adds by covering a pixel
+    (0 where static covers it, else 1 - 2 * input) as two bit masks per row, gain (+1: neither
+    static nor input) and loss (-1: input, not static), (K, h, ceil(w / 64)) uint64, bit
+    c % 64 of word c // 64 for column c; and the static parts' own XOR count |static xor inputs|."""
     K, h, w = inputs.shape
-    prefix = np.zeros((K, h, w + 1), np.int32)
+    words = (w + 63) // 64
+    gain = np.zeros((K, h, words), np.uint64)
+    loss = np.zeros((K, h, words), np.uint64)
     base = 0
+    one = np.uint64(1)
     for k in range(K):
         for r in range(h):
-            acc = 0
             for c in range(w):
+                bit = one << np.uint64(c & 63)
                 if static[k, r, c]:
                     base += not inputs[k, r, c]
+                elif inputs[k, r, c]:
+                    base += 1
+                    loss[k, r, c >> 6] |= bit
                 else:
-                    acc += 1 - 2 * inputs[k, r, c]
-                    base += inputs[k, r, c]
-                prefix[k, r, c + 1] = acc
-    return prefix, base
+                    gain[k, r, c >> 6] |= bit
+    return gain, loss, base
 
 
 @njit(cache=True, nogil=True)
 def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.ndarray, rows: int, width: int,
-                  prefix: np.ndarray) -> np.ndarray:
+                  gain: np.ndarray, loss: np.ndarray) -> np.ndarray:
     """Sum of per-pixel values over the union of the conics' covered spans, per batch entry:
     the evaluation's inner loop. Covers the pixels ``conic_coverage`` covers.
 
     C (B, K, S, 3, 3) conics (negative inside); drawable (B, K, S); y0, x0 (K,) window corners;
-    prefix (K, rows, width + 1) per-row prefix sums of the values -> (B,) int64 sums.
+    gain, loss (K, rows, words) the values as bit masks (``xor_bits``) -> (B,) int64 sums.
     """
     B, K, S = C.shape[0], C.shape[1], C.shape[2]
+    words = gain.shape[2]
     out = np.zeros(B, np.int64)
-    first = np.empty(S, np.int64)
-    last = np.empty(S, np.int64)
-    starts = np.empty(S, np.int64)
-    ends = np.empty(S, np.int64)
+    union = np.zeros((rows, words), np.uint64)  # the covered pixels of one camera, zeroed as summed
+    fw = float(width)
     for b in range(B):
         total = 0
         for k in range(K):
             top, bottom = rows, 0
             for s in range(S):
-                first[s], last[s] = _conic_rows(C[b, k, s], drawable[b, k, s], y0[k], rows)
-                if last[s] > first[s]:
-                    top, bottom = min(top, first[s]), max(bottom, last[s])
-            for row in range(top, bottom):
-                y = float(row) + y0[k]
-                n = 0  # this row's spans, kept sorted by start (S is at most 16)
-                for s in range(S):
-                    if not first[s] <= row < last[s]:
-                        continue
-                    start, end = _conic_span(C[b, k, s], y, x0[k], width)
+                first, last = _conic_rows(C[b, k, s], drawable[b, k, s], y0[k], rows)
+                if last <= first:
+                    continue
+                top, bottom = min(top, first), max(bottom, last)
+                cu, cv, q0, q1, q2 = _conic_row_form(C[b, k, s], x0[k])
+                for row in range(first, last):
+                    start, end = _row_span(cu, cv, q0, q1, q2, float(row) + y0[k], fw)
                     if end <= start:
                         continue
-                    j = n
-                    while j > 0 and starts[j - 1] > start:
-                        starts[j], ends[j] = starts[j - 1], ends[j - 1]
-                        j -= 1
-                    starts[j], ends[j] = start, end
-                    n += 1
-                reach = 0  # merged spans: each pixel counted once
-                for j in range(n):
-                    s0 = max(starts[j], reach)
-                    if ends[j] > s0:
-                        total += prefix[k, row, ends[j]] - prefix[k, row, s0]
-                        reach = ends[j]
+                    ws, we = start >> 6, (end - 1) >> 6
+                    head = _ALL_BITS << np.uint64(start & 63)
+                    tail = _ALL_BITS >> np.uint64(63 - ((end - 1) & 63))
+                    u = union[row]
+                    if ws == we:
+                        u[ws] |= head & tail
+                    else:
+                        u[ws] |= head
+                        for j in range(ws + 1, we):
+                            u[j] = _ALL_BITS
+                        u[we] |= tail
+            for row in range(top, bottom):
+                u, g, l = union[row], gain[k, row], loss[k, row]
+                for j in range(words):
+                    total += np.int64(_popcount(u[j] & g[j])) - np.int64(_popcount(u[j] & l[j]))
+                    u[j] = np.uint64(0)
         out[b] = total
     return out
 
 
 @njit(cache=True, nogil=True)
 def pose_energies(p, rest_offsets, param_joint, param_axis, parents, offsets, head_top_offset, needed, seg,
-                  local_centres, local_A, P, y0, x0, rows, width, prefix) -> np.ndarray:
+                  local_centres, local_A, P, y0, x0, rows, width, gain, loss) -> np.ndarray:
     """The moving parts' XOR sums of a batch of poses in one compiled call: forward kinematics,
     posed ellipsoids, conics and spans (each step the same arithmetic as its own kernel).
 
@@ -285,12 +317,19 @@ def pose_energies(p, rest_offsets, param_joint, param_axis, parents, offsets, he
     and the segments needed (16,) bool; seg (S,) the moving segments, their local ellipsoid
     centres (S, 3) and axes scaled by radii (S, 3, 3); then as ``xor_span_sums`` -> (B,) int64.
     One call instead of four kernels and their numpy glue: the glue cost as much as the work.
+    Large batches (a limb's grid) go through in chunks of POSE_CHUNK poses, whose conics stay
+    in the cache: a grid of 2,916 poses made 5 MB of conics and took 1.6 times as long.
     """
-    rot, org, _ = _forward_kinematics(p, rest_offsets, param_joint, param_axis, parents, offsets, head_top_offset,
-                                      needed)
-    centres, A = _pose_ellipsoids(rot, org, seg, local_centres, local_A)
-    C, drawable = image_conics(P, centres, A)
-    return xor_span_sums(C, drawable, y0, x0, rows, width, prefix)
+    B = p.shape[0]
+    out = np.empty(B, np.int64)
+    for c0 in range(0, B, POSE_CHUNK):
+        c1 = min(B, c0 + POSE_CHUNK)
+        rot, org, _ = _forward_kinematics(p[c0:c1], rest_offsets, param_joint, param_axis, parents, offsets,
+                                          head_top_offset, needed)
+        centres, A = _pose_ellipsoids(rot, org, seg, local_centres, local_A)
+        C, drawable = image_conics(P, centres, A)
+        out[c0:c1] = xor_span_sums(C, drawable, y0, x0, rows, width, gain, loss)
+    return out
 
 
 # ------------------------------------------------------------------------ the energy
@@ -399,7 +438,7 @@ class VolumeEnergy:
 
 
 class CpuEnergy:
-    """The ``cpu`` backend: analytic ellipsoid silhouettes, spans and prefix sums."""
+    """The ``cpu`` backend: analytic ellipsoid silhouettes, spans ORed into bit masks."""
 
     backend = "cpu"
 
@@ -425,14 +464,14 @@ class CpuEnergy:
         inputs = np.ascontiguousarray(setup.inputs, dtype=np.bool_)
         if self.inside is not None:  # beyond a window static and input both set: v = 0, no base
             M, inputs = M | ~self.inside, inputs | ~self.inside
-        self.prefix, base = xor_prefix(M, inputs)
+        self.gain, self.loss, base = xor_bits(M, inputs)
         self.base = int(base)
         seg = np.asarray(self.moving, dtype=np.int64)
         self.kernel_tables = (*model.kinematic_tables[:3], _SEGMENT_PARENTS, *model.kinematic_tables[3:],
                                _segment_mask(self.moving), seg,
                                np.ascontiguousarray(model.ellipsoid_centres[seg]),
                                model.ellipsoid_axes[seg] * model.ellipsoid_radii[seg][:, None, :],
-                               self.P, self.y0, self.x0, self.rows, self.width, self.prefix)
+                               self.P, self.y0, self.x0, self.rows, self.width, self.gain, self.loss)
 
     def _conics(self, params: np.ndarray, segments) -> tuple:
         pose = forward_kinematics(self.model, params, tuple(segments))

@@ -126,7 +126,7 @@ class FrameData:
     def whole_image_energy(self, half: bool = False):
         """The ``cpu`` energy of the whole images with every segment moving. Nothing is
         pre-rendered, so it does not depend on a pose: built once per frame and resolution
-        (its prefix sums over 8 full images cost more than a few evaluations)."""
+        (its bit masks of 8 full images cost more than a few evaluations)."""
         if half not in self._whole_image_energies:
             setup = self.full_setup(rest_params(self.model), half=half)
             self._whole_image_energies[half] = make_energy("cpu", self.model, setup)

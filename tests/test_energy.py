@@ -75,7 +75,7 @@ def test_compiled_span_sums_equal_per_pixel_sums_of_the_rendered_union(model, fr
     pose = forward_kinematics(model, poses)
     centres, A = ellipsoid_world(model, pose.rotations, pose.origins, range(16))
     C, drawable = image_conics(energy.P, centres, A)
-    K, rows, width = energy.prefix.shape[0], energy.rows, energy.width
+    K, rows, width = len(energy.P), energy.rows, energy.width
     covered = conic_coverage(C, drawable, energy.y0, energy.x0, rows, width)
     ys, xs = np.mgrid[0:rows, 0:width].astype(np.float64)
     for b in range(len(poses)):
@@ -86,8 +86,13 @@ def test_compiled_span_sums_equal_per_pixel_sums_of_the_rendered_union(model, fr
             # a pixel centre within rounding of a conic's edge may fall either way
             assert np.count_nonzero(brute != covered[b, k]) <= 2, (b, k)
     assert covered.any()
-    values = np.diff(energy.prefix, axis=2)  # the per-pixel values the prefix sums add up
-    sums = xor_span_sums(C, drawable, energy.y0, energy.x0, rows, width, energy.prefix)
+    # the value covering a pixel adds: 0 where static (or outside the window), else 1 - 2 * input
+    static = energy.static_mask if energy.inside is None else energy.static_mask | ~energy.inside
+    values = np.where(static, 0, 1 - 2 * data.full_setup(x).inputs.astype(np.int64))
+    unpack = lambda words: np.unpackbits(words.view(np.uint8), axis=-1, bitorder="little")[..., :width].astype(bool)
+    np.testing.assert_array_equal(unpack(energy.gain), values == 1)
+    np.testing.assert_array_equal(unpack(energy.loss), values == -1)
+    sums = xor_span_sums(C, drawable, energy.y0, energy.x0, rows, width, energy.gain, energy.loss)
     np.testing.assert_array_equal(sums, [values[c].sum() for c in covered])
     assert (energy(poses) == energy.base + sums).all()
 
