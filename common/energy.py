@@ -241,21 +241,20 @@ def xor_bits(static: np.ndarray, inputs: np.ndarray) -> tuple:
     c % 64 of word c // 64 for column c; and the static parts' own XOR count |static xor inputs|."""
     K, h, w = inputs.shape
     words = (w + 63) // 64
-    gain = np.zeros((K, h, words), np.uint64)
-    loss = np.zeros((K, h, words), np.uint64)
+    gain = np.empty((K, h, words), np.uint64)
+    loss = np.empty((K, h, words), np.uint64)
     base = 0
-    one = np.uint64(1)
     for k in range(K):
         for r in range(h):
-            for c in range(w):
-                bit = one << np.uint64(c & 63)
-                if static[k, r, c]:
-                    base += not inputs[k, r, c]
-                elif inputs[k, r, c]:
-                    base += 1
-                    loss[k, r, c >> 6] |= bit
-                else:
-                    gain[k, r, c >> 6] |= bit
+            for j in range(words):  # one word's 64 pixels gathered before it is stored
+                g = l = np.uint64(0)
+                for c in range(j * 64, min(w, j * 64 + 64)):
+                    s, i = static[k, r, c], inputs[k, r, c]
+                    base += s != i
+                    bit = np.uint64(c - j * 64)
+                    g |= np.uint64(not s and not i) << bit
+                    l |= np.uint64(not s and i) << bit
+                gain[k, r, j], loss[k, r, j] = g, l
     return gain, loss, base
 
 
