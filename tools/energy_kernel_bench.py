@@ -3,11 +3,13 @@
     python tools/energy_kernel_bench.py SEQUENCE [--frame 40] [--json FILE]
 
 SEQUENCE: a synthesised sequence with truth (``mocap synth --out SEQUENCE``). At the truth's
-pose of ``--frame`` it builds the four energies a fit evaluates most, as the fit builds them:
+pose of ``--frame`` it builds the energies a fit evaluates most, as the fit builds them:
 the torso's (whole images at half resolution, all 16 segments moving), a limb's (128-pixel
-windows, 3 segments), a limb re-detection's (whole images, 3 segments) and a hand's (64-pixel
-windows, 1 segment); then times ``pose_energies`` on batches of 4 poses near the truth inside
-one compiled loop (no Python per call, as in the compiled Powell), best of 9 repeats.
+windows, 3 segments), a limb re-detection's (whole images, 3 segments), a hand's (64-pixel
+windows, 1 segment) and a hop's (whole images, all 16 segments); then times ``pose_energies``
+on batches of 4 poses near the truth inside one compiled loop (no Python per call, as in the
+compiled Powell), best of 9 repeats; and the grids a fit evaluates in one call: a limb's
+(3 points per parameter, 81 poses) and a re-detection's (its 2,916 poses at half resolution).
 To compare two versions, run it in each checkout one after the other: the machine's speed
 drifts, so compare ratios measured close together.
 """
@@ -31,7 +33,7 @@ from common.sequence import load_sequence  # noqa: E402
 from server.session import frame_data  # noqa: E402
 
 BATCH = 4          # poses per call, as a line search's probes
-CALLS = 2000       # calls per timed repeat
+EVALUATIONS = 8000  # evaluations per timed repeat
 REPEATS = 9
 SPREAD_RAD = 0.05  # joint angles drawn this far around the truth
 
@@ -58,31 +60,37 @@ def main(argv=None) -> int:
     model = load_body_model()
     data = frame_data(model, seq, args.frame)
     x = np.asarray(truth[args.frame].params, dtype=np.float64)
-    arm = CHAINS["left_arm"].segments
-    setups = {
-        "torso (half-resolution images, 16 segments)": data.full_setup(x, half=True),
-        "limb (128-pixel windows, 3 segments)": replace(data.window_setup(x, arm[:2], ARM_WINDOW, True), moving=arm),
-        "re-detection (whole images, 3 segments)": replace(data.full_setup(x), moving=CHAINS["right_leg"].segments,
-                                                           prerender=True),
-        "hand (64-pixel windows, 1 segment)": data.window_setup(x, LIMB_PARTS["left_arm"][2], SMALL_WINDOW, True),
+    arm, leg = CHAINS["left_arm"].segments, CHAINS["right_leg"].segments
+    limb = replace(data.window_setup(x, arm[:2], ARM_WINDOW, True), moving=arm)
+    setups = {  # name: (setup, poses per call)
+        "torso (half-resolution images, 16 segments)": (data.full_setup(x, half=True), BATCH),
+        "limb (128-pixel windows, 3 segments)": (limb, BATCH),
+        "re-detection (whole images, 3 segments)": (replace(data.full_setup(x), moving=leg, prerender=True), BATCH),
+        "hand (64-pixel windows, 1 segment)": (data.window_setup(x, LIMB_PARTS["left_arm"][2], SMALL_WINDOW, True),
+                                               BATCH),
+        "hop (whole images, 16 segments)": (data.full_setup(x), BATCH),
+        "limb grid (128-pixel windows, 81 poses)": (limb, 81),
+        "re-detection grid (half resolution, 2916 poses)": (replace(data.full_setup(x, half=True), moving=leg,
+                                                                    prerender=True), 2916),
     }
     rng = np.random.default_rng(0)
     rows = []
-    for name, setup in setups.items():
+    for name, (setup, batch) in setups.items():
         tables = CpuEnergy(model, setup).kernel_tables
-        poses = x[None] + SPREAD_RAD * rng.standard_normal((BATCH, x.size)) * (np.arange(x.size) >= 3)
+        poses = x[None] + SPREAD_RAD * rng.standard_normal((batch, x.size)) * (np.arange(x.size) >= 3)
+        calls = max(1, EVALUATIONS // batch)
         _repeat(1, poses, tables)  # compile
-        best = min(_timed(poses, tables) for _ in range(REPEATS))
-        rows.append({"energy": name, "us_per_evaluation": 1e6 * best / (CALLS * BATCH)})
+        best = min(_timed(calls, poses, tables) for _ in range(REPEATS))
+        rows.append({"energy": name, "poses_per_call": batch, "us_per_evaluation": 1e6 * best / (calls * batch)})
         print(f"{name:48s} {rows[-1]['us_per_evaluation']:7.2f} us per evaluation")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
     return 0
 
 
-def _timed(poses, tables) -> float:
+def _timed(calls, poses, tables) -> float:
     t0 = time.perf_counter()
-    _repeat(CALLS, poses, tables)
+    _repeat(calls, poses, tables)
     return time.perf_counter() - t0
 
 
