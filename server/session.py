@@ -337,7 +337,10 @@ SETTLE_FRAMES = 10  # frames tracked after a first-frame search before it is ref
 # last frame: the left ankle 70 mm off, the clip's worst). One frame per pass, so it can have
 # a deeper search than the rest: on the three accuracy clips' last frames, 120 hops lowered
 # the energy of 30 hops' fit on all three, by 0.3-0.5% (basketball's left wrist 48 -> 33 mm),
-# for about 13 s per pass.
+# for about 13 s per pass. It is also fitted from each limb's other basins (the first pass's
+# ``search``, done for this frame in every pass): basketball's last frame kept a left elbow
+# 89 mm off through the hops, and from the basins its energy fell from 3,272 to 3,188 pixels
+# and its worst joint to 35 mm.
 PASS_START_HOPS = 120
 
 def refine_chunks(order: list[int], chunk_frames: int) -> list[list[int]]:
@@ -356,7 +359,8 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     its neighbour's fit: going backwards each frame starts from the (already refined) fit of the
     frame after it, forwards from the frame before; each keeps the lowest energy. The pass's
     first frame, which has no neighbour, is fitted by PASS_START_HOPS hops (the pass's own
-    ``hops`` where it has them), unless ``anchor`` (35,) is the fit of the frame beyond it, which
+    ``hops`` where it has them) and from its limbs' other basins, unless ``anchor`` (35,) is
+    the fit of the frame beyond it, which
     the pass then starts from (a run without refinement carrying its settled tracking back over
     the frames after a first-frame search). With ``search``, each frame is also fitted from each limb's
     other basins (tracking and its neighbours can share a torso and limb that are off together:
@@ -381,9 +385,10 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     order = list(range(len(out)))[::step]
     done, replaced, lock = [0], set(), threading.Lock()
 
-    def refine_one(i: int, neighbour, beyond, frame_hops: int, own_thread: bool = False):
+    def refine_one(i: int, neighbour, beyond, frame_hops: int, own_thread: bool = False, basins: bool = search):
         """Frame i again from ``neighbour``; its record changed here; the search's result.
-        ``own_thread``: a chunk's frame, its jobs one after another in the chunk's thread."""
+        ``own_thread``: a chunk's frame, its jobs one after another in the chunk's thread;
+        ``basins``: also from its limbs' other basins (REFINE_SEARCH)."""
         r = out[i]
         t0 = time.perf_counter()
         ahead = i + step  # the neighbour on the other side, not yet refined in a pass without chunks
@@ -396,7 +401,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
             ctx = context(model, data, r["frame"], options, solver)
             dispatch, at_once = ctx.dispatch, ctx.side_by_side
         again = refine_frame(model, data, tracked, options, dispatch, neighbour, beyond, other, frame_hops,
-                             search, r["frame"], at_once)
+                             basins, r["frame"], at_once)
         r["refine_seconds"] = r.get("refine_seconds", 0.0) + time.perf_counter() - t0
         r["refine_evaluations"] = r.get("refine_evaluations", 0) + again.evaluations
         if again.energy < r["energy"]:
@@ -415,7 +420,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     searched = []
     neighbour = None if anchor is None else np.asarray(anchor, dtype=np.float64)
     if neighbour is None and order:  # the pass's first frame, by hops on every thread
-        searched.append(refine_one(order[0], None, None, hops or PASS_START_HOPS))
+        searched.append(refine_one(order[0], None, None, hops or PASS_START_HOPS, basins=True))
         neighbour, order = np.asarray(out[order[0]]["params"], dtype=np.float64), order[1:]
     chunks = refine_chunks(order, options.refine_chunk_frames)
     side_by_side = isinstance(solver, LocalSolver) and solver.threads > 1 and len(chunks) > 1

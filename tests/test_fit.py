@@ -722,10 +722,11 @@ def test_a_refinement_pass_fits_each_inner_frame_from_halfway_between_its_neighb
 
 
 @pytest.mark.timeout(300)
-def test_a_searching_pass_refits_a_frame_from_its_limbs_other_basins(model, five_frames, tmp_path, monkeypatch):
-    """The pass's first frame, which a plain pass without hops keeps as it is, with its left forearm folded
-    back along the upper arm: the search refits it from the arm's other basins. run_fit searches
-    in its first pass only, and says so."""
+def test_a_pass_refits_its_first_frame_from_its_limbs_other_basins(model, five_frames, tmp_path, monkeypatch):
+    """The pass's first frame, which has no neighbour to be refitted from, with its left forearm
+    folded back along the upper arm: every pass refits it from the arm's other basins, a plain
+    pass too; a searching pass refits every frame so, a plain one its first frame only. run_fit
+    searches in its first pass only, and says so."""
     from common.sequence import load_sequence
     from server import session
     from server.session import LocalSolver, RunStats, refine_pass, refinement_note, run_fit
@@ -746,13 +747,22 @@ def test_a_searching_pass_refits_a_frame_from_its_limbs_other_basins(model, five
     records[-1].update(params=spoilt.tolist(), energy=full_energy(model, data, spoilt))
     arm = [JOINT_NAMES.index("l_elbow"), JOINT_NAMES.index("l_wrist")]
     truth = seq.truth()[records[-1]["frame"]]
-    plain, _ = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats())
-    assert joint_errors_mm(model, np.array(plain[-1]["params"]), truth)[arm].max() > 100.0  # the arm stays folded
-    searched, replaced = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats(),
-                                     search=True)
-    assert replaced >= 1 and searched[-1]["energy"] < records[-1]["energy"]
-    assert all(r["energy"] <= b["energy"] for r, b in zip(searched, records))
-    assert joint_errors_mm(model, np.array(searched[-1]["params"]), truth)[arm].max() < 50.0
+    searched_frames = []
+    real = session.refine_frame
+
+    def spy(model_, data_, tracked, options_, dispatch, neighbour, beyond, other, hops, search, *rest):
+        searched_frames.append(search)
+        return real(model_, data_, tracked, options_, dispatch, neighbour, beyond, other, hops, search, *rest)
+
+    monkeypatch.setattr(session, "refine_frame", spy)
+    for search in (False, True):
+        searched_frames.clear()
+        refined, replaced = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats(),
+                                        search=search)
+        assert searched_frames == [True, search]  # the pass's first frame (the last), then the other
+        assert replaced >= 1 and refined[-1]["energy"] < records[-1]["energy"]
+        assert all(r["energy"] <= b["energy"] for r, b in zip(refined, records))
+        assert joint_errors_mm(model, np.array(refined[-1]["params"]), truth)[arm].max() < 50.0
 
 
 def test_arm_twists_turn_the_upper_arm_about_itself_and_bend_the_elbow(model):
