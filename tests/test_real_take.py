@@ -52,7 +52,8 @@ def test_the_seated_take_fits_seated_upright_and_still(tmp_path):
     mocap("fit", seq, "--out", result, "--quiet")
     records = [json.loads(line) for line in (result / "poses.jsonl").read_text().splitlines()]
     assert len(records) == 22 and all(r["world_up"] == "-z" for r in records)
-    fig = posture_figures(records)
+    summary = json.loads((result / "summary.json").read_text())
+    fig = posture_figures(records, summary["actor_scale"])  # the feet's lowest points too, printed
     print(json.dumps({k: (np.round(v, 3).tolist() if isinstance(v, list) else v) for k, v in fig.items()}))
     for side in ("l", "r"):
         for joint in ("hip", "knee"):  # degrees; standing: under 20
@@ -68,6 +69,5 @@ def test_the_seated_take_fits_seated_upright_and_still(tmp_path):
     player = json.loads(page.split('<script type="application/json" id="player-data">')[1].split("</script>")[0])
     head, pelvis = player["joints"].index("head_top"), player["joints"].index("pelvis")
     assert all(f[3 * head + 2] > f[3 * pelvis + 2] for f in player["fitted"])  # upright in the report's z-up view
-    summary = json.loads((result / "summary.json").read_text())
     assert summary["world_up"] == "-z" and summary["fit_quality"]["mean_xor_share"] < 0.45
     assert set(summary["fit_quality"]["per_camera_mean_xor_share"]) == set(CAMERAS)
