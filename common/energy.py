@@ -13,10 +13,11 @@ One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``)
 - The cpu backend renders each segment's ellipsoid exactly as an image conic
   C = (P Q* P^T)^-1 and takes one covered span per (camera, segment, row); the spans are ORed
   into a bit mask per row, so spans that overlap count once, and the sum of v is two
-  population counts per 64 pixels: no per-pixel work per evaluation. (Merging sorted spans
-  over prefix sums gave the same sums at twice the time on a 16-part torso: the sorting's
-  branches, not the arithmetic, cost.) The conics and the sums of an evaluation are compiled
-  loops (numba): numpy's per-call overhead, not arithmetic, was most of an evaluation's time.
+  population counts per 64 pixels: no per-pixel work per evaluation. (Merging the spans in
+  sorted order over prefix sums gives the same sums; it took a tenth longer on a 16-part torso
+  and a sixth longer on a whole body, about the same on a limb: tools/energy_kernel_bench.py,
+  docs/accuracy.md.) The conics and the sums of an evaluation are compiled loops (numba):
+  numpy's per-call overhead, not arithmetic, was most of an evaluation's time.
 """
 from __future__ import annotations
 
@@ -317,7 +318,7 @@ def pose_energies(p, rest_offsets, param_joint, param_axis, parents, offsets, he
     centres (S, 3) and axes scaled by radii (S, 3, 3); then as ``xor_span_sums`` -> (B,) int64.
     One call instead of four kernels and their numpy glue: the glue cost as much as the work.
     Large batches (a limb's grid) go through in chunks of POSE_CHUNK poses, whose conics stay
-    in the cache: a grid of 2,916 poses made 5 MB of conics and took 1.6 times as long.
+    in the cache: a re-detection's grid of 2,916 poses made 5 MB of conics at once.
     """
     B = p.shape[0]
     out = np.empty(B, np.int64)
