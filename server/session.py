@@ -4,7 +4,9 @@ Each frame is fitted by ``common.search``'s schedules: tracked from the previous
 frame whose energy jumps above the recent frames' is a loss (a limb: every limb re-detected; the
 whole body: searched again from its voxels, as a first frame is), the better fit kept. After
 tracking, ``options.refine_passes`` passes fit every frame again from its neighbour's fit,
-backwards then forwards alternately (``refine_pass``); with none, a run that starts from a search
+backwards then forwards alternately (``refine_pass``), and each frame then takes whichever of
+its neighbours' fits makes the take's energy and steps least where the masks did not move
+(``settle_records``: a still actor holds still); with no pass, a run that starts from a search
 (no truth) still refines its first frames backwards once tracking has settled. Jobs (limb chains,
 hops, whole fits) go to a ``Solver``: this process, or a cluster of clients; ``mocap fit`` is this
 loop with the local solver: single-process mode is the server with zero clients.
@@ -39,6 +41,7 @@ from common.errors import InputFileError, UserError, print_warning
 from common.fitting import HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult, fit_rounds
 from common.proposals import voxel_starts
 from common.scoring import accuracy, frame_quality, quality_summary, size_score
+from common.settle import candidate_frames, mask_step, settle_choice
 from common.search import (FIT_JOBS, LIMBS_LOST, WIDE, VARIANTS, Context, descend_outward, fit_frame,
                            is_chain_solve, lowest, refine_frame, run_schedule, search_frame, solve_locally,
                            tracking_lost, LIMB_LOSS_ENERGY_RATIO)
@@ -449,6 +452,44 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     return out, len(replaced)
 
 
+def settle_records(model: BodyModel, seq: Sequence, records: list[dict]) -> tuple[list[dict], int, list[dict]]:
+    """The refined records with each frame's pose chosen among its neighbours' fits by
+    ``common.settle.settle_choice`` (a still actor's frames take one pose where the masks did
+    not move). A frame that takes another frame's fit keeps its own under "first_pass" where it
+    has none there yet, and names the frame under "settled_from". Returns the records, changed,
+    how many took another frame's fit, and each frame's ``frame_quality`` at its pose (from the
+    same pass over the masks: loading and cleaning them costs as much as the settling)."""
+    out = [dict(r) for r in records]
+    params = np.array([r["params"] for r in records], dtype=np.float64)
+    joints = forward_kinematics(model, params).joints                   # (T, J, 3) fit frame, m
+    candidates = candidate_frames(len(records))
+    energies = np.full(candidates.shape, np.inf)
+    steps, quality, masks_before = [], [], None
+    for t, r in enumerate(records):
+        data = frame_data(model, seq, r["frame"])
+        there = candidates[t] >= 0
+        energies[t, there] = data.whole_image_energy()(params[candidates[t, there]])
+        quality.append(frame_quality(data, params[t]))
+        if masks_before is not None:
+            steps.append(mask_step(masks_before, data.masks))
+        masks_before = data.masks
+    change, area = np.array(steps, dtype=np.float64).reshape(-1, 2).T
+    chosen = candidates[np.arange(len(records)), settle_choice(energies, joints, candidates, change, area)]
+    moved = 0
+    for t, s in enumerate(chosen):
+        if records[s]["params"] == records[t]["params"]:  # its own fit, or the same pose held
+            continue
+        moved += 1
+        r = out[t]
+        r.setdefault("first_pass", {"params": r["params"], "joints": r["joints"], "energy": r["energy"]})
+        r["params"] = records[s]["params"]
+        r["joints"] = records[s]["joints"]
+        r["energy"] = int(energies[t, s - t + candidates.shape[1] // 2])
+        r["settled_from"] = int(records[s]["frame"])
+        quality[t] = frame_quality(frame_data(model, seq, r["frame"]), params[s])
+    return out, moved, quality
+
+
 def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions, solver: Solver,
             init: str | None = None, resume: bool = False, max_frames: int | None = None, progress=None,
             overwrite: bool = False, actor_size: ActorSize | None = None) -> dict:
@@ -559,7 +600,12 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                        "hops_run": stats.hops_run - hops_before,
                        "hop_seconds": stats.hop_seconds - hop_seconds_before,
                        "frames_replaced": replaced, "seconds": time.perf_counter() - t0})
-    records = [r | {"fit_quality": frame_quality(frame_data(model, seq, r["frame"]), r["params"])} for r in records]
+    settled, refined = 0, sum(1 for r in records if "first_pass" in r)
+    if passes:  # offline runs only: a frame's pose may come from a later frame's fit
+        records, settled, quality = settle_records(model, seq, records)
+    else:
+        quality = [frame_quality(frame_data(model, seq, r["frame"]), r["params"]) for r in records]
+    records = [r | {"fit_quality": q} for r, q in zip(records, quality)]
     rewrite_complete(poses_path, records)
     summary = {
         "sequence": str(seq.path.resolve()),
@@ -586,7 +632,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "evaluations_per_frame": float(np.mean(stats.evaluations)) if stats.evaluations else None,
         "frames_recovered": sum(1 for r in records if r.get("recovered")),
         "frames_limbs_redetected": sum(1 for r in records if r.get("limbs_redetected")),
-        "frames_refined": sum(1 for r in records if "first_pass" in r),
+        "frames_refined": refined,
+        "frames_settled": settled,
         "chain_cpu_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_cpu.items()},
         "chain_wall_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_wall.items()},
         "chain_evaluations_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_evaluations.items()},
@@ -603,14 +650,16 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
 
 
 def refinement_note(summary: dict) -> str:
-    """'(N passes[, the first searching[ and hopping]], K frames improved)' for a summary whose
-    run refined (``mocap fit``'s table, the report)."""
+    """'(N passes[, the first searching[ and hopping]], K frames improved[, S settled on another
+    frame's pose])' for a summary whose run refined (``mocap fit``'s table, the report)."""
     passes = summary["refinement_passes"]
     n = len(passes)
     extra = " and ".join(word for word, on in (("searching", passes[0].get("search")),
                                                ("hopping", passes[0].get("hops"))) if on)
     extra = f", {'the first ' if n > 1 else ''}{extra}" if extra else ""
-    return f"({n} pass{'es' if n > 1 else ''}{extra}, {summary.get('frames_refined', 0)} frames improved)"
+    settled = summary.get("frames_settled", 0)
+    settled = f", {settled} settled on another frame's pose" if settled else ""
+    return f"({n} pass{'es' if n > 1 else ''}{extra}, {summary.get('frames_refined', 0)} frames improved{settled})"
 
 
 def tracking_error_note(summary: dict) -> str:

@@ -951,6 +951,8 @@ def test_refinement_note_names_what_the_first_pass_did():
     assert note([{**plain, "search": True, "hops": 60}, plain]) == \
         "(2 passes, the first searching and hopping, 3 frames improved)"
     assert note([{**plain, "search": True}, plain]) == "(2 passes, the first searching, 3 frames improved)"
+    assert refinement_note({"refinement_passes": [plain], "frames_refined": 3, "frames_settled": 2}) == \
+        "(1 pass, 3 frames improved, 2 settled on another frame's pose)"
 
 
 @pytest.mark.parametrize("args, field", [(("--refine-hops", "5", "--refine-passes", "0"), "refine_hops needs"),

@@ -62,7 +62,7 @@ def test_the_seated_take_fits_seated_upright_and_still(tmp_path):
         assert np.all(np.abs(np.array(fig[f"{side}_ankle_height_m"])) < 0.2)
     # upright: the head above the pelvis in the z-up fit frame, i.e. below it in the file's z-down world
     assert all(r["joints"]["head_top"][2] < r["joints"]["pelvis"][2] for r in records)
-    assert np.median(fig["jitter_mm"]) < 10.0
+    assert max(fig["jitter_mm"]) < 10.0  # a still sitter held still (common.settle)
     mocap("report", result)
     page = (result / "report.html").read_text()
     assert "fit quality: XOR / silhouette area" in page and "world up axis" in page
