@@ -51,6 +51,7 @@ def settle_choice(energies: np.ndarray, joints: np.ndarray, candidates: np.ndarr
     total = energies[0].astype(np.float64)
     back = np.zeros((T, C), dtype=np.int64)
     for t in range(1, T):
+        # a missing candidate (-1) stands in as frame 0: its energy is inf, so never chosen
         a = joints[np.maximum(candidates[t - 1], 0)]                       # (C, J, 3)
         b = joints[np.maximum(candidates[t], 0)]
         step_mm = 1000.0 * np.linalg.norm(a[:, None] - b[None], axis=-1).mean(axis=-1)   # (C from, C to)

@@ -474,9 +474,10 @@ def settle_records(model: BodyModel, seq: Sequence, records: list[dict]) -> tupl
             steps.append(mask_step(masks_before, data.masks))
         masks_before = data.masks
     change, area = np.array(steps, dtype=np.float64).reshape(-1, 2).T
-    chosen = candidates[np.arange(len(records)), settle_choice(energies, joints, candidates, change, area)]
+    index = settle_choice(energies, joints, candidates, change, area)
     moved = 0
-    for t, s in enumerate(chosen):
+    for t, c in enumerate(index):
+        s = candidates[t, c]
         if records[s]["params"] == records[t]["params"]:  # its own fit, or the same pose held
             continue
         moved += 1
@@ -484,7 +485,7 @@ def settle_records(model: BodyModel, seq: Sequence, records: list[dict]) -> tupl
         r.setdefault("first_pass", {"params": r["params"], "joints": r["joints"], "energy": r["energy"]})
         r["params"] = records[s]["params"]
         r["joints"] = records[s]["joints"]
-        r["energy"] = int(energies[t, s - t + candidates.shape[1] // 2])
+        r["energy"] = int(energies[t, c])
         r["settled_from"] = int(records[s]["frame"])
         quality[t] = frame_quality(frame_data(model, seq, r["frame"]), params[s])
     return out, moved, quality

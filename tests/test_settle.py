@@ -105,7 +105,6 @@ def test_settle_records_gives_a_still_takes_worse_frame_its_neighbours_pose(mode
 
     still = tmp_path / "still"
     shutil.copytree(small_sequence, still)
-    seq = load_sequence(still)
     for cam_dir in (still / "silhouettes").iterdir():
         files = sorted(cam_dir.iterdir())
         for f in files[1:]:
