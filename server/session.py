@@ -247,7 +247,9 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, thr
     re-detecting limbs), then its best pose fitted again at ACTOR_SCALES outward from the
     model's size while the score keeps falling (the pelvis height scaled along;
     ``descend_outward``), and the size whose fit explains the masks best (lowest
-    ``size_score``) kept if it beats the model's own size by ACTOR_SCALE_MIN_GAIN. The score
+    ``size_score`` over the model's own size's on that side: a larger size's counts the model
+    outside the silhouettes twice, a smaller one's does not) kept if it beats the model's own
+    size by ACTOR_SCALE_MIN_GAIN. The score
     falls steadily towards the actor's size (the seated take: 37.6k at 1.0 down to 27.0k at
     1.4), so stopping where it rises fits two sizes for an actor of the model's size, not five.
     Why: real subjects are not the body model's size, and a body too small for its silhouettes
@@ -260,13 +262,17 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, thr
     try:
         starts, memo = tuple(voxel_starts(model, data)), {}
         found = run_schedule(context(model, data, frame, options, solver, starts=starts), WIDE, memo=memo)
-        own = size_score(data, found)
-        scores = descend_outward(ACTOR_SCALES, 1.0, own, lambda scales: solver.map(
-            lambda scale: size_score(*fit_at_scale(model, seq, frame, found.params, scale, options)[1:]), scales))
+        own = {larger: max(size_score(data, found, larger), 1.0) for larger in (False, True)}
+
+        def relative_score(scale: float) -> float:
+            larger = scale > 1.0
+            return size_score(*fit_at_scale(model, seq, frame, found.params, scale, options)[1:], larger) / own[larger]
+
+        scores = descend_outward(ACTOR_SCALES, 1.0, 1.0, lambda scales: solver.map(relative_score, scales))
     finally:
         solver.close()
     lowest_scale = min(sorted(scores), key=scores.get)  # on a tie, the smaller size
-    clear_gain = scores[lowest_scale] < own * (1.0 - ACTOR_SCALE_MIN_GAIN)
+    clear_gain = scores[lowest_scale] < 1.0 - ACTOR_SCALE_MIN_GAIN
     return ActorSize(lowest_scale if clear_gain else 1.0, frame, starts, memo, time.perf_counter() - t0)
 
 

@@ -149,7 +149,7 @@ def _fake_size_search(monkeypatch, model, energies: dict, seen: list):
         return FrameResult(start, energies[seen[-1]], 1, 1)
 
     monkeypatch.setattr(session, "fit_rounds", fake_fit)
-    monkeypatch.setattr(session, "size_score", lambda data, fit: fit.energy)
+    monkeypatch.setattr(session, "size_score", lambda data, fit, larger: fit.energy)
     return type("Seq", (), {"frames": [0]})()
 
 
@@ -201,6 +201,25 @@ def test_a_chair_sat_on_does_not_make_the_actor_larger(tmp_path, model, monkeypa
     assert session.choose_actor_scale(model, seq, FitOptions(), threads=2).scale == 1.0
     monkeypatch.setattr(scoring, "SIZE_OUTSIDE_WEIGHT", 1.0)  # the plain XOR
     assert session.choose_actor_scale(model, seq, FitOptions(), threads=2).scale == 1.1
+
+
+def test_a_crouch_is_not_taken_for_a_smaller_actor(tmp_path, model, monkeypatch):
+    """A crouch of the model's own size: the thigh and calf ellipsoids poke out of the folded
+    legs, less so at a smaller size, so a score that counts model pixels outside the
+    silhouettes twice chose 0.9 (every frame 56-75 mm off); a smaller size is scored by the plain
+    XOR, and 1.0 is kept."""
+    from common.camera import circle_studio
+    from common.fitting import FitOptions
+    from common.sequence import load_sequence
+    from common.synth import SynthOptions, synthesize
+    from server import session
+
+    synthesize(model, circle_studio(8, 320, 240), None, tmp_path / "seq", SynthOptions(frames=1, posture="crouching"))
+    seq = load_sequence(tmp_path / "seq")
+    assert session.choose_actor_scale(model, seq, FitOptions(), threads=2).scale == 1.0
+    weighted = session.size_score
+    monkeypatch.setattr(session, "size_score", lambda data, fit, larger: weighted(data, fit, True))  # both sides
+    assert session.choose_actor_scale(model, seq, FitOptions(), threads=2).scale == 0.9
 
 
 @pytest.mark.parametrize("posture", ["crouching", "seated", "lying_side"])

@@ -71,7 +71,7 @@ def main() -> None:
         actor, actor_data, fit = fit_at_scale(model, seq, frame, found.params, scale, options)
         outside, missed = (int(v) for v in silhouette_disagreement(actor_data, fit.params).sum(axis=0))
         print(f"scale {scale:.2f}: XOR {full_energy(actor, actor_data, fit.params)}  {outside} model pixels "
-              f"outside the silhouettes, {missed} missed; size score {size_score(actor_data, fit):.0f}")
+              f"outside the silhouettes, {missed} missed; size score {size_score(actor_data, fit, scale > 1.0):.0f}")
 
 
 if __name__ == "__main__":
