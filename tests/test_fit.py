@@ -1248,6 +1248,30 @@ def test_a_pelvis_twisted_alone_leaves_the_chest_and_the_legs_as_they_were(model
 
 
 @pytest.mark.timeout(300)
+def test_a_hops_best_has_its_pelvis_turned_back(model, frames, monkeypatch):
+    """Refinement with hops (a pass's first frame) ends by turning the hops' best and turning its
+    pelvis alone (``AFTER_HOPS``), as the fits before the hops were: a fit with the pelvis
+    turned 0.15 rad off, the hips turned back, comes back to the truth's heading."""
+    from common import search
+    from common.fitting import FrameResult
+    from common.proposals import pelvis_twisted
+
+    data, truth = frames
+    x = truth[2].params
+    twisted = pelvis_twisted(model, x, 0.15)
+    hop = FrameResult(twisted, full_energy(model, data[2], twisted), 1, 0)
+    again = one_stage(model, data[2], search.AFTER_HOPS, fit=hop)
+    assert again.energy < hop.energy
+    assert abs(again.params[P["root_heading"]] - x[P["root_heading"]]) < 0.05
+
+    schedules = []
+    monkeypatch.setattr(search, "run_schedule", lambda ctx, schedule, initial: schedules.append(schedule) or initial)
+    for hops in (0, 1):
+        search.refine_frame(model, data[2], hop, FitOptions(), None, None, None, None, hops)
+    assert search.AFTER_HOPS not in schedules[0].stages and schedules[1].stages[-1] == search.AFTER_HOPS
+
+
+@pytest.mark.timeout(300)
 def test_a_body_rotated_off_the_truth_is_rotated_back(model, five_frames):
     """Frame 2 fitted from its true pose leaned 0.6 rad forward about the pelvis, limbs carried
     along, stays leaned (measured: 27 mm mean): the torso alone and each limb alone fit
