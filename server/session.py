@@ -464,7 +464,8 @@ def settle_records(model: BodyModel, seq: Sequence, records: list[dict]) -> tupl
     not move). A frame that takes another frame's fit keeps its own under "first_pass" where it
     has none there yet, and names the frame under "settled_from". Returns the records, changed,
     how many took another frame's fit, and each frame's ``frame_quality`` at its pose (from the
-    same pass over the masks: loading and cleaning them costs as much as the settling)."""
+    same pass over the masks, since loading and cleaning them costs as much as the settling;
+    a frame that took another's pose has its masks read once more for its new quality)."""
     out = [dict(r) for r in records]
     params = np.array([r["params"] for r in records], dtype=np.float64)
     joints = forward_kinematics(model, params).joints                   # (T, J, 3) fit frame, m
