@@ -39,8 +39,8 @@ ENERGY_BACKENDS = ("cpu", "gl", "coarse-to-fine", "volume")
 
 # FitOptions fields that shape the search's schedules and the run (which starts, how many passes),
 # never a single job: the server reads them, a SOLVE does not carry them
-RUN_SETTINGS = ("turn_hypotheses", "turn_step_rad", "polish_iterations", "refine_passes", "refine_search",
-                "refine_hops", "refine_chunk_frames")
+RUN_SETTINGS = ("turn_hypotheses", "turn_step_rad", "track_moved_on", "polish_iterations", "refine_passes",
+                "refine_search", "refine_hops", "refine_chunk_frames")
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,7 @@ class FitOptions:
     redetect_turn: str = "final"        # which limbs when: see REDETECT_TURNS
     turn_hypotheses: int = 2            # also fit from the start turned by -+1..n turn steps about the vertical
     turn_step_rad: float = 0.15
+    track_moved_on: bool = False        # tracking also fits from the previous pose moved on as it moved (fast preset)
     polish_iterations: int = 2          # further rounds for the best hypothesis, while the energy still falls
     refine_passes: int = 1              # after tracking, passes over all frames (backward, forward, ...): see server.session
     refine_search: bool = False         # the first pass also refits each frame from each limb's other basins (slow)

@@ -65,6 +65,17 @@ def midway(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return clip_to_limits((np.asarray(before, dtype=np.float64) + np.asarray(after, dtype=np.float64)) / 2.0)
 
 
+def moved_on(params: np.ndarray, params_before: np.ndarray | None) -> tuple:
+    """() or a 1-tuple of (35,): ``params`` moved on by as much as every parameter moved since
+    ``params_before`` (the frame before), within the joint limits: where the actor is going at
+    a constant speed. A fast move (the cartwheel's) leaves the previous frame's fit in a valley
+    with the torso off and the limbs bent to make up for it, which no one chain leads out of."""
+    if params_before is None:
+        return ()
+    x = np.asarray(params, dtype=np.float64)
+    return (clip_to_limits(2.0 * x - np.asarray(params_before, dtype=np.float64)),)
+
+
 TILT_MOVING_RAD = 0.03  # pelvis tilt change per frame above which a tilted-ahead start is tried
 TILT_AHEAD_RAD = 0.25   # how far ahead of the last tilt that start is
 

@@ -88,6 +88,7 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("fit", "iterations", FitOptions.max_iterations, int, "rounds per frame", _at_least(1), "an integer >= 1"),
     Setting("fit", "turn_hypotheses", FitOptions.turn_hypotheses, int, "as mocap fit --turn-hypotheses",
             _at_least(0), "an integer >= 0"),
+    Setting("fit", "track_moved_on", FitOptions.track_moved_on, bool, "as mocap fit --track-moved-on"),
     Setting("fit", "polish_iterations", FitOptions.polish_iterations, int, "as mocap fit --polish-iterations",
             _at_least(0), "an integer >= 0"),
     Setting("fit", "refine_passes", FitOptions.refine_passes, int, "as mocap fit --refine-passes", _at_least(0),
@@ -181,6 +182,7 @@ def load_config(files: list[Path]) -> Config:
 FIT_OPTION_DESTS = {
     ("fit", "frames"): ("frames", lambda v: v or None), ("fit", "energy"): ("energy", None),
     ("fit", "iterations"): ("iterations", None), ("fit", "turn_hypotheses"): ("turn_hypotheses", None),
+    ("fit", "track_moved_on"): ("track_moved_on", None),
     ("fit", "polish_iterations"): ("polish_iterations", None), ("fit", "refine_passes"): ("refine_passes", None),
     ("fit", "refine_search"): ("refine_search", None), ("fit", "refine_hops"): ("refine_hops", None),
     ("fit", "refine_chunk_frames"): ("refine_chunk_frames", None),
@@ -192,12 +194,13 @@ FIT_OPTION_DESTS = {
 
 # Named speed settings ([fit] keys over the defaults); `mocap bench presets` measures each.
 PRESETS = {
-    # online: no polish, no refinement; the start also turned either way by one step. With no
-    # turns (one fit a frame) the dance, walk and basketball were 17.0, 13.0 and 15.0 mm mean
-    # for the same wall time on two cores (0.36 s a frame over the three): a frame tracked
-    # turned from the truth is lost more often, and a lost frame's search costs more than the
-    # turns (docs/accuracy.md, "The fast preset turns its start")
-    "fast": {"turn_hypotheses": 1, "polish_iterations": 0, "refine_passes": 0},
+    # online: one round of starts a frame (the previous pose; moved on as it moved; tilted
+    # ahead while the pelvis tilts), the limbs re-detected; no turns, no polish, no refinement.
+    # The start moved on took the turns' place: with it, the three development clips from the
+    # truth (walk, dance, basketball) track at 11.9 / 14.5 / 14.2 mm mean for 0.24 s a frame
+    # (walk from the search, `mocap bench presets`), against 11.2 / 15.1 / 12.4 for 0.33 s
+    # with the turns and no start moved on (docs/accuracy.md, "The start moved on")
+    "fast": {"turn_hypotheses": 0, "track_moved_on": True, "polish_iterations": 0, "refine_passes": 0},
     "default": {},
     "best": {"refine_passes": 2, "refine_search": True, "refine_hops": 60},  # offline work
 }

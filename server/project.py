@@ -185,6 +185,7 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     command += ["--init", fit["init"]] if fit["init"] else []
     command += [] if fit["clean_masks"] else ["--no-clean-masks"]
     command += ["--refine-search"] if fit["refine_search"] else []
+    command += ["--track-moved-on"] if fit["track_moved_on"] else []
     calibration_file = sequence / "calibration.json"
     steps.append(Step("fit", (tuple(command),), (calibration_file, sequence / "silhouettes", sequence / "sequence.json"),
                       (result / "poses.jsonl", result / "summary.json"), {"fit": fit, "calibration": calib_settings}))

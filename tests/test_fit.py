@@ -197,6 +197,43 @@ def test_a_tilted_ahead_start_catches_a_pelvis_the_fit_trails(model, frames):
     assert joint_errors_mm(model, ahead.params, truth[2]).mean() < joint_errors_mm(model, plain.params, truth[2]).mean()
 
 
+def test_moved_on_goes_on_as_the_pose_moved(model, frames):
+    from common.body import PARAM_LIMITS
+    from common.proposals import moved_on
+
+    _, truth = frames
+    x = truth[2].params
+    assert moved_on(x, None) == ()
+    before = x.copy()
+    before[P["root_x"]] -= 0.05
+    before[P["l_knee"]] -= 0.2
+    (ahead,) = moved_on(x, before)
+    np.testing.assert_allclose(ahead - x, x - before, atol=1e-12)
+    far = x.copy()
+    far[P["l_knee"]] = PARAM_LIMITS[P["l_knee"], 1] - 0.01
+    before = far.copy()
+    before[P["l_knee"]] -= 0.5
+    assert moved_on(far, before)[0][P["l_knee"]] == PARAM_LIMITS[P["l_knee"], 1]  # within the limits
+
+
+def test_a_start_moved_on_catches_a_body_the_fit_trails(model, frames):
+    """The previous frame's fit trails the truth by as much as it moved since the frame before
+    (the body, an arm and a leg moving at a constant speed): tracking's start moved on
+    (``track_moved_on``, the fast preset's) lands on the truth, and wins on energy."""
+    data, truth = frames
+    options = FitOptions(turn_hypotheses=0, redetect_limbs=False, track_moved_on=True)
+    step = np.zeros(PARAM_COUNT)
+    step[[P["root_x"], P["root_y"]]] = 0.06, -0.04
+    step[[P["r_shoulder_x"], P["r_elbow"], P["l_hip_x"], P["l_knee"]]] = 0.5, -0.5, 0.4, 0.5
+    lagging = truth[2].params - step
+    plain = fit_frame(model, data[2], lagging, options)
+    ahead = fit_frame(model, data[2], lagging, options, before=lagging - step)
+    off = fit_frame(model, data[2], lagging, replace(options, track_moved_on=False), before=lagging - step)
+    assert off.energy == plain.energy  # the default's tracking does not move on
+    assert ahead.energy < plain.energy
+    assert joint_errors_mm(model, ahead.params, truth[2]).mean() < 0.5 * joint_errors_mm(model, plain.params, truth[2]).mean()
+
+
 def test_redetection_finds_a_lost_arm(model, small_loaded):
     """An arm swung 1.5 rad away is beyond the local grid and Powell; the whole-range search
     (the re-detection round) brings it back. A fitting round does not re-detect."""

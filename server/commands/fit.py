@@ -1,6 +1,7 @@
 """mocap fit: fit the body model to every frame of a sequence (single process or with clients)."""
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import sys
@@ -46,6 +47,9 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--turn-hypotheses", type=count(0), default=FitOptions.turn_hypotheses, metavar="N",
                    help="also fit each frame from the start turned by -+1..N turn steps about the vertical and "
                         f"keep the lowest energy (default {FitOptions.turn_hypotheses}; 0: off, a fifth of the time)")
+    p.add_argument("--track-moved-on", action=argparse.BooleanOptionalAction, default=FitOptions.track_moved_on,
+                   help="tracking also fits each frame from the previous pose moved on by as much as it moved since "
+                        "the frame before (on in the fast preset: a start where the actor keeps going)")
     p.add_argument("--polish-iterations", type=count(0), default=FitOptions.polish_iterations, metavar="N",
                    help="then up to N more rounds for the best of them while the energy still falls "
                         f"(default {FitOptions.polish_iterations}; 0: off)")
@@ -91,7 +95,7 @@ def options_from_args(args) -> FitOptions:
     try:
         return FitOptions(energy=args.energy, max_iterations=args.iterations, grid_steps=args.grid_steps,
                           grid_range_rad=args.grid_range, prerender=not args.no_prerender,
-                          turn_hypotheses=args.turn_hypotheses,
+                          turn_hypotheses=args.turn_hypotheses, track_moved_on=args.track_moved_on,
                           turn_step_rad=args.turn_step, polish_iterations=args.polish_iterations,
                           refine_passes=args.refine_passes, refine_search=args.refine_search,
                           refine_hops=args.refine_hops, refine_chunk_frames=args.refine_chunk_frames,
