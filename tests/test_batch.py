@@ -117,6 +117,15 @@ def test_run_redoes_only_what_changed(project, capsys):
     assert len(poses(take)) == 2
 
 
+def test_a_takes_fit_settings_reach_its_fit_command(project):
+    take = project / "walk_a"
+    (fit,) = plan_take(take).steps[0].commands
+    assert "--track-moved-on" not in fit and fit[fit.index("--turn-hypotheses") + 1] == "0"
+    (take / "Config.toml").write_text("[fit]\ntrack_moved_on = true\nturn_hypotheses = 1\n")
+    (fit,) = plan_take(take).steps[0].commands
+    assert "--track-moved-on" in fit and fit[fit.index("--turn-hypotheses") + 1] == "1"
+
+
 def test_an_interrupted_fit_is_continued(project):
     from server.project import fingerprint
 
