@@ -15,8 +15,9 @@ fits them itself with the same code (``solve_job``), so the poses do not depend 
 what. A round of a single start is fitted here, its limbs dispatched.
 
 Schedules:
-- ``TRACKING``: the previous frame's pose, turned either way about the vertical and tilted
-  ahead; the best polished by more rounds; its limbs re-detected over their whole range;
+- ``TRACKING``: the previous frame's pose, turned either way about the vertical, tilted ahead
+  and (``track_moved_on``) moved on as it moved; the best polished by more rounds; its limbs
+  re-detected over their whole range;
 - ``LIMBS_LOST``: a frame whose energy jumped: fitted again with every limb re-detected;
 - ``SEARCH``: a frame with no trusted start (a first frame, a recovery): wide fits from the
   voxels' starts (those far behind after two rounds stopped there; the lowest few also with
@@ -548,7 +549,8 @@ def _hops(ctx, source, spent, own):
 
 PROPOSERS = {
     "start": _start, "start_turns": _start_turns, "turns": _best_turns, "tilt_ahead": _tilt_ahead,
-    "moved_on": _moved_on, "midway": _midway, "midway_turns": _midway_turns, "pelvis_twists": _pelvis_twists, "starts": _starts,
+    "moved_on": _moved_on, "midway": _midway, "midway_turns": _midway_turns, "pelvis_twists": _pelvis_twists,
+    "starts": _starts,
     "best": _best, "origin": _origin, "again": _again, "redetected": _redetected,
     "rotations": _rotations, "swaps": _swaps, "basins": _basins, "twists": _twists, "hops": _hops,
 }

@@ -199,7 +199,7 @@ PRESETS = {
     # The start moved on took the turns' place: with it, the three development clips from the
     # truth (walk, dance, basketball) track at 11.9 / 14.5 / 14.2 mm mean for 0.24 s a frame
     # (walk from the search, `mocap bench presets`), against 11.2 / 15.1 / 12.4 for 0.33 s
-    # with the turns and no start moved on (docs/accuracy.md, "The start moved on")
+    # with the turns and no start moved on (docs/accuracy.md, "The fast preset's start moved on")
     "fast": {"turn_hypotheses": 0, "track_moved_on": True, "polish_iterations": 0, "refine_passes": 0},
     "default": {},
     "best": {"refine_passes": 2, "refine_search": True, "refine_hops": 60},  # offline work

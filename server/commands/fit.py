@@ -31,7 +31,7 @@ def add_fit_arguments(p) -> None:
                    help="defaults from this file's [fit] and [calibration] sections (see mocap config keys); "
                         "options given here win")
     p.add_argument("--preset", choices=tuple(PRESETS), default=None,
-                   help="fast (online: the previous pose and that pose moved on as it moved fitted once, no refinement), "
+                   help="fast (online: the previous pose and that pose moved on as it moved, no turns, no refinement), "
                         "default, or best (offline: two refinement passes with limb search and 60 hops); the file "
                         "and options given win")
     p.set_defaults(command_parser=p)  # server.cli re-parses with the preset's and file's values as defaults
