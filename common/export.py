@@ -81,6 +81,16 @@ ACTOR_TOLERANCE_M = 1e-6   # recorded joints vs forward kinematics of the rebuil
 C3D_LABEL_LENGTH = 16      # characters per C3D point label
 
 
+def sample_rate(frames: np.ndarray, fps: float) -> float:
+    """Samples per second of fits at ``frames`` (F,) (frame numbers of a recording at ``fps``):
+    ``fps`` over the frames' common step (their differences' greatest common divisor), so that
+    a take imported with ``--step 5`` from 50 fps plays at 10. Formats with one fixed rate (BVH,
+    C3D, TRC) would otherwise play it five times too fast, while those that keep each frame's
+    time (glTF, MOT, CSV, JSON) already have it right."""
+    steps = np.diff(np.unique(np.asarray(frames, dtype=np.int64)))
+    return float(fps) / max(int(np.gcd.reduce(steps)) if len(steps) else 1, 1)
+
+
 @dataclass(frozen=True)
 class FittedMotion:
     """A fitted sequence ready to export.
@@ -111,6 +121,11 @@ class FittedMotion:
     def times(self) -> np.ndarray:
         """(F,) seconds from the first frame (frame numbers may skip)."""
         return (self.frames - self.frames[0]) / self.fps
+
+    @property
+    def rate(self) -> float:
+        """Fitted frames per second (``sample_rate``): what formats with one fixed rate write."""
+        return sample_rate(self.frames, self.fps)
 
     @classmethod
     def from_records(cls, records: list[dict], fps: float, source: str = "poses.jsonl",
@@ -294,12 +309,12 @@ def write_motion_bvh(path, model: BodyModel, params: np.ndarray, fps: float, res
 
 
 def write_bvh_export(path, motion: FittedMotion, rest: str = DEFAULT_BVH_REST) -> None:
-    write_motion_bvh(path, motion.model, motion.params, motion.fps, rest)
+    write_motion_bvh(path, motion.model, motion.params, motion.rate, rest)
 
 
 def write_glb_export(path, motion: FittedMotion) -> None:
     """The skinned body, its skeleton and the motion as glTF 2.0 binary (``common.gltf``)."""
-    write_glb(path, motion.model, motion.params, motion.times, motion.fps)
+    write_glb(path, motion.model, motion.params, motion.times, motion.rate)
 
 
 # ------------------------------------------------------------------------- joint positions
@@ -364,11 +379,11 @@ def write_trc(path, motion: FittedMotion, title: str | None = None) -> None:
     file name the header gives (default: ``path``'s)."""
     names, pts = halpe26_markers(opensim_points(motion))
     F, M, _ = pts.shape
-    fps = f"{motion.fps:.10g}"
+    rate, camera = f"{motion.rate:.10g}", f"{motion.fps:.10g}"  # the data's rate, the recording's
     lines = [
         f"PathFileType\t4\t(X/Y/Z)\t{title or Path(path).name}",
         "DataRate\tCameraRate\tNumFrames\tNumMarkers\tUnits\tOrigDataRate\tOrigDataStartFrame\tOrigNumFrames",
-        f"{fps}\t{fps}\t{F}\t{M}\tm\t{fps}\t1\t{F}",
+        f"{rate}\t{camera}\t{F}\t{M}\tm\t{rate}\t1\t{F}",
         "Frame#\tTime\t" + "\t\t\t".join(names) + "\t\t",
         "\t\t" + "\t".join(f"X{i + 1}\tY{i + 1}\tZ{i + 1}" for i in range(M)),
         "",
@@ -447,10 +462,11 @@ def write_jsonl(path, motion: FittedMotion) -> None:
 
 
 def write_c3d(path, motion: FittedMotion) -> None:
-    """C3D point data of joint positions: millimetres, Z up, float storage, POINT:RATE = fps."""
+    """C3D point data of joint positions: millimetres, the user's world axes, float storage,
+    POINT:RATE the fitted frames' rate."""
     import c3d
 
-    writer = c3d.Writer(point_rate=float(motion.fps), analog_rate=0.0, point_scale=-1.0, point_units="mm  ")
+    writer = c3d.Writer(point_rate=float(motion.rate), analog_rate=0.0, point_scale=-1.0, point_units="mm  ")
     writer.set_point_labels([n[:C3D_LABEL_LENGTH].ljust(C3D_LABEL_LENGTH) for n in JOINT_NAMES])
     writer.set_screen_axis(X="+X", Y="+Z")  # viewers: x to the right, z up on screen
     no_analog = np.zeros((0, 0), dtype=np.float32)

@@ -7,7 +7,8 @@ What the file holds (metres, y up, the actor's rest forward +z, as glTF wants):
 - one skinned mesh: the actor's rest surface (``BodyModel.vertices``, the A-pose the body
   model is built in) with its four largest skin weights per vertex;
 - one animation: per frame a rotation for every segment node and the root's translation,
-  keyed at the sequence's times (``fps`` is kept in the animation's ``extras``).
+  keyed at the sequence's times (the fitted frames' rate, ``fps``, is kept in the animation's
+  ``extras``).
 
 Axes: x_gltf = (x, z, -y) of our z-up fit frame (``TO_GLTF``). Blender's importer turns glTF's
 y up into its z up, which makes Blender's world our fit frame again; three.js shows the file as

@@ -513,10 +513,11 @@ def write_sequence_animations(result: ResultData, painter: ModelPainter, gif, vi
     """Animated GIF at ``gif`` and MP4 at ``video``: per frame one camera's overlay beside a 3D
     view that follows the actor (``sequence_frames``).
 
-    The video has every frame at the take's frame rate; the GIF at most MAX_GIF_FRAMES of them
-    (longer takes are subsampled, the frame delay grows to match). Returns the written paths.
+    The video has every fitted frame at their rate (``FittedMotion.rate``: real time); the GIF
+    at most MAX_GIF_FRAMES of them (longer takes are subsampled, the frame delay grows to
+    match). Returns the written paths.
     """
-    F, fps = len(result.motion.frames), result.motion.fps
+    F, fps = len(result.motion.frames), result.motion.rate
     step = gif_step(F)
     kept = []
 

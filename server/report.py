@@ -44,7 +44,7 @@ VIEW_PANEL = (360, 360)  # pixels per 3D view in the report
 MM = 1000.0
 VIDEO_EMBED_MAX_BYTES = 32 * 2 ** 20  # a longer take's video is linked rather than embedded
 # per export format: what opens it, and with which settings (docs/exports.md says more); {fps}
-# is the result's frame rate
+# is the fitted frames' rate, {up} the user's world's up axis
 EXPORT_SETTINGS = {
     "glb": "Blender: File > Import > glTF 2.0 with the defaults (glTF's +Y up becomes Blender's Z up: Blender's world "
            "is then our z-up frame); set the scene to {fps} fps first (Blender keys glTF times at its scene rate). "
@@ -57,9 +57,9 @@ EXPORT_SETTINGS = {
                    "calibration's own world (metres), so EasyMocap's SMPL fit can use the same cameras.",
     "bvh": "Blender: File > Import > Motion Capture (.bvh), Forward -Z, Up Y (the defaults), Scale 0.01 for metres, "
            "Update Scene FPS; --rest tpose gives a T-pose rest for retargeting (the motion is the same).",
-    "c3d": "Mokka, ezc3d: our world as it is, Z up, millimetres.",
-    "json": "Any JSON reader: one frame per line, our world, Z up, metres.",
-    "csv": "Spreadsheets, pandas: our world, Z up, metres.",
+    "c3d": "Mokka, ezc3d: the calibration's world as it is ({up} up), millimetres.",
+    "json": "Any JSON reader: one frame per line, the calibration's world ({up} up), metres.",
+    "csv": "Spreadsheets, pandas: the calibration's world ({up} up), metres.",
 }
 
 
@@ -93,7 +93,7 @@ def player_data(result: ResultData) -> dict:
     err = result.joint_errors_mm()
     mean_err = None if err is None else [None if np.all(np.isnan(e)) else round(float(np.nanmean(e)), 1) for e in err]
     return {
-        "fps": m.fps, "frames": m.frames.tolist(), "joints": list(JOINT_NAMES),
+        "fps": m.fps, "rate": m.rate, "frames": m.frames.tolist(), "joints": list(JOINT_NAMES),
         "bones": [list(b) for b in BONES],
         "side": [1 if n.startswith("l_") else -1 if n.startswith("r_") else 0 for n in JOINT_NAMES],
         "fitted": fitted, "truth": truth, "error": mean_err,
@@ -103,7 +103,9 @@ def player_data(result: ResultData) -> dict:
 
 def summary_rows(result: ResultData) -> list[tuple[str, str]]:
     s, m = result.summary, result.motion
-    rows = [("frames", f"{len(m.frames)} ({m.frames[0]}..{m.frames[-1]})"), ("frame rate", f"{m.fps:g} fps")]
+    step = round(m.fps / m.rate)
+    rate = f"{m.fps:g} fps" + (f", one frame in {step} fitted: {m.rate:g} fps" if step > 1 else "")
+    rows = [("frames", f"{len(m.frames)} ({m.frames[0]}..{m.frames[-1]})"), ("frame rate", rate)]
     if "mode" in s:
         rows.append(("mode", f"{s['mode']} ({s.get('clients', 0)} clients)"))
     if "energy_backend" in s:
@@ -174,7 +176,7 @@ def export_table(result: ResultData) -> str:
     """The Exports section: per format its command, its file and how to open it."""
     rows = "".join(
         f"<tr><td><code>mocap export {_esc(result.path)} --format {f}</code></td>"
-        f"<td><code>motion{_esc(SUFFIXES[f])}</code></td><td>{_esc(EXPORT_SETTINGS[f].format(fps=f'{result.motion.fps:g}'))}"
+        f"<td><code>motion{_esc(SUFFIXES[f])}</code></td><td>{_esc(EXPORT_SETTINGS[f].format(fps=f'{result.motion.rate:g}', up=result.motion.up))}"
         f"</td></tr>" for f in FORMATS)
     return (f'<p>Several at once: <code>--format glb,trc,mot</code> or <code>--format all</code>. Axes and units: '
             f'docs/exports.md.</p><table class="exports"><tr><th>command</th><th>writes</th><th>open it with</th></tr>'
@@ -190,7 +192,7 @@ def video_html(result: ResultData) -> str:
         return '<p class="note">No overlay video of this fit yet (<code>mocap report RESULT</code> without ' \
                '<code>--no-gif</code> makes one).</p>'
     size = video.stat().st_size
-    caption = (f"Every frame at {result.motion.fps:g} fps: {PICTURES_DIR}/{VIDEO_NAME}, beside "
+    caption = (f"Every fitted frame at {result.motion.rate:g} fps: {PICTURES_DIR}/{VIDEO_NAME}, beside "
                f"{PICTURES_DIR}/{GIF_NAME}")
     if size > VIDEO_EMBED_MAX_BYTES:
         return f'<p><a href="{PICTURES_DIR}/{VIDEO_NAME}">{_esc(caption)}</a> ({size / 2 ** 20:.0f} MB, not embedded)</p>'
@@ -520,7 +522,7 @@ PAGE = r"""<!DOCTYPE html>
     schedule();
   }
   function schedule() {
-    if (timer === null && state.playing) timer = window.setTimeout(step, 1000 / (D.fps * parseFloat(speedSel.value)));
+    if (timer === null && state.playing) timer = window.setTimeout(step, 1000 / (D.rate * parseFloat(speedSel.value)));
   }
   function setPlaying(on) {
     state.playing = on;

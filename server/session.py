@@ -523,6 +523,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     done = prepare_result_folder(out_dir, run_settings(model, seq, options, init), resume, overwrite)
     if done and [d["frame"] for d in done] != frames[:len(done)]:
         raise InputFileError(out_dir / POSES_FILE, f"does not hold the first frames of {seq.path}; cannot --resume")
+    if done and len(done) == len(frames) and (finished := finished_summary(out_dir, len(frames))):
+        return finished  # resumed after its end: refining it again would change the poses exports were made of
     poses_path = out_dir / POSES_FILE
     stats = RunStats()
     wall0 = time.perf_counter()
@@ -655,6 +657,16 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     }
     write_text(out_dir / SUMMARY_FILE, json.dumps(summary, indent=1))
     return summary
+
+
+def finished_summary(out_dir: Path, frames: int) -> dict | None:
+    """The summary of a run in ``out_dir`` that finished with ``frames`` frames (written last,
+    after its refinement), marked ``"already_complete"``; None where that run has not finished."""
+    try:
+        summary = json.loads((out_dir / SUMMARY_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    return summary | {"already_complete": True} if isinstance(summary, dict) and summary.get("frames") == frames else None
 
 
 def refinement_note(summary: dict) -> str:

@@ -18,7 +18,7 @@ from common.bvh import read_bvh, rest_positions
 from common.errors import UserError
 from common.export import (
     BODY25_NAMES, BVH_JOINT_NAMES, BVH_UNITS_PER_M, FORMATS, MOT_COLUMNS, SUFFIXES, TO_BVH, TO_OPENSIM,
-    FittedMotion, actor_from_joints, bvh_to_world_joints, export_motion, params_to_bvh,
+    FittedMotion, actor_from_joints, bvh_to_world_joints, export_motion, params_to_bvh, sample_rate,
 )
 from server.cli import main as cli_main
 
@@ -54,9 +54,9 @@ def motion_params(model, frames: int = FRAMES, seed: int = 0) -> np.ndarray:
     return clip_to_limits(p)
 
 
-def records_for(model, params: np.ndarray, first_frame: int = 10) -> list[dict]:
+def records_for(model, params: np.ndarray, first_frame: int = 10, step: int = 1) -> list[dict]:
     joints = forward_kinematics(model, params).joints
-    return [{"frame": first_frame + i, "params": [float(v) for v in params[i]], "joints": joints_dict(joints[i]),
+    return [{"frame": first_frame + step * i, "params": [float(v) for v in params[i]], "joints": joints_dict(joints[i]),
              "energy": 1000 + i, "seconds": 0.1} for i in range(len(params))]
 
 
@@ -413,9 +413,13 @@ def test_mocap_export_all_formats_json(tmp_path, result_dir, capsys):
         assert d["frames"] == FRAMES and d["fps"] == 25.0
     assert len(list((out / "motion_keypoints3d").iterdir())) == FRAMES
     assert not list(out.glob(".*"))  # no partial files left
-    # again: every target exists, so nothing is replaced without --overwrite
-    assert cli_main(["export", str(result_dir), "--format", "all", "--out", str(out), "--fps", "25"]) == 2
+    # again: every target holds what would be written, which loses nothing; at another frame rate
+    # every target would change, so nothing is replaced without --overwrite
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    assert cli_main(["export", str(result_dir), "--format", "all", "--out", str(out), "--fps", "25", "--quiet"]) == 0
+    assert cli_main(["export", str(result_dir), "--format", "all", "--out", str(out), "--fps", "30"]) == 2
     assert "--overwrite" in capsys.readouterr().err
+    assert sorted(before) == sorted(p.name for p in out.iterdir())
 
 
 def test_mocap_export_several_formats_and_rest(tmp_path, result_dir, capsys):
@@ -462,3 +466,32 @@ def test_mocap_export_errors(tmp_path, result_dir, capsys):
     assert cli_main(["export", str(result_dir), "--format", "csv", "--fps", "30",
                      "--out", str(tmp_path / "no" / "such" / "m.csv")]) == 2
     assert "does not exist" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------- a take fitted every 5th frame
+
+def test_the_fitted_frames_rate_is_the_recordings_over_their_step():
+    assert sample_rate(np.arange(0, 200, 5), 50.0) == 10.0
+    assert sample_rate(np.array([3, 8, 18, 23]), 50.0) == 10.0  # a frame missing: still every 5th
+    assert sample_rate(np.array([0, 2, 3]), 30.0) == 30.0
+    assert sample_rate(np.array([7]), 25.0) == 25.0
+
+
+def test_a_take_fitted_every_5th_frame_plays_in_real_time_in_every_format(tmp_path):
+    """`import-video --step 5` of a 50 fps recording keeps frame numbers 0, 5, 10, ...: formats
+    that keep each frame's time had them right; those with one rate (BVH, C3D, TRC) wrote 50
+    fps and played the take five times too fast."""
+    model = load_body_model()
+    params = motion_params(model, frames=12)
+    sub = FittedMotion.from_records(records_for(model, params, first_frame=0, step=5), 50.0)
+    assert sub.rate == 10.0
+    np.testing.assert_allclose(sub.times, np.arange(12) * 0.1)
+    bvh = read_bvh(export_motion("bvh", tmp_path / "m.bvh", sub))
+    assert bvh.frame_time == pytest.approx(0.1)
+    header, _, times, _ = read_trc(export_motion("trc", tmp_path / "m.trc", sub))
+    assert header["DataRate"] == "10" and header["OrigDataRate"] == "10" and header["CameraRate"] == "50"
+    np.testing.assert_allclose(times, np.arange(12) * 0.1, atol=1e-6)
+    assert float(read_mot(export_motion("mot", tmp_path / "m.mot", sub))[2][1, 0]) == pytest.approx(0.1)
+    c3d = pytest.importorskip("c3d")
+    with open(export_motion("c3d", tmp_path / "m.c3d", sub), "rb") as fh:
+        assert c3d.Reader(fh).point_rate == pytest.approx(10.0)

@@ -470,6 +470,36 @@ def test_mocap_fit_resume_after_a_crash(fresh_result, small_sequence, tmp_path):
     assert (out / "motion.bvh").is_file()
 
 
+def test_mocap_fit_resume_of_a_finished_result_changes_nothing(fresh_result, small_sequence, tmp_path, capsys):
+    """A finished run resumed with its own settings: nothing to do. Refining it again would
+    change poses that its report and exports were made of."""
+    out = tmp_path / "result"
+    shutil.copytree(fresh_result, out)
+    before = {name: (out / name).read_bytes() for name in ("poses.jsonl", "summary.json", "motion.bvh")}
+    capsys.readouterr()
+    assert fit(small_sequence, out, "--frames", "2", "--resume") == 0
+    assert "already complete (2 frames); nothing to resume" in capsys.readouterr().err
+    assert {name: (out / name).read_bytes() for name in before} == before
+
+
+def test_export_all_after_fit_keeps_the_fits_own_bvh(fresh_result, tmp_path, capsys):
+    """`mocap fit` writes RESULT/motion.bvh; `mocap export RESULT --format all` then writes the
+    same bytes there, which loses nothing, so it is not refused; a BVH that differs (another
+    rest pose) still is, without --overwrite."""
+    from server.cli import main as cli_main
+
+    out = tmp_path / "result"
+    shutil.copytree(fresh_result, out)
+    bvh = (out / "motion.bvh").read_bytes()
+    assert cli_main(["export", str(out), "--format", "all", "--quiet"]) == 0
+    assert (out / "motion.bvh").read_bytes() == bvh and (out / "motion.glb").is_file()
+    assert cli_main(["export", str(out), "--format", "all", "--quiet"]) == 0  # again: every file the same
+    capsys.readouterr()
+    assert cli_main(["export", str(out), "--format", "bvh", "--rest", "tpose"]) == 2
+    assert "motion.bvh: exists; pass --overwrite" in capsys.readouterr().err
+    assert (out / "motion.bvh").read_bytes() == bvh
+
+
 def test_mocap_fit_resume_refuses_a_foreign_result(fresh_result, small_sequence, tmp_path, capsys):
     out = tmp_path / "result"
     out.mkdir()

@@ -7,13 +7,15 @@ One format writes ``--out`` (default ``RESULT/motion.<ext>``; keypoints3d is a f
 ``RESULT/motion_keypoints3d/``); several (``--format glb,trc`` or ``--format glb --format trc``)
 or ``all`` write into the folder ``--out`` (default RESULT). The frame rate comes from the
 sequence (summary.json names it; ``--sequence`` when it moved) or ``--fps``. Every target is
-checked before the first is written (existing ones only with ``--overwrite``), and each is
-written beside its name and renamed over it. Axis conventions: docs/exports.md.
+checked before the first is written (existing ones only with ``--overwrite``, or where they
+hold what would be written: the fit's own motion.bvh), and each is written beside its name and
+renamed over it. Axis conventions: docs/exports.md.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import tempfile
 from pathlib import Path
 
 from common.errors import UserError
@@ -70,6 +72,24 @@ def _write(fmt: str, path: Path, motion, rest: str) -> None:
         replace_file(path, lambda tmp: export_motion(fmt, tmp, motion, bvh_rest=rest, final_path=path))
 
 
+def _contents(path: Path) -> dict[str, bytes]:
+    return {f.name: f.read_bytes() for f in path.iterdir()} if path.is_dir() else {"": path.read_bytes()}
+
+
+def _unchanged(fmt: str, path: Path, motion, rest: str) -> bool:
+    """Whether ``path`` (a file, or a folder for FOLDER_FORMATS) holds exactly what this export
+    would write there: ``mocap fit`` writes RESULT/motion.bvh, which ``--format all`` then
+    writes again, and an export run twice writes the same; the same bytes lose nothing."""
+    if not (path.is_dir() if fmt in FOLDER_FORMATS else path.is_file()):
+        return False
+    with tempfile.TemporaryDirectory() as tmp:
+        again = Path(tmp) / path.name
+        if fmt in FOLDER_FORMATS:
+            again.mkdir()
+        export_motion(fmt, again, motion, bvh_rest=rest, final_path=path)
+        return _contents(again) == _contents(path)
+
+
 def _size(path: Path) -> int:
     return sum(f.stat().st_size for f in path.iterdir()) if path.is_dir() else path.stat().st_size
 
@@ -90,13 +110,14 @@ def run(args) -> int:
         if fmt in FOLDER_FORMATS:
             if not path.parent.is_dir():  # as for a file: no folders made on the way
                 raise UserError(f"--out {path}: folder {path.parent} does not exist")
-            check_folder_target(path, ("*",), overwrite=args.overwrite, what="export")
+            check_folder_target(path, ("*",), overwrite=args.overwrite or _unchanged(fmt, path, motion, args.rest),
+                                what="export")
         else:
-            check_file_target(path, args.overwrite)
+            check_file_target(path, args.overwrite or _unchanged(fmt, path, motion, args.rest))
     written = []
     for fmt, path in targets:
         _write(fmt, path, motion, args.rest)
-        entry = {"format": fmt, "path": str(path), "frames": len(motion.frames), "fps": motion.fps,
+        entry = {"format": fmt, "path": str(path), "frames": len(motion.frames), "fps": motion.rate,
                  "bytes": _size(path)}
         if fmt == "bvh":
             entry["rest"] = args.rest

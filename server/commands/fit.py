@@ -8,8 +8,8 @@ import sys
 from pathlib import Path
 
 from common.body import load_body_model
-from common.errors import UserError
-from common.export import write_motion_bvh
+from common.errors import UserError, print_warning
+from common.export import sample_rate, write_motion_bvh
 from common.fitting import ENERGY_BACKENDS, FitOptions
 from common.sequence import MAX_MASK_THRESHOLD, load_sequence
 from common.world import UP_CHOICES
@@ -107,12 +107,17 @@ def options_from_args(args) -> FitOptions:
 
 def finish(model, seq, args, summary: dict) -> None:
     """Files made from the results: the BVH, and the summary on the terminal."""
+    if summary.get("already_complete"):
+        print_warning(f"{args.out}: already complete ({summary['frames']} frames); nothing to resume "
+                      "(--overwrite fits it again)")
+        return
     records = load_records(args.out)
     if records:
         import numpy as np
 
         params = np.array([r["params"] for r in records])
-        replace_file(args.out / MOTION_FILE, lambda tmp: write_motion_bvh(tmp, model, params, seq.fps))
+        rate = sample_rate(np.array([r["frame"] for r in records]), seq.fps)
+        replace_file(args.out / MOTION_FILE, lambda tmp: write_motion_bvh(tmp, model, params, rate))
     if args.json:
         print(json.dumps(summary, indent=1))
     elif not args.quiet:
