@@ -80,6 +80,9 @@ WRITE_FORMATS = ("json", "easymocap", "pose2sim", "anipose", "opencv-xml")
 FORMATS = WRITE_FORMATS + ("projection", "qualisys")
 ROUNDING_TOLERANCE = 1e-5  # |R^T R - I| of a rotation matrix written with 6 decimals; snapped
 MAX_CAMERA_DISTANCE = 50.0  # metres; a camera centre farther from the origin means "not metres"
+# metres: cameras of a capture room stand this near to, or far from, its origin; outside it
+# with --units given, the units are likely wrong (a millimetre file read as cm: 35-46 m)
+STUDIO_CAMERA_DISTANCE = (0.3, 20.0)
 # Pixels (width x height) a camera's image, and so any image file read, may have: three times
 # 8K video (7680 x 4320, 33 Mpx), ten times a 10 Mpx machine-vision camera; 300 MB as RGB.
 MAX_IMAGE_PIXELS = 100_000_000
@@ -203,6 +206,8 @@ def load_calibration(path, units: str | None = None, fmt: str | None = None,
                      "(pass --size WxH, or take the size from the images)")
     if units is None:
         check_units(studio, str(path))
+    else:
+        lines += units_doubt(studio, units, str(path))
     for line in lines:
         warn(line)
     return studio
@@ -359,6 +364,17 @@ def check_units(studio: Studio, source: str) -> None:
             f"camera {studio[i].name!r} stands {distances[i]:.1f} units from the origin, more than "
             f"{MAX_CAMERA_DISTANCE:.0f} m if they were metres; the file looks like millimetres or "
             "centimetres: pass --units mm (or cm; --units m if the studio really is that large)")
+
+
+def units_doubt(studio: Studio, units: str, source: str) -> list[str]:
+    """A warning line where cameras read with the ``units`` a user gave stand nearer to or
+    farther from the origin than a capture room's (``STUDIO_CAMERA_DISTANCE``); else none."""
+    distances = [float(np.linalg.norm(c.center)) for c in studio]
+    low, high = STUDIO_CAMERA_DISTANCE
+    if low <= min(distances) and max(distances) <= high:
+        return []
+    return [f"{source}: with --units {units} the cameras stand {min(distances):.2f}-{max(distances):.2f} m from the "
+            f"origin, where a capture room's stand {low:g}-{high:g} m: check --units"]
 
 
 def natural_key(text: str) -> tuple:

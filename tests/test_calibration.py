@@ -148,6 +148,18 @@ def test_anipose_units_and_natural_sort(tmp_path):
     np.testing.assert_allclose(cm[0].t, 10 * studio[0].t, atol=1e-12)
 
 
+def test_units_given_that_put_the_cameras_out_of_a_room_are_doubted():
+    """A millimetre file read with --units cm puts cameras tens of metres away: read as the user
+    said, with one warning line naming the file; the right units say nothing."""
+    path = DATA / "anipose" / "calibration.toml"
+    warned = []
+    load_calibration(path, units="mm", warn=warned.append)
+    assert not any("check --units" in w for w in warned)
+    load_calibration(path, units="m", warn=warned.append)
+    doubt = [w for w in warned if "check --units" in w]
+    assert len(doubt) == 1 and str(path) in doubt[0] and "--units m " in doubt[0]
+
+
 def test_opencv_xml_tag_variants():
     studio = load_calibration(DATA / "opencv_xml")
     cam1, cam2, cam10 = studio

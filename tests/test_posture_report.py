@@ -48,3 +48,11 @@ def test_without_the_actors_size_the_soles_are_not_reported():
     params = rest_params(load_body_model())[None]
     fig = posture_figures(records_of(1.0, "+z", params))
     assert "l_foot_lowest_m" not in fig and "l_ankle_height_m" in fig
+
+
+def test_a_folder_without_a_result_is_one_error_line_and_exit_2(tmp_path, capsys):
+    from posture_report import main
+
+    assert main([str(tmp_path / "nowhere")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("posture_report: error: ") and "poses.jsonl" in err[0]

@@ -22,7 +22,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from common.body import JOINT_NAMES, SEGMENT_NAMES, forward_kinematics, load_body_model  # noqa: E402
 from common.energy import ellipsoid_world  # noqa: E402
+from common.errors import InputFileError, UserError  # noqa: E402
 from common.world import world_frame  # noqa: E402
+from server.results import POSES_FILE, SUMMARY_FILE, load_records  # noqa: E402
 
 
 def bend_deg(a: np.ndarray, joint: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -64,13 +66,19 @@ def posture_figures(records: list[dict], actor_scale: float | None = None) -> di
     return out
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("result", type=Path)
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="posture_report", description=" ".join(__doc__.split("\n\n")[0].split()))
+    ap.add_argument("result", type=Path, help="a mocap fit result folder")
     ap.add_argument("--json", action="store_true")
-    args = ap.parse_args()
-    records = [json.loads(line) for line in (args.result / "poses.jsonl").read_text().splitlines() if line.strip()]
-    summary = args.result / "summary.json"
+    args = ap.parse_args(argv)
+    try:
+        records = load_records(args.result)
+        if not records:
+            raise InputFileError(args.result / POSES_FILE, "holds no fitted frame")
+    except UserError as exc:
+        print(f"posture_report: error: {exc}", file=sys.stderr)
+        return 2
+    summary = args.result / SUMMARY_FILE
     scale = json.loads(summary.read_text()).get("actor_scale") if summary.is_file() else None
     fig = posture_figures(records, scale)
     if args.json:

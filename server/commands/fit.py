@@ -19,7 +19,7 @@ from server.config import PRESETS
 from server.progress import Progress
 from server.output import add_overwrite_argument, check_folder_target, replace_file
 from server.results import MOTION_FILE, POSES_FILE, RESULT_FILES, load_records, read_done_frames
-from server.session import (LocalSolver, choose_actor_scale, refinement_note, resolve_threads, run_fit,
+from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, resolve_threads, run_fit,
                             tracking_error_note)
 
 INIT_CHOICES = ("auto", "truth", "standing")
@@ -83,7 +83,8 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--actor-height", default="auto", metavar="M|auto",
                    help="the actor's height in the calibration's units (metres): the body model is scaled to it; "
                         "auto (default): the model's own size when starting from the truth, else chosen by the "
-                        "first frame's silhouettes among 0.9-1.3 times the model's 1.66 m")
+                        f"first frame's silhouettes among {ACTOR_SCALES[0]:g}-{ACTOR_SCALES[-1]:g} times the model's "
+                        "1.66 m (printed with the result: a size far from 1 can mean a calibration in other units)")
     p.add_argument("--resume", action="store_true",
                    help="continue a result folder after a crash (with the options it was started with)")
     add_overwrite_argument(p)
@@ -128,6 +129,10 @@ def print_summary(summary: dict, out) -> None:
     rows = [("frames", summary["frames"]), ("mode", f"{summary['mode']} ({summary['clients']} clients"
                      + (f", {summary['threads']} threads)" if summary.get("threads", 1) > 1 else ")")),
             ("energy", summary["energy_backend"]),
+            ("world up", summary.get("world_up", "+z")),
+            ("actor size", f"{summary.get('actor_scale', 1.0):.2f} x the body model"
+                           + (" (chosen from the first frame; --actor-height sets it)" if summary.get("init") == "auto"
+                              and "mean_joint_error_mm" not in summary else "")),
             ("s/frame (median)", f"{summary['seconds_per_frame']:.3f}" if summary["seconds_per_frame"] else "-"),
             ("evaluations/frame", f"{summary['evaluations_per_frame']:.0f}" if summary["evaluations_per_frame"] else "-")]
     refined = bool(summary.get("refinement_passes"))
@@ -137,6 +142,12 @@ def print_summary(summary: dict, out) -> None:
         tracked = f" (tracking alone {tracking_error_note(summary)})" if refined else ""
         rows += [("mean / max joint error", f"{summary['mean_joint_error_mm']:.1f} / "
                                             f"{summary['max_joint_error_mm']:.1f} mm{tracked}")]
+    quality = summary.get("fit_quality")
+    if quality:  # without truth the only check of a take: how much of the silhouettes the body explains
+        flagged = len(quality.get("frames_flagged", []))
+        rows.append(("XOR / silhouette area", f"{quality['mean_xor_share']:.0%} mean, {quality['max_xor_share']:.0%} "
+                                              f"worst; {flagged} of {summary['frames']} frames over "
+                                              f"{quality['flag_share']:.0%} in a camera (report.html names them)"))
     rows += _cluster_rows(summary)
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
