@@ -81,14 +81,28 @@ ACTOR_TOLERANCE_M = 1e-6   # recorded joints vs forward kinematics of the rebuil
 C3D_LABEL_LENGTH = 16      # characters per C3D point label
 
 
+def frame_step(frames) -> int:
+    """The common step of frame numbers (F,): their differences' greatest common divisor (1 for
+    a single frame): 5 for a take imported with ``--step 5``, a missing frame or not."""
+    steps = np.diff(np.unique(np.asarray(frames, dtype=np.int64)))
+    return max(int(np.gcd.reduce(steps)) if len(steps) else 1, 1)
+
+
+def frames_text(frames) -> str:
+    """Fitted frame numbers for a message: '0..195, one in 5', '0..40', or 'none'."""
+    if len(frames) == 0:
+        return "none"
+    step = frame_step(frames)
+    return f"{min(frames)}..{max(frames)}" + (f", one in {step}" if step > 1 else "")
+
+
 def sample_rate(frames: np.ndarray, fps: float) -> float:
     """Samples per second of fits at ``frames`` (F,) (frame numbers of a recording at ``fps``):
-    ``fps`` over the frames' common step (their differences' greatest common divisor), so that
-    a take imported with ``--step 5`` from 50 fps plays at 10. Formats with one fixed rate (BVH,
-    C3D, TRC) would otherwise play it five times too fast, while those that keep each frame's
-    time (glTF, MOT, CSV, JSON) already have it right."""
-    steps = np.diff(np.unique(np.asarray(frames, dtype=np.int64)))
-    return float(fps) / max(int(np.gcd.reduce(steps)) if len(steps) else 1, 1)
+    ``fps`` over their ``frame_step``, so that a take imported with ``--step 5`` from 50 fps
+    plays at 10. Formats with one fixed rate (BVH, C3D, TRC) would otherwise play it five times
+    too fast, while those that keep each frame's time (glTF, MOT, CSV, JSON) already have it
+    right."""
+    return float(fps) / frame_step(frames)
 
 
 @dataclass(frozen=True)

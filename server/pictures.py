@@ -35,7 +35,7 @@ from common.body import (
 )
 from common.camera import Camera, Studio, look_at
 from common.errors import InputFileError, UserError
-from common.export import FittedMotion
+from common.export import FittedMotion, frames_text
 from common.sequence import Sequence, load_sequence
 from server.progress import Progress
 from server.results import SUMMARY_FILE, load_records
@@ -185,8 +185,7 @@ def default_cameras(studio: Studio, count: int = MAX_OVERLAY_CAMERAS) -> list[st
 def frame_index(result: ResultData, frame: int) -> int:
     hits = np.flatnonzero(result.motion.frames == int(frame))
     if hits.size == 0:
-        raise UserError(f"{result.path}: frame {frame} was not fitted "
-                        f"(fitted: {result.motion.frames[0]}..{result.motion.frames[-1]})")
+        raise UserError(f"{result.path}: frame {frame} was not fitted (fitted: {frames_text(result.motion.frames)})")
     return int(hits[0])
 
 

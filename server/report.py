@@ -221,9 +221,11 @@ def build_report(result: ResultData, frames=None, cameras=None) -> str:
     else:
         overlay_html = '<p class="note">The sequence folder was not found, so there are no overlays ' \
                        '(run <code>mocap report RESULT --sequence SEQ</code>).</p>'
-    view_frames = sorted({frames[0], worst_frame(result)})
+    worst = worst_frame(result)
+    view_frames = sorted({frames[0], worst})
+    worst_label = " (largest error)" if result.truth is not None else " (highest energy: no truth)"
     views = [f'<figure>{_img(png_bytes(fit_height(model_views(result, painter, f, size=VIEW_PANEL), VIEW_PANEL[1])), f"model at frame {f}", "strip")}'
-             f'<figcaption>frame {f}{" (largest error)" if f == worst_frame(result) and len(view_frames) > 1 else ""}'
+             f'<figcaption>frame {f}{worst_label if f == worst and len(view_frames) > 1 else ""}'
              f'</figcaption></figure>' for f in view_frames]
     truth_note = " The true skeleton is drawn in green." if result.truth is not None else ""
 

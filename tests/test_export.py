@@ -18,7 +18,7 @@ from common.bvh import read_bvh, rest_positions
 from common.errors import UserError
 from common.export import (
     BODY25_NAMES, BVH_JOINT_NAMES, BVH_UNITS_PER_M, FORMATS, MOT_COLUMNS, SUFFIXES, TO_BVH, TO_OPENSIM,
-    FittedMotion, actor_from_joints, bvh_to_world_joints, export_motion, params_to_bvh, sample_rate,
+    FittedMotion, actor_from_joints, bvh_to_world_joints, export_motion, frames_text, params_to_bvh, sample_rate,
 )
 from server.cli import main as cli_main
 
@@ -475,6 +475,8 @@ def test_the_fitted_frames_rate_is_the_recordings_over_their_step():
     assert sample_rate(np.array([3, 8, 18, 23]), 50.0) == 10.0  # a frame missing: still every 5th
     assert sample_rate(np.array([0, 2, 3]), 30.0) == 30.0
     assert sample_rate(np.array([7]), 25.0) == 25.0
+    assert frames_text([0, 5, 15, 20]) == "0..20, one in 5" and frames_text([3, 4]) == "3..4"
+    assert frames_text([]) == "none"
 
 
 def test_a_take_fitted_every_5th_frame_plays_in_real_time_in_every_format(tmp_path):

@@ -480,6 +480,9 @@ def test_mocap_fit_resume_of_a_finished_result_changes_nothing(fresh_result, sma
     assert fit(small_sequence, out, "--frames", "2", "--resume") == 0
     assert "already complete (2 frames); nothing to resume" in capsys.readouterr().err
     assert {name: (out / name).read_bytes() for name in before} == before
+    (out / "motion.bvh").unlink()  # stopped after the summary, before the BVH: that is made again
+    assert fit(small_sequence, out, "--frames", "2", "--resume") == 0
+    assert (out / "motion.bvh").read_bytes() == before["motion.bvh"]
 
 
 def test_export_all_after_fit_keeps_the_fits_own_bvh(fresh_result, tmp_path, capsys):

@@ -235,10 +235,15 @@ def test_check_folder_target_rules(tmp_path):
 
 
 def test_export_and_report_refuse_to_overwrite(fitted, tmp_path, capsys):
-    code, err = run(capsys, "export", fitted, "--format", "bvh")  # mocap fit wrote motion.bvh
+    bvh = (fitted / "motion.bvh").read_bytes()  # mocap fit wrote it
+    code, err = run(capsys, "export", fitted, "--format", "bvh", "--rest", "tpose")  # other bytes
     assert code == 2
     one_error_line(err, "motion.bvh", "--overwrite")
-    assert run(capsys, "export", fitted, "--format", "bvh", "--overwrite", "--quiet")[0] == 0
+    assert (fitted / "motion.bvh").read_bytes() == bvh
+    # the same bytes as the fit's: nothing to lose, so not refused
+    assert run(capsys, "export", fitted, "--format", "bvh", "--quiet")[0] == 0
+    assert (fitted / "motion.bvh").read_bytes() == bvh
+    assert run(capsys, "export", fitted, "--format", "bvh", "--rest", "tpose", "--overwrite", "--quiet")[0] == 0
     assert run(capsys, "report", fitted, "--no-pictures", "--quiet")[0] == 0
     before = (fitted / "report.html").read_bytes()
     code, err = run(capsys, "report", fitted, "--no-pictures", "--quiet")

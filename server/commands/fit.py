@@ -107,13 +107,14 @@ def options_from_args(args) -> FitOptions:
 
 
 def finish(model, seq, args, summary: dict) -> None:
-    """Files made from the results: the BVH, and the summary on the terminal."""
-    if summary.get("already_complete"):
+    """Files made from the results: the BVH (a finished run's only where a stop before it left
+    none), and the summary on the terminal."""
+    complete = bool(summary.get("already_complete"))
+    if complete:
         print_warning(f"{args.out}: already complete ({summary['frames']} frames); nothing to resume "
                       "(--overwrite fits it again)")
-        return
     records = load_records(args.out)
-    if records:
+    if records and not (complete and (args.out / MOTION_FILE).is_file()):
         import numpy as np
 
         params = np.array([r["params"] for r in records])

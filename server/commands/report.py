@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 from common.errors import UserError
+from common.export import frames_text
 from common.argtypes import real
 from server.output import add_overwrite_argument, check_file_target, check_folder_target
 from server.pictures import PICTURES_DIR, make_result_pictures
@@ -54,8 +55,7 @@ def run(args) -> int:
     fitted = [r["frame"] for r in records]
     missing = [f for f in frames or () if f not in fitted]
     if missing:
-        span = f"{fitted[0]}..{fitted[-1]}" if fitted else "none"
-        raise UserError(f"--frames: frame {missing[0]} was not fitted (frames fitted: {span})")
+        raise UserError(f"--frames: frame {missing[0]} was not fitted (frames fitted: {frames_text(fitted)})")
     check_file_target(args.out or args.result / REPORT_NAME, args.overwrite)
     if not args.no_pictures:
         check_folder_target(args.result / PICTURES_DIR, ("*",), option="pictures", overwrite=args.overwrite,
