@@ -80,9 +80,11 @@ WRITE_FORMATS = ("json", "easymocap", "pose2sim", "anipose", "opencv-xml")
 FORMATS = WRITE_FORMATS + ("projection", "qualisys")
 ROUNDING_TOLERANCE = 1e-5  # |R^T R - I| of a rotation matrix written with 6 decimals; snapped
 MAX_CAMERA_DISTANCE = 50.0  # metres; a camera centre farther from the origin means "not metres"
-# metres: cameras of a capture room stand this near to, or far from, its origin; outside it
-# with --units given, the units are likely wrong (a millimetre file read as cm: 35-46 m)
-STUDIO_CAMERA_DISTANCE = (0.3, 20.0)
+# metres: the farthest two cameras of a capture room (or a stereo pair) stand at least and at
+# most this far apart; outside it with --units given, the units are likely wrong (a millimetre
+# file read as cm: tens of metres). Between cameras, not from the origin: a stereo file has one
+# camera there
+STUDIO_CAMERA_SPAN = (0.02, 30.0)
 # Pixels (width x height) a camera's image, and so any image file read, may have: three times
 # 8K video (7680 x 4320, 33 Mpx), ten times a 10 Mpx machine-vision camera; 300 MB as RGB.
 MAX_IMAGE_PIXELS = 100_000_000
@@ -367,14 +369,15 @@ def check_units(studio: Studio, source: str) -> None:
 
 
 def units_doubt(studio: Studio, units: str, source: str) -> list[str]:
-    """A warning line where cameras read with the ``units`` a user gave stand nearer to or
-    farther from the origin than a capture room's (``STUDIO_CAMERA_DISTANCE``); else none."""
-    distances = [float(np.linalg.norm(c.center)) for c in studio]
-    low, high = STUDIO_CAMERA_DISTANCE
-    if low <= min(distances) and max(distances) <= high:
+    """A warning line where the farthest two cameras read with the ``units`` a user gave stand
+    nearer or farther apart than a capture room's (``STUDIO_CAMERA_SPAN``); else none."""
+    centres = np.array([c.center for c in studio])
+    span = float(np.linalg.norm(centres[:, None] - centres[None], axis=-1).max())
+    low, high = STUDIO_CAMERA_SPAN
+    if len(studio) < 2 or low <= span <= high:
         return []
-    return [f"{source}: with --units {units} the cameras stand {min(distances):.2f}-{max(distances):.2f} m from the "
-            f"origin, where a capture room's stand {low:g}-{high:g} m: check --units"]
+    return [f"{source}: with --units {units} the farthest two cameras stand {span:.2f} m apart, where a capture "
+            f"room's stand {low:g}-{high:g} m: check --units"]
 
 
 def natural_key(text: str) -> tuple:

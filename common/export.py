@@ -11,9 +11,9 @@ settings of Blender, OpenSim and three.js):
 - TRC and MOT: OpenSim's convention, Y up, the actor's rest forward along +X, Z to its right,
   metres; TRC markers are named as Pose2Sim's HALPE_26 skeleton names them.
 - keypoints3d: EasyMocap's per-frame JSON, body25 joint order, the user's world, metres.
-- C3D: our world unchanged, Z up, millimetres (the usual lab convention; POINT:X_SCREEN/Y_SCREEN
-  say so to viewers such as Mokka).
-- CSV and JSON lines: our world, Z up, metres.
+- C3D: the user's world unchanged, millimetres; POINT:Y_SCREEN names its up axis (X_SCREEN +X,
+  or +Y where x is up), so that viewers such as Mokka show the actor upright.
+- CSV and JSON lines: the user's world, metres.
 
 Upright formats (GLB, BVH, TRC, MOT) are written from the z-up fit frame, so that their up is
 the actor's up whatever the user's world; keypoints3d, C3D, CSV and JSON lines keep the user's
@@ -86,14 +86,6 @@ def frame_step(frames) -> int:
     a single frame): 5 for a take imported with ``--step 5``, a missing frame or not."""
     steps = np.diff(np.unique(np.asarray(frames, dtype=np.int64)))
     return max(int(np.gcd.reduce(steps)) if len(steps) else 1, 1)
-
-
-def frames_text(frames) -> str:
-    """Fitted frame numbers for a message: '0..195, one in 5', '0..40', or 'none'."""
-    if len(frames) == 0:
-        return "none"
-    step = frame_step(frames)
-    return f"{min(frames)}..{max(frames)}" + (f", one in {step}" if step > 1 else "")
 
 
 def sample_rate(frames: np.ndarray, fps: float) -> float:
@@ -457,7 +449,7 @@ def write_keypoints3d(folder, motion: FittedMotion) -> None:
 
 
 def write_csv(path, motion: FittedMotion) -> None:
-    """One row per frame: frame, time, joint positions (metres, Z up), the 35 parameters."""
+    """One row per frame: frame, time, joint positions (metres, the user's world), the 35 parameters."""
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["frame", "time_s"] + [f"{n}_{a}_m" for n in JOINT_NAMES for a in "xyz"] + list(PARAM_NAMES))
@@ -467,7 +459,8 @@ def write_csv(path, motion: FittedMotion) -> None:
 
 
 def write_jsonl(path, motion: FittedMotion) -> None:
-    """One JSON object per line: frame, time, params (35), joints {name: [x, y, z]} (metres, Z up)."""
+    """One JSON object per line: frame, time, params (35, the fit frame's), joints {name: [x, y, z]}
+    (metres, the user's world)."""
     with open(path, "w") as fh:
         for i, f in enumerate(motion.frames):
             fh.write(json.dumps({"frame": int(f), "time": float(motion.times[i]),
@@ -482,7 +475,8 @@ def write_c3d(path, motion: FittedMotion) -> None:
 
     writer = c3d.Writer(point_rate=float(motion.rate), analog_rate=0.0, point_scale=-1.0, point_units="mm  ")
     writer.set_point_labels([n[:C3D_LABEL_LENGTH].ljust(C3D_LABEL_LENGTH) for n in JOINT_NAMES])
-    writer.set_screen_axis(X="+X", Y="+Z")  # viewers: x to the right, z up on screen
+    up = motion.up.upper()  # viewers: the world's up axis up on screen, x (or y) to the right
+    writer.set_screen_axis(X="+Y" if up[1] == "X" else "+X", Y=up)
     no_analog = np.zeros((0, 0), dtype=np.float32)
     for frame in motion.joints * MM_PER_M:
         points = np.zeros((len(JOINT_NAMES), 5), dtype=np.float32)

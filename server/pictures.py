@@ -35,10 +35,10 @@ from common.body import (
 )
 from common.camera import Camera, Studio, look_at
 from common.errors import InputFileError, UserError
-from common.export import FittedMotion, frames_text
+from common.export import FittedMotion
 from common.sequence import Sequence, load_sequence
 from server.progress import Progress
-from server.results import SUMMARY_FILE, load_records
+from server.results import SUMMARY_FILE, frames_text, load_records
 
 PICTURES_DIR = "pictures"
 GIF_NAME = "sequence.gif"

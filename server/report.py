@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from common.body import JOINT_NAMES
-from common.export import FORMATS, SUFFIXES
+from common.export import FORMATS, SUFFIXES, frame_step
 from server.output import write_text
 from server.pictures import (
     BONES, AGREE, EXTRA, GIF_NAME, MISSED, PICTURES_DIR, VIDEO_NAME, ModelPainter, ResultData, camera_indices,
@@ -103,7 +103,7 @@ def player_data(result: ResultData) -> dict:
 
 def summary_rows(result: ResultData) -> list[tuple[str, str]]:
     s, m = result.summary, result.motion
-    step = round(m.fps / m.rate)
+    step = frame_step(m.frames)
     rate = f"{m.fps:g} fps" + (f", one frame in {step} fitted: {m.rate:g} fps" if step > 1 else "")
     rows = [("frames", f"{len(m.frames)} ({m.frames[0]}..{m.frames[-1]})"), ("frame rate", rate)]
     if "mode" in s:

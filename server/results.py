@@ -8,7 +8,7 @@ import shutil
 from pathlib import Path
 
 from common.errors import InputFileError, UserError
-from common.export import FORMATS, export_name
+from common.export import FORMATS, export_name, frame_step
 from server.output import check_folder_target, write_text
 
 POSES_FILE = "poses.jsonl"
@@ -18,6 +18,14 @@ MOTION_FILE = "motion.bvh"
 RESULT_FILES = (POSES_FILE, SUMMARY_FILE, RUN_FILE, MOTION_FILE)
 # made from a result, so stale once it is replaced (mocap report, mocap export's default names)
 DERIVED_FILES = ("report.html", "pictures") + tuple(export_name(f) for f in FORMATS if export_name(f) != MOTION_FILE)
+
+
+def frames_text(frames) -> str:
+    """Fitted frame numbers for a message: '0..195, one in 5', '0..40', or 'none'."""
+    if len(frames) == 0:
+        return "none"
+    step = frame_step(frames)
+    return f"{min(frames)}..{max(frames)}" + (f", one in {step}" if step > 1 else "")
 
 
 def read_done_frames(path: Path) -> list[dict]:

@@ -12,9 +12,9 @@ import pytest
 
 from common.calibration import (
     FORMATS, WRITE_FORMATS, decompose_projection, detect_format, load_calibration, matrix_to_rodrigues, natural_key,
-    output_format, rodrigues_to_matrix, save_calibration, with_image_sizes,
+    output_format, rodrigues_to_matrix, save_calibration, units_doubt, with_image_sizes,
 )
-from common.camera import Camera, CalibrationError, Studio, circle_studio
+from common.camera import Camera, CalibrationError, Studio, circle_studio, make_camera
 from server.cli import main
 
 DATA = Path(__file__).parent / "data" / "calib"
@@ -149,8 +149,9 @@ def test_anipose_units_and_natural_sort(tmp_path):
 
 
 def test_units_given_that_put_the_cameras_out_of_a_room_are_doubted():
-    """A millimetre file read with --units cm puts cameras tens of metres away: read as the user
-    said, with one warning line naming the file; the right units say nothing."""
+    """A millimetre file read with --units m puts cameras kilometres apart (with cm, tens of
+    metres): read as the user said, with one warning line naming the file; the right units say
+    nothing, and neither does a camera at the origin (a stereo file's first)."""
     path = DATA / "anipose" / "calibration.toml"
     warned = []
     load_calibration(path, units="mm", warn=warned.append)
@@ -158,6 +159,12 @@ def test_units_given_that_put_the_cameras_out_of_a_room_are_doubted():
     load_calibration(path, units="m", warn=warned.append)
     doubt = [w for w in warned if "check --units" in w]
     assert len(doubt) == 1 and str(path) in doubt[0] and "--units m " in doubt[0]
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    stereo = Studio(tuple(make_camera(n, K, None, np.eye(3), t, 640, 480)
+                          for n, t in (("left", np.zeros(3)), ("right", np.array([-0.12, 0.0, 0.0])))))
+    assert units_doubt(stereo, "mm", "stereo") == []  # 12 cm apart, one at the origin
+    assert "check --units" in units_doubt(Studio(stereo.cameras[:1] + (make_camera(
+        "far", K, None, np.eye(3), np.array([-120.0, 0, 0]), 640, 480),)), "cm", "x")[0]
 
 
 def test_opencv_xml_tag_variants():

@@ -16,10 +16,12 @@ from common.body import (
 )
 from common.bvh import read_bvh, rest_positions
 from common.errors import UserError
+from common.world import world_frame
 from common.export import (
     BODY25_NAMES, BVH_JOINT_NAMES, BVH_UNITS_PER_M, FORMATS, MOT_COLUMNS, SUFFIXES, TO_BVH, TO_OPENSIM,
-    FittedMotion, actor_from_joints, bvh_to_world_joints, export_motion, frames_text, params_to_bvh, sample_rate,
+    FittedMotion, actor_from_joints, bvh_to_world_joints, export_motion, params_to_bvh, sample_rate,
 )
+from server.results import frames_text
 from server.cli import main as cli_main
 
 pytestmark = pytest.mark.timeout(120)
@@ -414,12 +416,13 @@ def test_mocap_export_all_formats_json(tmp_path, result_dir, capsys):
     assert len(list((out / "motion_keypoints3d").iterdir())) == FRAMES
     assert not list(out.glob(".*"))  # no partial files left
     # again: every target holds what would be written, which loses nothing; at another frame rate
-    # every target would change, so nothing is replaced without --overwrite
-    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    # the timed files would change, and every target is checked before the first is written, so
+    # nothing is replaced without --overwrite
     assert cli_main(["export", str(result_dir), "--format", "all", "--out", str(out), "--fps", "25", "--quiet"]) == 0
+    before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
     assert cli_main(["export", str(result_dir), "--format", "all", "--out", str(out), "--fps", "30"]) == 2
     assert "--overwrite" in capsys.readouterr().err
-    assert sorted(before) == sorted(p.name for p in out.iterdir())
+    assert before == {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
 
 
 def test_mocap_export_several_formats_and_rest(tmp_path, result_dir, capsys):
@@ -497,3 +500,17 @@ def test_a_take_fitted_every_5th_frame_plays_in_real_time_in_every_format(tmp_pa
     c3d = pytest.importorskip("c3d")
     with open(export_motion("c3d", tmp_path / "m.c3d", sub), "rb") as fh:
         assert c3d.Reader(fh).point_rate == pytest.approx(10.0)
+
+
+def test_c3d_tells_viewers_the_calibrations_up_axis(tmp_path):
+    """C3D keeps the user's world: a z-down calibration's actor stands upright in a viewer only
+    if POINT:Y_SCREEN says -Z."""
+    c3d = pytest.importorskip("c3d")
+    model = load_body_model()
+    params = motion_params(model, frames=3)
+    joints = world_frame("-z").points_to_user(forward_kinematics(model, params).joints)  # as a fit records them
+    records = [r | {"world_up": "-z", "joints": joints_dict(j)} for r, j in zip(records_for(model, params), joints)]
+    with open(export_motion("c3d", tmp_path / "m.c3d", FittedMotion.from_records(records, FPS)), "rb") as fh:
+        reader = c3d.Reader(fh)
+        assert reader.get("POINT:Y_SCREEN").string_value.strip() == "-Z"
+        assert reader.get("POINT:X_SCREEN").string_value.strip() == "+X"

@@ -182,7 +182,7 @@ def test_make_result_pictures(result, sequence):
     import imageio.v2 as imageio
 
     with imageio.get_reader(result.path / "pictures" / "sequence.mp4", format="ffmpeg") as reader:
-        assert reader.get_meta_data()["fps"] == pytest.approx(result.motion.fps, rel=1e-3)
+        assert reader.get_meta_data()["fps"] == pytest.approx(result.motion.rate, rel=1e-3)
         pictures = np.array([frame for frame in reader])
     assert len(pictures) == FRAMES
     gif.seek(0)

@@ -22,7 +22,7 @@ def git(*args: str) -> str:
     return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, check=True).stdout
 
 
-def test_the_same_version_beside_itself_fits_the_same_poses_and_leaves_no_worktree(tmp_path):
+def test_the_same_version_beside_itself_leaves_no_worktree_and_fits_alike_when_unchanged(tmp_path, capsys):
     worktrees = git("worktree", "list")
     seq = tmp_path / "walk"
     subprocess.run([sys.executable, "-m", "server.cli", "synth", "--out", str(seq), "--frames", "3", "--step", "4",
@@ -38,3 +38,6 @@ def test_the_same_version_beside_itself_fits_the_same_poses_and_leaves_no_worktr
     if not git("status", "--porcelain", "--untracked-files=no"):  # the working tree is HEAD: the same fit
         assert result["earlier"]["mean_joint_error_mm"] == result["this"]["mean_joint_error_mm"]
     assert git("worktree", "list") == worktrees
+    assert main(["no-such-version", "--sequence", str(seq)]) == 2  # one error line, no traceback
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("speed_against_version: error: no-such-version")

@@ -142,7 +142,7 @@ def check_blender(checks: Checks, work: Path, exports: Path, motion) -> dict:
     figures = {}
     bvh_points = [[n, "head"] for n in SEGMENT_BVH_NAMES] + [[HEAD_JOINT, "tail"]]  # head top: the End Site
     for label, path in (("BVH (A-pose rest)", exports / "motion.bvh"), ("BVH (T-pose rest)", exports / "motion_tpose.bvh")):
-        got = blender_import(work, "bvh", path, motion.fps, F, bvh_points)
+        got = blender_import(work, "bvh", path, motion.rate, F, bvh_points)
         err = deviation_mm(got["positions"], expected)
         frames = keyed_frames(got)
         checks.add(f"Blender {got['blender']} imports the {label}",
@@ -150,7 +150,7 @@ def check_blender(checks: Checks, work: Path, exports: Path, motion) -> dict:
                    and err < TOLERANCE_MM, frames=f"{frames}/{F}", bones=len(got["bones"]),
                    scene_fps=got["scene_fps"], max_joint_deviation_mm=f"{err:.4f}")
         figures[label] = err
-    got = blender_import(work, "glb", exports / "motion.glb", motion.fps, F, [[n, "head"] for n in JOINT_NODE_NAMES])
+    got = blender_import(work, "glb", exports / "motion.glb", motion.rate, F, [[n, "head"] for n in JOINT_NODE_NAMES])
     err = deviation_mm(got["positions"], expected)
     keyed = keyed_frames(got)
     checks.add(f"Blender {got['blender']} imports the GLB",
@@ -201,7 +201,7 @@ def check_opensim(checks: Checks, work: Path, exports: Path, motion) -> None:
     err = deviation_mm(trc["markers"], expected)
     checks.add(f"OpenSim {got['opensim']} reads the TRC",
                set(trc["labels"]) <= HALPE_26 and trc["labels"] == list(names) and trc["units"] == "m"
-               and len(trc["markers"]) == len(motion.frames) and abs(trc["rate"] - motion.fps) < 1e-6
+               and len(trc["markers"]) == len(motion.frames) and abs(trc["rate"] - motion.rate) < 1e-6
                and err < TOLERANCE_MM, markers=len(trc["labels"]), units=trc["units"],
                max_marker_deviation_mm=f"{err:.4f}")
     mot = got["mot"]
@@ -294,7 +294,7 @@ def main(argv=None) -> int:
     mocap("export", res, "--format", "bvh", "--rest", "tpose", "--out", exports / "motion_tpose.bvh", "--overwrite",
           "--quiet")
     motion = load_result(res).motion
-    print(f"interop: a fitted walk of {len(motion.frames)} frames at {motion.fps:g} fps "
+    print(f"interop: a fitted walk of {len(motion.frames)} frames at {motion.rate:g} fps "
           f"({time.monotonic() - started:.0f} s)", flush=True)
     npm = work / "npm"
     npm.mkdir(exist_ok=True)
@@ -306,7 +306,7 @@ def main(argv=None) -> int:
     check_opensim(checks, work, exports, motion)
     check_three(checks, work, npm, exports / "motion.glb", motion)
     seconds = time.monotonic() - started
-    summary = {"ok": checks.ok, "seconds": round(seconds, 1), "frames": len(motion.frames), "fps": motion.fps,
+    summary = {"ok": checks.ok, "seconds": round(seconds, 1), "frames": len(motion.frames), "fps": motion.rate,
                "glb_bytes": (exports / "motion.glb").stat().st_size,
                "blender_max_joint_deviation_mm": blender, "checks": checks.results}
     (work / "interop.json").write_text(json.dumps(summary, indent=1))

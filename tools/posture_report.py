@@ -71,15 +71,18 @@ def main(argv=None) -> int:
     ap.add_argument("result", type=Path, help="a mocap fit result folder")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    summary = args.result / SUMMARY_FILE
     try:
         records = load_records(args.result)
         if not records:
             raise InputFileError(args.result / POSES_FILE, "holds no fitted frame")
+        scale = json.loads(summary.read_text()).get("actor_scale") if summary.is_file() else None
+    except (OSError, ValueError, AttributeError) as exc:  # a summary unreadable, not JSON, not an object
+        print(f"posture_report: error: {summary}: {exc}", file=sys.stderr)
+        return 2
     except UserError as exc:
         print(f"posture_report: error: {exc}", file=sys.stderr)
         return 2
-    summary = args.result / SUMMARY_FILE
-    scale = json.loads(summary.read_text()).get("actor_scale") if summary.is_file() else None
     fig = posture_figures(records, scale)
     if args.json:
         print(json.dumps(fig, indent=1))

@@ -57,7 +57,12 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="speed-against-") as tmp:
         tmp = Path(tmp)
         earlier = tmp / "earlier"
-        subprocess.run(["git", "worktree", "add", "--detach", "--quiet", str(earlier), args.rev], cwd=ROOT, check=True)
+        added = subprocess.run(["git", "worktree", "add", "--detach", "--quiet", str(earlier), args.rev], cwd=ROOT,
+                               capture_output=True, text=True)
+        if added.returncode:
+            print(f"speed_against_version: error: {args.rev}: {added.stderr.strip() or 'no such version'}",
+                  file=sys.stderr)
+            return 2
         try:
             seq = args.sequence
             if seq is None:
@@ -67,7 +72,7 @@ def main(argv=None) -> int:
             versions = {"earlier": (earlier, []), "this": (ROOT, shlex.split(args.fit_args))}
             for name, (cwd, extra) in versions.items():
                 mocap(cwd, "fit", str(seq), "--out", str(tmp / f"warm-{name}"), "--frames", str(WARM_UP_FRAMES),
-                      "--quiet", *extra)
+                      "--init", "auto", "--quiet", *extra)
             runs = {name: [] for name in versions}
             for r in range(args.repeats):  # alternately, so that both meet the same background load
                 for name, (cwd, extra) in versions.items():
@@ -75,7 +80,9 @@ def main(argv=None) -> int:
         finally:
             subprocess.run(["git", "worktree", "remove", "--force", str(earlier)], cwd=ROOT, check=False)
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout
-    result = {"earlier_version": args.rev, "this_version": head.strip(), "frames": args.frames, "fit_args": args.fit_args}
+    dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=ROOT, capture_output=True,
+                           text=True).stdout.strip()
+    result = {"earlier_version": args.rev, "this_version": head.strip() + ("+changes" if dirty else ""), "frames": args.frames, "fit_args": args.fit_args}
     for name, rows in runs.items():
         result[name] = {"runs_seconds_per_frame": [round(r["seconds_per_frame"], 4) for r in rows],
                         "best_seconds_per_frame": min(r["seconds_per_frame"] for r in rows),

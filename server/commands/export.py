@@ -56,7 +56,8 @@ def register(sub) -> None:
                         f"same (default {DEFAULT_BVH_REST})")
     p.add_argument("--sequence", type=Path, default=None, help="the fitted sequence, if it moved since the fit")
     p.add_argument("--fps", type=real(0.0, exclusive_minimum=True), default=None,
-                   help="frame rate (default: the sequence's)")
+                   help="the recording's frame rate, of the frame numbers (default: the sequence's); "
+                        "BVH, C3D and TRC take it over the step between fitted frames")
     add_overwrite_argument(p)
     p.add_argument("--quiet", action="store_true", help="print nothing")
     p.add_argument("--json", action="store_true", help="print what was written as JSON")
@@ -72,8 +73,15 @@ def _write(fmt: str, path: Path, motion, rest: str) -> None:
         replace_file(path, lambda tmp: export_motion(fmt, tmp, motion, bvh_rest=rest, final_path=path))
 
 
-def _contents(path: Path) -> dict[str, bytes]:
-    return {f.name: f.read_bytes() for f in path.iterdir()} if path.is_dir() else {"": path.read_bytes()}
+def _contents(path: Path) -> dict[str, bytes | None]:
+    """{name: bytes} of a file (name "") or of a folder's entries; None for an entry that is not
+    a readable file (which then never matches what an export writes)."""
+    def read(f: Path) -> bytes | None:
+        try:
+            return f.read_bytes() if f.is_file() else None
+        except OSError:
+            return None
+    return {f.name: read(f) for f in path.iterdir()} if path.is_dir() else {"": read(path)}
 
 
 def _unchanged(fmt: str, path: Path, motion, rest: str) -> bool:
@@ -84,8 +92,6 @@ def _unchanged(fmt: str, path: Path, motion, rest: str) -> bool:
         return False
     with tempfile.TemporaryDirectory() as tmp:
         again = Path(tmp) / path.name
-        if fmt in FOLDER_FORMATS:
-            again.mkdir()
         export_motion(fmt, again, motion, bvh_rest=rest, final_path=path)
         return _contents(again) == _contents(path)
 
@@ -117,7 +123,7 @@ def run(args) -> int:
     written = []
     for fmt, path in targets:
         _write(fmt, path, motion, args.rest)
-        entry = {"format": fmt, "path": str(path), "frames": len(motion.frames), "fps": motion.rate,
+        entry = {"format": fmt, "path": str(path), "frames": len(motion.frames), "fps": motion.fps, "rate": motion.rate,
                  "bytes": _size(path)}
         if fmt == "bvh":
             entry["rest"] = args.rest
@@ -126,5 +132,5 @@ def run(args) -> int:
         print(json.dumps(written if several else written[0], indent=1))
     elif not args.quiet:
         for w in written:
-            print(f"wrote {w['path']} ({w['format']}, {w['frames']} frames at {w['fps']:g} fps)")
+            print(f"wrote {w['path']} ({w['format']}, {w['frames']} frames at {w['rate']:g} fps)")
     return 0

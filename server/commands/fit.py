@@ -132,8 +132,8 @@ def print_summary(summary: dict, out) -> None:
             ("energy", summary["energy_backend"]),
             ("world up", summary.get("world_up", "+z")),
             ("actor size", f"{summary.get('actor_scale', 1.0):.2f} x the body model"
-                           + (" (chosen from the first frame; --actor-height sets it)" if summary.get("init") == "auto"
-                              and "mean_joint_error_mm" not in summary else "")),
+                           + (" (chosen from the first frame; --actor-height sets it)"
+                              if summary.get("actor_size_seconds") else "")),
             ("s/frame (median)", f"{summary['seconds_per_frame']:.3f}" if summary["seconds_per_frame"] else "-"),
             ("evaluations/frame", f"{summary['evaluations_per_frame']:.0f}" if summary["evaluations_per_frame"] else "-")]
     refined = bool(summary.get("refinement_passes"))

@@ -9,12 +9,11 @@ import json
 from pathlib import Path
 
 from common.errors import UserError
-from common.export import frames_text
 from common.argtypes import real
 from server.output import add_overwrite_argument, check_file_target, check_folder_target
 from server.pictures import PICTURES_DIR, make_result_pictures
 from server.report import REPORT_NAME, write_report
-from server.results import load_records
+from server.results import frames_text, load_records
 
 
 def _int_list(text: str | None, option: str) -> list[int] | None:
