@@ -71,7 +71,16 @@ class Camera:
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """(..., 3) world points -> (..., 2) pixel coordinates, with distortion."""
+        return self._pixels(self.to_camera(np.asarray(points, dtype=np.float64)))
+
+    def project_with_depth(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(..., 3) world points -> ((..., 2) pixel coordinates, with distortion, (...,) depth
+        along the optical axis, metres): ``project`` and ``depth`` from one transform."""
         xc = self.to_camera(np.asarray(points, dtype=np.float64))
+        return self._pixels(xc), xc[..., 2]
+
+    def _pixels(self, xc: np.ndarray) -> np.ndarray:
+        """(..., 3) camera-frame points -> (..., 2) pixel coordinates, with distortion."""
         z = xc[..., 2]
         x = xc[..., 0] / z
         y = xc[..., 1] / z

@@ -106,18 +106,41 @@ def hull_points(studio: Studio, masks: np.ndarray, centre: np.ndarray) -> np.nda
 
 def carved(studio: Studio, masks: np.ndarray, points: np.ndarray) -> np.ndarray:
     """(n,) bool: the points (n, 3) inside the visual hull of masks (K, H, W) bool (``hull_points``'s rule)."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
     misses = np.zeros(len(points), dtype=np.int64)
     views = np.zeros(len(points), dtype=np.int64)
     for cam, mask in zip(studio, masks):
-        uv = np.rint(cam.project(points)).astype(np.int64)
-        seen = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-        seen &= cam.depth(points) > 0
-        on = np.zeros(len(points), dtype=bool)
-        on[seen] = mask[uv[seen, 1], uv[seen, 0]]
-        misses += seen & ~on
-        views += seen
+        _count_view(points, cam.R, cam.t, cam.K, cam.dist, cam.has_distortion, cam.width, cam.height,
+                    mask, misses, views)
     allowed = np.where(views >= 3, HULL_MISSES, 0)
     return (misses <= allowed) & (views >= HULL_MIN_VIEWS)
+
+
+@njit(cache=True, nogil=True)
+def _count_view(points, R, t, K, dist, distorted, width, height, mask, misses, views):
+    """``carved``'s count for one camera: each point (n, 3) in front of it and inside its image
+    (``Camera.project``'s arithmetic, rounded) adds one to ``views`` (n,), and one to ``misses``
+    (n,) where ``mask`` (H, W) bool is off there. Compiled: 32^3 points in 8 views, every frame."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    for i in range(len(points)):
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        xc = px * R[0, 0] + py * R[0, 1] + pz * R[0, 2] + t[0]
+        yc = px * R[1, 0] + py * R[1, 1] + pz * R[1, 2] + t[1]
+        zc = px * R[2, 0] + py * R[2, 1] + pz * R[2, 2] + t[2]
+        if not zc > 0.0:
+            continue
+        x, y = xc / zc, yc / zc
+        if distorted:
+            r2 = x * x + y * y
+            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            x, y = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                    y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
+        u = np.rint(K[0, 0] * x + K[0, 1] * y + K[0, 2])
+        v = np.rint(K[1, 1] * y + K[1, 2])
+        if 0.0 <= u < width and 0.0 <= v < height:
+            views[i] += 1
+            if not mask[int(v), int(u)]:
+                misses[i] += 1
 
 
 def ray_supported(studio: Studio, masks: np.ndarray, pixels: list, centre: np.ndarray) -> list:
@@ -226,16 +249,37 @@ def static_props(studio: Studio, samples: list, centre: np.ndarray | None) -> St
     return StaticProps(origin, step, props)
 
 
-def footprint(cam, points: np.ndarray, shape: tuple, radius: int, square: bool = False) -> np.ndarray:
-    """(H, W) bool: the pixels of camera ``cam`` within ``radius`` steps (4-connected, or
-    8-connected with ``square``) of the projections of points (n, 3) in front of it."""
-    out = np.zeros(shape, dtype=bool)
-    uv = np.rint(cam.project(points)).astype(np.int64)
+def image_points(cam, points: np.ndarray) -> np.ndarray:
+    """(m, 2) int (column, row) pixels of camera ``cam`` that the points (n, 3) in front of it
+    project into (with distortion, rounded), those outside its image left out."""
+    uv, depth = cam.project_with_depth(points)
+    uv = np.rint(uv).astype(np.int64)
     ok = (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
-    ok &= cam.depth(points) > 0
-    out[uv[ok, 1], uv[ok, 0]] = True
+    return uv[ok & (depth > 0)]
+
+
+def footprint(pixels: np.ndarray, shape: tuple, radius: int, square: bool = False) -> np.ndarray:
+    """(H, W) bool: the pixels within ``radius`` steps (4-connected, or 8-connected with
+    ``square``) of ``pixels`` (m, 2) int (column, row; ``image_points``)."""
+    out = np.zeros(shape, dtype=bool)
+    out[pixels[:, 1], pixels[:, 0]] = True
+    return dilated(out, radius, square)
+
+
+def dilated(mask: np.ndarray, iterations: int, square: bool = False) -> np.ndarray:
+    """``ndimage.binary_dilation(mask, iterations=iterations)`` with the 4-connected (or, with
+    ``square``, 8-connected) step, computed on the box around ``mask``'s pixels only: the same
+    pixels, and what dilates the hull's splats over 8 whole images is most of a frame's cleaning."""
+    rows, columns = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
+    if len(rows) == 0 or iterations < 1:
+        return mask.copy()
+    margin = iterations + 1  # nothing spreads further, so the box's own border adds nothing
+    r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, mask.shape[0])
+    c0, c1 = max(columns[0] - margin, 0), min(columns[-1] + margin + 1, mask.shape[1])
+    out = np.zeros_like(mask)
     structure = ndimage.generate_binary_structure(2, 2 if square else 1)
-    return ndimage.binary_dilation(out, structure, iterations=radius) if ok.any() else out
+    out[r0:r1, c0:c1] = ndimage.binary_dilation(mask[r0:r1, c0:c1], structure, iterations=iterations)
+    return out
 
 
 def cell_radius_px(cam, points: np.ndarray, step: float) -> int:
@@ -265,8 +309,9 @@ def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None
         return masks, removed
     out = masks.copy()
     hull_step = HULL_EXTENT_M / (HULL_GRID - 1)  # hull_points' spacing
+    hull_pixels = [image_points(cam, points) for cam in studio]
     for k, (cam, mask) in enumerate(zip(studio, masks)):
-        support = footprint(cam, points, mask.shape, SPLAT_RADIUS_PX)
+        support = footprint(hull_pixels[k], mask.shape, SPLAT_RADIUS_PX)
         labels, count = ndimage.label(mask)
         if count == 0:
             continue
@@ -282,22 +327,23 @@ def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None
     # blobs (a floor seam two cameras see does not hold itself up); one within EDGE_TOLERANCE_PX
     # of a pixel that stays, stays
     blobs = out.copy()
-    far_off = [np.argwhere(blobs[k] & ~footprint(cam, points, masks[k].shape,
+    far_off = [np.argwhere(blobs[k] & ~footprint(hull_pixels[k], masks[k].shape,
                                                   NEAR_CELLS * cell_radius_px(cam, points, hull_step), square=True))
                for k, cam in enumerate(studio)]
     for k, (pixels, supported) in enumerate(zip(far_off, ray_supported(studio, blobs, far_off, centre))):
         if len(pixels):
             unsupported = np.zeros_like(blobs[k])
             unsupported[tuple(pixels[~supported].T)] = True
-            near_kept = ndimage.binary_dilation(blobs[k] & ~unsupported, iterations=EDGE_TOLERANCE_PX)
+            near_kept = dilated(blobs[k] & ~unsupported, EDGE_TOLERANCE_PX)
             out[k] &= ~(unsupported & ~near_kept)
     if props is not None:
         actor, prop = points[~props.near(points)], props.points
         for k, cam in enumerate(studio):
             shape = masks[k].shape
-            covered = footprint(cam, prop, shape, cell_radius_px(cam, prop, props.step), square=True)
+            covered = footprint(image_points(cam, prop), shape, cell_radius_px(cam, prop, props.step), square=True)
             if len(actor):
-                covered &= ~footprint(cam, actor, shape, cell_radius_px(cam, actor, hull_step), square=True)
+                covered &= ~footprint(image_points(cam, actor), shape, cell_radius_px(cam, actor, hull_step),
+                                      square=True)
             out[k] &= ~covered
-    removed[:] = masks.sum(axis=(1, 2)) - out.sum(axis=(1, 2))
+    removed[:] = np.count_nonzero(masks, axis=(1, 2)) - np.count_nonzero(out, axis=(1, 2))
     return out, removed

@@ -164,7 +164,12 @@ def downsample_masks(masks: np.ndarray, factor: int = 2) -> np.ndarray:
     if masks.ndim < 2:
         raise ValueError(f"expected (..., H, W) masks, got shape {masks.shape}")
     height, width = masks.shape[-2] // factor, masks.shape[-1] // factor
-    blocks = (masks[..., :height * factor, :width * factor] != 0).reshape(
-        masks.shape[:-2] + (height, factor, width, factor))
-    counts = blocks.sum(axis=(-3, -1), dtype=np.int32)
+    source = (masks[..., :height * factor, :width * factor] != 0).view(np.uint8)
+    # the block's pixels added as factor x factor strided views: numpy's sum over two strided
+    # axes of a bool array is 12 times slower (6 ms for 8 images of 320x240), and every client
+    # downsamples every frame
+    counts = np.zeros(masks.shape[:-2] + (height, width), dtype=np.uint8 if factor * factor < 256 else np.int32)
+    for row in range(factor):
+        for column in range(factor):
+            counts += source[..., row::factor, column::factor]
     return counts >= -(-factor * factor // 2)
