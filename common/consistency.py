@@ -347,3 +347,30 @@ def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None
             out[k] &= ~covered
     removed[:] = np.count_nonzero(masks, axis=(1, 2)) - np.count_nonzero(out, axis=(1, 2))
     return out, removed
+
+
+def bench_cleaning(cameras: tuple = (4, 8), width: int = 320, height: int = 240) -> list[dict]:
+    """Frames per second of a frame's cleaning as ``Sequence.cleaned`` runs it (the actor's
+    centre, then ``supported_masks``) on synthetic person silhouettes at Cheung's noise in
+    ``circle_studio`` cameras. One row per camera count: {"cameras", "size" [W, H],
+    "frames_per_second", "milliseconds_per_frame", "pixels_removed" (per frame, all cameras)}.
+    A cluster's server cleans each frame before its clients can start on it."""
+    from common.camera import circle_studio
+    from common.voxels import (BENCH_POSES, CHEUNG_ETA, CHEUNG_XI, _frames_per_second, corrupt, person_ellipsoids,
+                               render_ellipsoids, silhouette_centre)
+
+    rows = []
+    for count in cameras:
+        studio = circle_studio(count, width, height)
+        rng = np.random.default_rng(0)
+        frames = [corrupt(render_ellipsoids(studio, *person_ellipsoids((0.1 * i, -0.05 * i), 0.7 * i, 0.2 + 0.3 * i)),
+                          CHEUNG_ETA, CHEUNG_XI, rng) for i in range(BENCH_POSES)]
+
+        def clean(masks):
+            return supported_masks(studio, masks, silhouette_centre(studio, masks))
+
+        rate = _frames_per_second(clean, frames)
+        rows.append({"cameras": count, "size": [width, height], "frames_per_second": rate,
+                     "milliseconds_per_frame": 1000.0 / rate,
+                     "pixels_removed": float(np.mean([clean(m)[1].sum() for m in frames]))})
+    return rows

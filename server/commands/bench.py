@@ -13,7 +13,7 @@ BENCH_CLIP_FRAMES = 20  # frames of the bundled walk used for fitting benchmarks
 
 
 def register(sub) -> None:
-    p = sub.add_parser("bench", help="benchmarks (energy, fit, cluster, hops, presets, segment, voxels, batch, all)")
+    p = sub.add_parser("bench", help="benchmarks (energy, fit, cluster, hops, presets, segment, voxels, clean, batch, all)")
     bsub = p.add_subparsers(dest="bench", metavar="WHAT")
     bsub.required = True
     e = bsub.add_parser("energy", help="XOR energy evaluations per second (paper Table 1)")
@@ -39,6 +39,8 @@ def register(sub) -> None:
     s.add_argument("--json", type=Path, default=None)
     v = bsub.add_parser("voxels", help="SPOT voxel reconstruction frames/s")
     v.add_argument("--json", type=Path, default=None)
+    cl = bsub.add_parser("clean", help="multi-view cleaning of a frame's masks frames/s")
+    cl.add_argument("--json", type=Path, default=None)
     acc = bsub.add_parser("accuracy", help="joint error on walk, dance and basketball clips (virtual studio)")
     acc.add_argument("--frames", type=count(1), default=100)
     acc.add_argument("--turn-hypotheses", type=count(0), default=None, metavar="N",
@@ -200,6 +202,11 @@ def run(args) -> int:
 
         _emit(bench_voxels(), args.json)
         return 0
+    if args.bench == "clean":
+        from common.consistency import bench_cleaning
+
+        _emit(bench_cleaning(), args.json)
+        return 0
     return run_all(args.out, args.frames)
 
 
@@ -230,6 +237,7 @@ def run_all(out: Path, frames: int) -> int:
         print(json.dumps(presets, indent=1))
     for name, module, func in (("segment", "common.segmentation", "bench_segmentation"),
                                ("voxels", "common.voxels", "bench_voxels"),
+                               ("clean", "common.consistency", "bench_cleaning"),
                                ("batch", "server.bench_batch", "bench_batch")):
         try:
             mod = __import__(module, fromlist=[func])
