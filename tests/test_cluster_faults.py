@@ -104,6 +104,20 @@ def test_server_killed_and_resumed(seq_path, reference, tmp_path):
     assert all("registered with" in (tmp_path / f"c{i}.log").read_text().split("silent")[-1] for i in (1, 2))
 
 
+LATE_CLIENT = """
+import sys, time
+from pathlib import Path
+import client.__main__ as client_main
+from common.objective import compile_kernels
+compile_kernels()
+go, endpoint = Path(sys.argv[1]), sys.argv[2]
+deadline = time.monotonic() + 60
+while not go.exists() and time.monotonic() < deadline:
+    time.sleep(0.01)
+sys.exit(client_main.main(["--connect", endpoint, "--id", "late", "--reconnect-min", "0.2", "--exit-with-parent"]))
+"""
+
+
 @pytest.mark.timeout(90)
 def test_client_joins_late(seq_path, reference, tmp_path):
     port, out = free_port(), tmp_path / "out"
@@ -111,10 +125,15 @@ def test_client_joins_late(seq_path, reference, tmp_path):
     server = start_server(seq_path, out, port, tmp_path / "server.log", "--min-clients", "1")
     early = start_client(endpoint, "early", tmp_path / "early.log", "-v", "--test-stall", "0.8",
                          "--test-stall-requests", "1000")
-    late = None
+    # the late client's interpreter, imports and kernels loaded before the run starts, so that it
+    # joins as soon as the run is under way: a client started from nothing then took longer to
+    # start than the three frames' run on a loaded machine
+    go = tmp_path / "go"
+    with open(tmp_path / "late.log", "w") as fh:
+        late = subprocess.Popen([PY, "-c", LATE_CLIENT, str(go), endpoint], cwd=ROOT, env=env(), stdout=fh, stderr=fh)
     try:
         wait_for(lambda: log_has(tmp_path / "early.log", "solving frame"), 60, "the run to start")
-        late = start_client(endpoint, "late", tmp_path / "late.log")
+        go.touch()
         assert server.wait(60) == 0, (tmp_path / "server.log").read_text()
     finally:
         stop([p for p in (server, early, late) if p])
