@@ -119,7 +119,12 @@ class Camera:
 
 def distort_normalized(x: np.ndarray, y: np.ndarray, dist: np.ndarray):
     """OpenCV radial-tangential distortion of normalized image coordinates."""
-    k1, k2, p1, p2, k3 = dist
+    return distortion(x, y, *dist)
+
+
+def distortion(x, y, k1, k2, p1, p2, k3):
+    """``distort_normalized`` with the coefficients apart: plain arithmetic on arrays or
+    scalars, so that compiled kernels use it too (``numba.njit(distortion)``, the same bits)."""
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)

@@ -28,7 +28,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
-from common.camera import Studio
+from common.camera import Studio, distortion
 
 HULL_GRID = 32               # voxels per side of the carved box (about 10 cm; blobs are judged whole, so
                              # 64 removed the same pixels to 0.2% on the seated take and a walk, at 7x the time)
@@ -116,6 +116,9 @@ def carved(studio: Studio, masks: np.ndarray, points: np.ndarray) -> np.ndarray:
     return (misses <= allowed) & (views >= HULL_MIN_VIEWS)
 
 
+_distortion = njit(cache=True, nogil=True, inline="always")(distortion)
+
+
 @njit(cache=True, nogil=True)
 def _count_view(points, R, t, K, dist, distorted, width, height, mask, misses, views):
     """``carved``'s count for one camera: each point (n, 3) in front of it and inside its image
@@ -131,10 +134,7 @@ def _count_view(points, R, t, K, dist, distorted, width, height, mask, misses, v
             continue
         x, y = xc / zc, yc / zc
         if distorted:
-            r2 = x * x + y * y
-            radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-            x, y = (x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
-                    y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y)
+            x, y = _distortion(x, y, k1, k2, p1, p2, k3)
         u = np.rint(K[0, 0] * x + K[0, 1] * y + K[0, 2])
         v = np.rint(K[1, 1] * y + K[1, 2])
         if 0.0 <= u < width and 0.0 <= v < height:
@@ -356,7 +356,7 @@ def bench_cleaning(cameras: tuple = (4, 8), width: int = 320, height: int = 240)
     "frames_per_second", "milliseconds_per_frame", "pixels_removed" (per frame, all cameras)}.
     A cluster's server cleans each frame before its clients can start on it."""
     from common.camera import circle_studio
-    from common.voxels import (BENCH_POSES, CHEUNG_ETA, CHEUNG_XI, _frames_per_second, corrupt, person_ellipsoids,
+    from common.voxels import (BENCH_POSES, CHEUNG_ETA, CHEUNG_XI, median_rate, corrupt, person_ellipsoids,
                                render_ellipsoids, silhouette_centre)
 
     rows = []
@@ -369,7 +369,7 @@ def bench_cleaning(cameras: tuple = (4, 8), width: int = 320, height: int = 240)
         def clean(masks):
             return supported_masks(studio, masks, silhouette_centre(studio, masks))
 
-        rate = _frames_per_second(clean, frames)
+        rate = median_rate(clean, frames)
         rows.append({"cameras": count, "size": [width, height], "frames_per_second": rate,
                      "milliseconds_per_frame": 1000.0 / rate,
                      "pixels_removed": float(np.mean([clean(m)[1].sum() for m in frames]))})

@@ -544,7 +544,7 @@ CHEUNG_ETA, CHEUNG_XI = 0.043, 0.021  # the paper's measured silhouette error ra
 BENCH_POSES = 4  # distinct synthetic frames cycled through
 
 
-def _frames_per_second(fn, frames) -> float:
+def median_rate(fn, frames) -> float:
     """1 / median seconds per call over BENCH_SECONDS (the median resists other load on the machine)."""
     fn(frames[0])  # warm up
     times = []
@@ -578,9 +578,9 @@ def bench_voxels(configs=((64, 5), (64, 8), (128, 5), (128, 8)), q: int = 2, wid
         result = spot.reconstruct(frames[0])
         rows.append({
             "grid": grid, "cameras": cameras, "q": q,
-            "frames_per_second": _frames_per_second(lambda m: spot.reconstruct(m, surface=False), frames),
-            "surface_frames_per_second": _frames_per_second(spot.reconstruct, frames),
-            "noisy_frames_per_second": _frames_per_second(lambda m: spot.reconstruct(m, surface=False), noisy),
+            "frames_per_second": median_rate(lambda m: spot.reconstruct(m, surface=False), frames),
+            "surface_frames_per_second": median_rate(spot.reconstruct, frames),
+            "noisy_frames_per_second": median_rate(lambda m: spot.reconstruct(m, surface=False), noisy),
             "build_seconds": build,
             "occupied": int(result.occupied.sum()),
             "surface": int(result.surface.sum()),
