@@ -35,7 +35,6 @@ loop its jobs).
 from __future__ import annotations
 
 import time
-from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -45,6 +44,7 @@ from common.body import CHAINS, LIMB_CHAINS, MIRROR_SIGNS, BodyModel, clip_to_li
 from common.fitting import (HOP_JOBS, REDETECT_ROUND, ChainResult, Dispatch, FitOptions, FrameResult, fit_rounds,
                             full_energy, hop, hop_fit, merge_chains, solve_chain)
 from common.frame import FrameData
+from common.helping_pool import HelpingPool
 from common.proposals import (ARM_CHAINS, arm_twist_alternative, inversion_cost, limb_alternatives, midway,
                               moved_on, pelvis_twisted, rotated_about_pelvis, tilted_ahead, turned)
 
@@ -56,14 +56,15 @@ FIT_JOBS = tuple(f"fit{k}" for k in range(16))
 # ------------------------------------------------------------------------------ jobs
 
 def solve_job(model: BodyModel, frame: FrameData, job: str, params: np.ndarray, options: FitOptions,
-              iteration: int = 0, frame_number: int = 0) -> ChainResult:
+              iteration: int = 0, frame_number: int = 0, pool: HelpingPool | None = None) -> ChainResult:
     """The unit of work anyone does, server or client: a chain's solve (``solve_chain``), a hop
     (HOP_JOBS[k] is hop number ``iteration`` + k, seeded by ``frame_number``), or a whole fit
-    from ``params`` (FIT_JOBS: ``fit_rounds``, its limbs solved here, going on from round
-    ``iteration``), whose energies are the full energy at the start and at the fit."""
+    from ``params`` (FIT_JOBS: ``fit_rounds``, its limbs solved here or on ``pool``, going on
+    from round ``iteration``), whose energies are the full energy at the start and at the fit.
+    A whole fit's seconds count the jobs its thread ran for others while it waited on ``pool``."""
     if job in FIT_JOBS:
         wall0, cpu0 = time.perf_counter(), time.thread_time()
-        local = solve_locally(model, frame, options, frame_number)
+        local = solve_locally(model, frame, options, frame_number, pool)
         fit = fit_rounds(model, frame, params, options, local, first_round=iteration)
         return ChainResult(job, fit.params, full_energy(model, frame, params), fit.energy, fit.evaluations,
                            fit.iterations, time.perf_counter() - wall0, time.thread_time() - cpu0)
@@ -93,18 +94,19 @@ def job_options(options, frame_options: FitOptions, count: int) -> list[FitOptio
 
 
 def solve_locally(model: BodyModel, frame: FrameData, options: FitOptions, frame_number: int = 0,
-                  pool: Executor | None = None) -> Dispatch:
+                  pool: HelpingPool | None = None) -> Dispatch:
     """Dispatch in this process: each job by ``solve_job``, in order, or side by side on
-    ``pool``'s threads (the energy's compiled loops release the GIL). Every job is a pure
+    ``pool``'s threads (the energy's compiled loops release the GIL). A whole fit's limbs go
+    to the same pool, whose threads run queued jobs while they wait, so a round of three fits
+    on two threads ends with both threads on the last fit's limbs. Every job is a pure
     function of its inputs and the results come back in the order of ``jobs``, so the poses do
-    not depend on the pool. A job must not dispatch to the pool it runs on (a whole fit's
-    limbs are solved in its own thread), or a full pool would wait on itself."""
+    not depend on the pool."""
     def dispatch(jobs: list, params, iteration: int, options_given=None):
         starts, opts = job_starts(params, len(jobs)), job_options(options_given, options, len(jobs))
         if pool is None or len(jobs) < 2:
-            return lambda: [solve_job(model, frame, j, s, o, iteration, frame_number)
+            return lambda: [solve_job(model, frame, j, s, o, iteration, frame_number, pool)
                             for j, s, o in zip(jobs, starts, opts)]
-        futures = [pool.submit(solve_job, model, frame, j, s, o, iteration, frame_number)
+        futures = [pool.submit(solve_job, model, frame, j, s, o, iteration, frame_number, pool)
                    for j, s, o in zip(jobs, starts, opts)]
         return lambda: [f.result() for f in futures]
 

@@ -39,6 +39,7 @@ from common import voxels
 from common.body import P, BodyModel, forward_kinematics, joints_dict, load_body_model, rest_params
 from common.errors import InputFileError, UserError, print_warning
 from common.fitting import HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult, fit_rounds
+from common.helping_pool import HelpingPool
 from common.proposals import voxel_starts
 from common.scoring import accuracy, frame_quality, quality_summary, size_score
 from common.settle import candidate_frames, mask_step, settle_choice
@@ -120,7 +121,7 @@ class LocalSolver:
         self.data: FrameData | None = None
         self.compute_seconds = 0.0
         self.threads = backend_threads(threads, options)
-        self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="fit") if self.threads > 1 else None
+        self._pool = HelpingPool(self.threads, "fit") if self.threads > 1 else None
 
     def begin_frame(self, frame: int, data: FrameData, start: np.ndarray, options: FitOptions) -> None:
         self.data, self.frame = data, int(frame)
@@ -151,7 +152,7 @@ class LocalSolver:
 
     def close(self) -> None:
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool.shutdown(wait=True)
 
 
 @dataclass
