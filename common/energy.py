@@ -234,14 +234,50 @@ def _popcount(typingctx, x):
 _ALL_BITS = np.uint64(0xFFFFFFFFFFFFFFFF)
 
 
-@njit(cache=True, nogil=True)
 def xor_bits(static: np.ndarray, inputs: np.ndarray) -> tuple:
     """static, inputs (K, h, w) bool -> the value a moving part adds by covering a pixel
     (0 where static covers it, else 1 - 2 * input) as two bit masks per row, gain (+1: neither
     static nor input) and loss (-1: input, not static), (K, h, ceil(w / 64)) uint64, bit
-    c % 64 of word c // 64 for column c; and the static parts' own XOR count |static xor inputs|."""
+    c % 64 of word c // 64 for column c; and the static parts' own XOR count |static xor inputs|.
+    Rows of a multiple of 8 pixels are read 8 pixels (bytes) at a time (``_xor_bits_octets``),
+    others pixel by pixel; both give the same masks."""
     K, h, w = inputs.shape
     words = (w + 63) // 64
+    static, inputs = np.ascontiguousarray(static, dtype=np.bool_), np.ascontiguousarray(inputs, dtype=np.bool_)
+    if w % 8 == 0:
+        return _xor_bits_octets(static.view(np.uint64), inputs.view(np.uint64), words)
+    return _xor_bits_pixels(static, inputs, words)
+
+
+# Eight bytes of 0 or 1 (pixels c..c+7, c first in memory) times this, shifted down by 56: the
+# byte whose bit i is pixel c + i (each byte's bit lands at its own place among the top 8 bits,
+# the other products below them or past the top, with no carry into them)
+_GATHER_BYTES = np.uint64(0x0102040810204080)
+_BYTE_LOW_BITS = np.uint64(0x0101010101010101)
+
+
+@njit(cache=True, nogil=True)
+def _xor_bits_octets(static: np.ndarray, inputs: np.ndarray, words: int) -> tuple:
+    """``xor_bits`` of rows whose 8-pixel groups are read as uint64: static, inputs (K, h, w / 8)."""
+    K, h, octets = inputs.shape
+    gain = np.zeros((K, h, words), np.uint64)
+    loss = np.zeros((K, h, words), np.uint64)
+    base = 0
+    for k in range(K):
+        for r in range(h):
+            for o in range(octets):
+                s, i = static[k, r, o], inputs[k, r, o]
+                base += _popcount(s ^ i)
+                shift = np.uint64(8 * (o & 7))
+                gain[k, r, o >> 3] |= (((~s & ~i & _BYTE_LOW_BITS) * _GATHER_BYTES) >> np.uint64(56)) << shift
+                loss[k, r, o >> 3] |= (((~s & i & _BYTE_LOW_BITS) * _GATHER_BYTES) >> np.uint64(56)) << shift
+    return gain, loss, base
+
+
+@njit(cache=True, nogil=True)
+def _xor_bits_pixels(static: np.ndarray, inputs: np.ndarray, words: int) -> tuple:
+    """``xor_bits`` pixel by pixel: static, inputs (K, h, w) bool, any w."""
+    K, h, w = inputs.shape
     gain = np.empty((K, h, words), np.uint64)
     loss = np.empty((K, h, words), np.uint64)
     base = 0

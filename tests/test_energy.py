@@ -366,3 +366,27 @@ def test_whole_image_energy_is_built_once_per_frame_and_resolution(model, frame,
         fresh = CpuEnergy(model, data.full_setup(poses[0], half=half))
         np.testing.assert_array_equal(whole(poses), fresh(poses))
     assert data.whole_image_energy(True) is not data.whole_image_energy(False)
+
+
+@pytest.mark.parametrize("shape", [(3, 16, 128), (2, 9, 72), (2, 5, 70), (1, 3, 8)])
+def test_xor_bits_masks_pixel_by_pixel(shape):
+    """The static-and-input bit masks, read 8 pixels at a time where a row allows (a multiple
+    of 8 pixels) and pixel by pixel otherwise (70), against their definition, bit by bit."""
+    from common.energy import xor_bits
+
+    rng = np.random.default_rng(shape[2])
+    static, inputs = rng.random(shape) < 0.3, rng.random(shape) < 0.4
+    gain, loss, base = xor_bits(static, inputs)
+    columns = np.arange(shape[2])
+
+    def bits(words):  # (K, h, words) uint64 -> (K, h, w) bool, bit c % 64 of word c // 64
+        return ((words[..., columns // 64] >> (columns % 64).astype(np.uint64)) & np.uint64(1)).astype(bool)
+
+    np.testing.assert_array_equal(bits(gain), ~static & ~inputs)
+    np.testing.assert_array_equal(bits(loss), ~static & inputs)
+    assert gain.shape == loss.shape == (*shape[:2], (shape[2] + 63) // 64)
+    assert base == int(np.count_nonzero(static != inputs))
+    # the bits past the last column are clear, so a span reaching the word's end adds nothing
+    spare = (-shape[2]) % 64
+    if spare:
+        assert not np.any(gain[..., -1] >> np.uint64(64 - spare)) and not np.any(loss[..., -1] >> np.uint64(64 - spare))
