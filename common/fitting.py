@@ -56,13 +56,7 @@ class FitOptions:
     torso_step_rad: float = 0.08     # Powell's initial step, rotations
     limb_step_rad: float = 0.15
     extremity_step_rad: float = 0.2
-    # line-search resolution, in units of a direction's step: a search refines its best probe at
-    # a quarter of the bracket, then a sixteenth, ... while the spacing is above this. 0.1 stops
-    # at a sixteenth (0.009 rad of a limb's 0.15 rad step: 5 mm at a forearm's end, a third of
-    # a pixel 3.4 m from a 320x240 camera; the energy counts whole pixels). 0.03 went on to a
-    # sixty-fourth for 12-17% more time and 3% more mean error over the shared clips
-    # (docs/accuracy.md, "A coarser line search")
-    xtol: float = 0.1
+    xtol: float = 0.03               # line-search resolution, in units of a direction's step
     ftol: float = 1e-4               # Powell's relative energy tolerance
     max_evals_torso: int = 400
     max_evals_limb: int = 250
@@ -94,8 +88,6 @@ class FitOptions:
             raise ValueError(f"redetect_turn must be one of {REDETECT_TURNS}, got {self.redetect_turn!r}")
         if not 1 <= self.max_iterations < REDETECT_ROUND:
             raise ValueError(f"max_iterations must be 1..{REDETECT_ROUND - 1}, got {self.max_iterations}")
-        if not 0.0 < self.xtol < 1.0:  # NaN too
-            raise ValueError(f"xtol (line_search_resolution) must be between 0 and 1, got {self.xtol}")
         if self.polish_iterations < 0:
             raise ValueError(f"polish_iterations must be >= 0, got {self.polish_iterations}")
         if self.refine_passes < 0:

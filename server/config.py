@@ -98,9 +98,6 @@ SETTINGS: tuple[Setting, ...] = (
             "an integer >= 0"),
     Setting("fit", "refine_chunk_frames", FitOptions.refine_chunk_frames, int, "as mocap fit --refine-chunk-frames",
             _at_least(0), "an integer >= 0"),
-    Setting("fit", "line_search_resolution", FitOptions.xtol, float, "where Powell's line searches stop refining, "
-            "in units of a direction's step (larger: coarser, faster; docs/fitting.md)", lambda v: 0.0 < v < 1.0,
-            "a number between 0 and 1"),
     Setting("fit", "init", "", str, "first-frame start: auto, truth or standing (default: truth where there is one)",
             _one_of(("", "auto", "truth", "standing")), "one of auto, truth, standing"),
     Setting("fit", "actor_height", "auto", str, "the actor's height in metres, or auto"),
@@ -189,7 +186,6 @@ FIT_OPTION_DESTS = {
     ("fit", "polish_iterations"): ("polish_iterations", None), ("fit", "refine_passes"): ("refine_passes", None),
     ("fit", "refine_search"): ("refine_search", None), ("fit", "refine_hops"): ("refine_hops", None),
     ("fit", "refine_chunk_frames"): ("refine_chunk_frames", None),
-    ("fit", "line_search_resolution"): ("line_search_resolution", None),
     ("fit", "init"): ("init", lambda v: v or None), ("fit", "actor_height"): ("actor_height", None),
     ("fit", "clean_masks"): ("clean_masks", None), ("fit", "threads"): ("threads", None),
     ("calibration", "units"): ("units", lambda v: v or None), ("calibration", "up"): ("up", None),

@@ -75,7 +75,6 @@ def test_config_cascade_and_sources(tmp_path):
     ("[fitting]\niterations = 2\n", ["unknown section [fitting]"]),
     ("[fit]\niterations = 'two'\n", ["[fit] iterations", "an integer"]),
     ("[fit]\niterations = 0\n", ["[fit] iterations", ">= 1"]),
-    ("[fit]\nline_search_resolution = 1.5\n", ["[fit] line_search_resolution", "between 0 and 1"]),
     ("[export]\nformats = ['gif']\n", ["[export] formats"]),
     ("[fit\n", ["not valid TOML"]),
 ])
@@ -228,13 +227,11 @@ def test_a_worker_killed_mid_batch_loses_no_frame(tmp_path, model, small_studio)
 
 def test_fit_config_file_sets_defaults_and_flags_win(tmp_path, small_sequence, capsys):
     config = tmp_path / "Config.toml"
-    config.write_text('[fit]\niterations = 1\nrefine_passes = 0\nturn_hypotheses = 0\nline_search_resolution = 0.2\n\n'
-                      '[calibration]\nup = "+z"\n')
+    config.write_text('[fit]\niterations = 1\nrefine_passes = 0\nturn_hypotheses = 0\n\n[calibration]\nup = "+z"\n')
     out = tmp_path / "res"
     assert main(["fit", str(small_sequence), "--out", str(out), "--config", str(config), "--quiet", "--frames", "1"]) == 0
     run = json.loads((out / "run.json").read_text())
     assert (run["options"]["max_iterations"], run["options"]["refine_passes"], run["world_up"]) == (1, 0, "+z")
-    assert run["options"]["xtol"] == 0.2  # a file-only key: no flag
     assert main(["fit", str(small_sequence), "--out", str(out), "--config", str(config), "--quiet", "--frames", "1",
                  "--overwrite", "--iterations", "2"]) == 0
     assert json.loads((out / "run.json").read_text())["options"]["max_iterations"] == 2

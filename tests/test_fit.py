@@ -108,7 +108,7 @@ def test_solve_chain_is_deterministic(model, frames):
 
 
 def test_polishing_takes_the_best_hypothesis_further(model, five_frames):
-    """From three frames back, one round per hypothesis stops short; the polishing rounds go on
+    """From three frames back, two rounds per hypothesis stop short; the polishing rounds go on
     from the best of them and lower the energy and the error."""
     from common.sequence import load_sequence
 
@@ -116,7 +116,7 @@ def test_polishing_takes_the_best_hypothesis_further(model, five_frames):
     truth = seq.truth()
     start, frame = truth[seq.frames[1]].params, seq.frames[4]
     data = FrameData(model, seq.studio, seq.raw_silhouettes(frame))  # the masks as synthesised, noise and all
-    options = FitOptions(turn_hypotheses=1, redetect_limbs=False, max_iterations=1)
+    options = FitOptions(turn_hypotheses=1, redetect_limbs=False)
     plain = fit_frame(model, data, start, replace(options, polish_iterations=0))
     polished = fit_frame(model, data, start, replace(options, polish_iterations=2))
     assert polished.energy < plain.energy
@@ -901,7 +901,7 @@ TORSO_AND_LEG_OFF = {"l_hip_x": -0.6, "l_hip_y": 0.4, "root_tilt_x": 0.2, "spine
 @pytest.mark.timeout(120)
 def test_hops_take_a_torso_and_leg_off_together_towards_the_truth(model, five_frames):
     """Pelvis tilted and spine bent back while the left leg swings forward: the hierarchy's fit
-    from there stays off (about 22 mm mean, measured), hops take the torso
+    from there stays off (about 39 mm worst joint, 18 mm mean, measured), hops take the torso
     and the leg down the valley together. Seeded: the same hops give the same pose."""
     from common.body import clip_to_limits
     from common.sequence import load_sequence
@@ -918,9 +918,9 @@ def test_hops_take_a_torso_and_leg_off_together_towards_the_truth(model, five_fr
     hopped = hop_fit(fitted.params, 20, options, solve_locally(model, data, options, frame))
     assert full_energy(model, data, hopped.params) < fitted.energy
     assert hopped.energy < hopped.chains[0].energy_before  # the objective, spine prior included
-    # measured: 22.2 -> 20.8 mm (18.4 -> 13.8 with the line search's resolution at 0.03 of a
-    # step, where the hierarchy stopped elsewhere)
-    assert joint_errors_mm(model, hopped.params, truth).mean() < joint_errors_mm(model, fitted.params, truth).mean() - 1.0
+    # measured: 18.4 -> 13.8 mm (half this start's offsets: 11.5 -> 10.7, the hierarchy gets
+    # most of the way alone)
+    assert joint_errors_mm(model, hopped.params, truth).mean() < joint_errors_mm(model, fitted.params, truth).mean() - 2.0
     assert len(hopped.chains) == 20 and hopped.energy == min(c.energy for c in hopped.chains)
     assert np.array_equal(hop_fit(fitted.params, 20, options, solve_locally(model, data, options, frame)).params,
                           hopped.params)
@@ -1321,9 +1321,7 @@ def test_a_pelvis_twisted_alone_leaves_the_chest_and_the_legs_as_they_were(model
 def test_a_hops_best_has_its_pelvis_turned_back(model, frames, monkeypatch):
     """Refinement with hops (a pass's first frame) ends by turning the hops' best and turning its
     pelvis alone (``AFTER_HOPS``), as the fits before the hops were: a fit with the pelvis
-    turned 0.15 rad off, the hips turned back, turns back towards the truth's heading and ends
-    no higher than the truth (the pelvis turned back is one of its starts). With 4 cameras of
-    160x120 the heading's valley is flat: measured 186 pixels 0.11 rad off, the truth 193."""
+    turned 0.15 rad off, the hips turned back, comes back to the truth's heading."""
     from common import search
     from common.fitting import FrameResult
     from common.proposals import pelvis_twisted
@@ -1333,8 +1331,8 @@ def test_a_hops_best_has_its_pelvis_turned_back(model, frames, monkeypatch):
     twisted = pelvis_twisted(model, x, 0.15)
     hop = FrameResult(twisted, full_energy(model, data[2], twisted), 1, 0)
     again = one_stage(model, data[2], search.AFTER_HOPS, fit=hop)
-    assert again.energy < hop.energy and again.energy <= full_energy(model, data[2], x)
-    assert abs(again.params[P["root_heading"]] - x[P["root_heading"]]) < 0.14
+    assert again.energy < hop.energy
+    assert abs(again.params[P["root_heading"]] - x[P["root_heading"]]) < 0.05
 
     schedules = []
     monkeypatch.setattr(search, "run_schedule", lambda ctx, schedule, initial: schedules.append(schedule) or initial)

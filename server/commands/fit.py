@@ -35,7 +35,6 @@ def add_fit_arguments(p) -> None:
                         "default, or best (offline: two refinement passes with limb search and 60 hops); the file "
                         "and options given win")
     p.set_defaults(command_parser=p)  # server.cli re-parses with the preset's and file's values as defaults
-    p.set_defaults(line_search_resolution=FitOptions.xtol)  # a file's [fit] key (and a preset's), no flag
     p.add_argument("--out", type=Path, required=True, help="result folder")
     p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
     p.add_argument("--frames", type=count(1), default=None, help="fit only the first N frames")
@@ -101,7 +100,7 @@ def options_from_args(args) -> FitOptions:
                           turn_step_rad=args.turn_step, polish_iterations=args.polish_iterations,
                           refine_passes=args.refine_passes, refine_search=args.refine_search,
                           refine_hops=args.refine_hops, refine_chunk_frames=args.refine_chunk_frames,
-                          spine_twist_prior=args.spine_twist_prior, xtol=args.line_search_resolution,
+                          spine_twist_prior=args.spine_twist_prior,
                           redetect_limbs=not args.no_redetect)
     except ValueError as exc:  # a value out of range: say which option
         raise UserError(f"bad fit option: {exc}") from None
