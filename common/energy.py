@@ -239,14 +239,14 @@ def xor_bits(static: np.ndarray, inputs: np.ndarray) -> tuple:
     (0 where static covers it, else 1 - 2 * input) as two bit masks per row, gain (+1: neither
     static nor input) and loss (-1: input, not static), (K, h, ceil(w / 64)) uint64, bit
     c % 64 of word c // 64 for column c; and the static parts' own XOR count |static xor inputs|.
-    Rows of a multiple of 8 pixels are read 8 pixels (bytes) at a time (``_xor_bits_octets``),
-    others pixel by pixel; both give the same masks."""
+    Rows are read 8 pixels (bytes) at a time, as uint64 words; a row of another width is
+    padded to a multiple of 8 with pixels static and input both cover (no bits, no count), as
+    a window's pixels beyond its camera's image are (``CpuEnergy``)."""
     K, h, w = inputs.shape
-    words = (w + 63) // 64
-    static, inputs = np.ascontiguousarray(static, dtype=np.bool_), np.ascontiguousarray(inputs, dtype=np.bool_)
-    if w % 8 == 0:
-        return _xor_bits_octets(static.view(np.uint64), inputs.view(np.uint64), words)
-    return _xor_bits_pixels(static, inputs, words)
+    spare = -w % 8
+    static, inputs = (np.pad(np.asarray(a, dtype=np.bool_), ((0, 0), (0, 0), (0, spare)), constant_values=True)
+                      if spare else np.ascontiguousarray(a, dtype=np.bool_) for a in (static, inputs))
+    return _xor_bits_octets(static.view(np.uint64), inputs.view(np.uint64), (w + 63) // 64)
 
 
 # Eight bytes of 0 or 1 (pixels c..c+7, c first in memory) times this, shifted down by 56: the
@@ -271,27 +271,6 @@ def _xor_bits_octets(static: np.ndarray, inputs: np.ndarray, words: int) -> tupl
                 shift = np.uint64(8 * (o & 7))
                 gain[k, r, o >> 3] |= (((~s & ~i & _BYTE_LOW_BITS) * _GATHER_BYTES) >> np.uint64(56)) << shift
                 loss[k, r, o >> 3] |= (((~s & i & _BYTE_LOW_BITS) * _GATHER_BYTES) >> np.uint64(56)) << shift
-    return gain, loss, base
-
-
-@njit(cache=True, nogil=True)
-def _xor_bits_pixels(static: np.ndarray, inputs: np.ndarray, words: int) -> tuple:
-    """``xor_bits`` pixel by pixel: static, inputs (K, h, w) bool, any w."""
-    K, h, w = inputs.shape
-    gain = np.empty((K, h, words), np.uint64)
-    loss = np.empty((K, h, words), np.uint64)
-    base = 0
-    for k in range(K):
-        for r in range(h):
-            for j in range(words):  # one word's 64 pixels gathered before it is stored
-                g = l = np.uint64(0)
-                for c in range(j * 64, min(w, j * 64 + 64)):
-                    s, i = static[k, r, c], inputs[k, r, c]
-                    base += s != i
-                    bit = np.uint64(c - j * 64)
-                    g |= np.uint64(not s and not i) << bit
-                    l |= np.uint64(not s and i) << bit
-                gain[k, r, j], loss[k, r, j] = g, l
     return gain, loss, base
 
 

@@ -370,8 +370,8 @@ def test_whole_image_energy_is_built_once_per_frame_and_resolution(model, frame,
 
 @pytest.mark.parametrize("shape", [(3, 16, 128), (2, 9, 72), (2, 5, 70), (1, 3, 8)])
 def test_xor_bits_masks_pixel_by_pixel(shape):
-    """The static-and-input bit masks, read 8 pixels at a time where a row allows (a multiple
-    of 8 pixels) and pixel by pixel otherwise (70), against their definition, bit by bit."""
+    """The static-and-input bit masks, read 8 pixels at a time (a row of 70 padded to 72),
+    against their definition, bit by bit."""
     from common.energy import xor_bits
 
     rng = np.random.default_rng(shape[2])
