@@ -30,9 +30,6 @@ class Job:
         self._done, self._value, self._error = False, None, None
         self._submitter = threading.get_ident()
 
-    def done(self) -> bool:
-        return self._done
-
     def _run(self) -> None:
         function, args, kwargs = self._call
         try:
