@@ -5,7 +5,7 @@ be, each a pure function of poses and the frame's images.
   rotated about the pelvis's own axes (``rotated_about_pelvis``), halfway between neighbours
   (``midway``);
 - one limb moved: into its other basins (``limb_alternatives``), an arm to its other twists
-  (``arm_twist_alternative``);
+  (``arm_twists``, the solves' choice ``arm_twist_alternative``);
 - no start at all: the frame's voxels and ellipsoids, standing, head-down and posture starts
   (``voxel_starts``);
 - a search's choice among its fits also weighs how likely a body is upside down
@@ -21,7 +21,7 @@ from common import voxels
 from common.body import (CHAINS, JOINT_NAMES, P, PARAM_LIMITS, BodyModel, clip_to_limits,
                          forward_kinematics, matrix_to_rotvec, rest_params, rotvec_to_matrix)
 from common.errors import UserError
-from common.fitting import BASIN_STARTS, FitOptions, distinct_rows, limb_joints, powell, search_limb, solve_chain
+from common.fitting import BASIN_STARTS, FitOptions, distinct_rows, limb_joints, powell, search_limb
 from common.frame import FrameData, spot_grid
 from common.postures import SEARCH_POSTURES, posture_params
 from common.retarget import heading_tilt, nearest_turn
@@ -150,30 +150,35 @@ def shoulder_turn_rad(params: np.ndarray, other: np.ndarray, chain: str) -> floa
     return float(np.linalg.norm(matrix_to_rotvec(relative)))
 
 
-def arm_twist_alternative(model: BodyModel, frame: FrameData, chain: str, x: np.ndarray, options: FitOptions,
-                          neighbour: np.ndarray | None = None) -> tuple[np.ndarray | None, list]:
-    """((35,) ``x`` with ``chain``'s arm solved (``solve_chain`` without its grid) from each of
-    its ``arm_twists``, the lowest, where that is below the arm solved from ``x`` itself, else
-    None; the solves made, ChainResults). None and no solves where the arm is bent
-    ARM_TWIST_MAX_ELBOW_RAD or more (its twist shows).
-    Given the ``neighbour`` frame's fit (35,), only the solved arms whose shoulder rotation is
-    nearer the neighbour's than ``x``'s count: an arm does not turn half a turn between
+def arm_twist_tried(chain: str, x: np.ndarray) -> bool:
+    """Whether ``chain``'s arm in ``x`` (35,) is straight enough for its twists to be tried:
+    bent ARM_TWIST_MAX_ELBOW_RAD or more, its twist shows."""
+    return bool(x[CHAINS[chain].params[3]] < ARM_TWIST_MAX_ELBOW_RAD)
+
+
+def arm_twist_options(options: FitOptions) -> FitOptions:
+    """The arm's solves from its twists and from ``x`` itself: without the grid (the turned
+    starts are the grid; a 3^4 grid each costs 4 times as much)."""
+    return replace(options, grid_steps=1)
+
+
+def arm_twists_towards(chain: str, x: np.ndarray, twisted: list, neighbour: np.ndarray | None) -> list:
+    """Of ``twisted`` (ChainResults: ``chain``'s arm solved from each of ``arm_twists``), the
+    ones that count: given the ``neighbour`` frame's fit (35,), only those whose shoulder
+    rotation is nearer the neighbour's than ``x``'s. An arm does not turn half a turn between
     frames, and a wrong twist can have less energy (walk frame 12: 15,404 against 15,473 for
     the arm as tracked, 62 mm off at the wrist against 26)."""
-    if x[CHAINS[chain].params[3]] >= ARM_TWIST_MAX_ELBOW_RAD:
-        return None, []
-    local = replace(options, grid_steps=1)  # the turned starts are the grid; a 3^4 grid each costs 4x
-    solves = [solve_chain(model, frame, chain, y, local, iteration=1) for y in arm_twists(model, chain, x)]
-    turned = solves
-    if neighbour is not None:
-        away = shoulder_turn_rad(x, neighbour, chain)
-        turned = [r for r in turned if shoulder_turn_rad(r.params, neighbour, chain) < away]
-    if not turned:
-        return None, solves
-    lowest = min(turned, key=lambda r: r.energy)
-    own = solve_chain(model, frame, chain, x, local, iteration=1)
-    return (lowest.params if lowest.energy < own.energy else None), [*solves, own]
+    if neighbour is None:
+        return list(twisted)
+    away = shoulder_turn_rad(x, neighbour, chain)
+    return [r for r in twisted if shoulder_turn_rad(r.params, neighbour, chain) < away]
 
+
+def arm_twist_alternative(turned: list, own) -> np.ndarray | None:
+    """(35,) the lowest of ``turned`` (ChainResults, ``arm_twists_towards``) where it is below
+    ``own`` (the arm solved the same way from ``x`` itself), else None."""
+    lowest = min(turned, key=lambda r: r.energy)
+    return lowest.params if lowest.energy < own.energy else None
 
 
 VOXEL_INIT_GRID = 64  # voxels per side for the first-frame initialisation

@@ -45,7 +45,8 @@ from common.fitting import (HOP_JOBS, REDETECT_ROUND, ChainResult, Dispatch, Fit
                             full_energy, hop, hop_fit, merge_chains, solve_chain)
 from common.frame import FrameData
 from common.helping_pool import HelpingPool
-from common.proposals import (ARM_CHAINS, arm_twist_alternative, inversion_cost, limb_alternatives, midway,
+from common.proposals import (ARM_CHAINS, arm_twist_alternative, arm_twist_options, arm_twist_tried, arm_twists,
+                              arm_twists_towards, inversion_cost, limb_alternatives, midway,
                               moved_on, pelvis_twisted, rotated_about_pelvis, tilted_ahead, turned)
 
 # The jobs of one round of starts, fitted side by side (the protocol's FIT_JOB_NAMES): job k is
@@ -528,17 +529,32 @@ def _basins(ctx, source, spent, own):
 
 
 def _twists(ctx, source, spent, own):
-    """Each nearly straight arm at its lower twist (towards the neighbour's, in a refinement)."""
+    """Each nearly straight arm at its lower twist (towards the neighbour's, in a refinement).
+    The arms' solves are jobs, both arms' k-th twist in one round (then, for the arms with a
+    twist that counts, the arm solved as it is), so they run side by side."""
     if source is None:
         return []
-    starts = []
-    for chain in ARM_CHAINS:
-        alternative, solves = arm_twist_alternative(ctx.model, ctx.frame, chain, source.params, ctx.options,
-                                                    ctx.start)
-        spent.add(solves)
-        if alternative is not None:
-            starts.append(alternative)
-    return starts
+    x = source.params
+    arms = [chain for chain in ARM_CHAINS if arm_twist_tried(chain, x)]
+    if not arms:
+        return []
+    options = arm_twist_options(ctx.options)
+    starts = {chain: arm_twists(ctx.model, chain, x) for chain in arms}
+    twisted = {chain: [] for chain in arms}
+    for k in range(max(len(s) for s in starts.values())):
+        round_arms = [chain for chain in arms if k < len(starts[chain])]
+        found = ctx.dispatch(round_arms, [starts[chain][k] for chain in round_arms], 1, options)()
+        spent.add(found)
+        for chain, result in zip(round_arms, found):
+            twisted[chain].append(result)
+    turned = {chain: arm_twists_towards(chain, x, twisted[chain], ctx.start) for chain in arms}
+    compared = [chain for chain in arms if turned[chain]]
+    if not compared:
+        return []
+    own_solves = ctx.dispatch(compared, x, 1, options)()
+    spent.add(own_solves)
+    alternatives = [arm_twist_alternative(turned[chain], solved) for chain, solved in zip(compared, own_solves)]
+    return [y for y in alternatives if y is not None]
 
 
 def _hops(ctx, source, spent, own):

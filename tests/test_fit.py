@@ -865,7 +865,8 @@ def test_a_straight_arm_twisted_half_a_turn_is_turned_back(model, five_frames):
     50 mm off, measured 72), the ``twists`` proposer turns it back (under 30 mm) at a lower
     energy, unless the neighbour frame's arm is twisted as it is. A bent arm is not tried: its
     twist shows."""
-    from common.proposals import ARM_TWIST_MAX_ELBOW_RAD, arm_twist_alternative, arm_twists
+    from common.fitting import solve_chain
+    from common.proposals import ARM_TWIST_MAX_ELBOW_RAD, arm_twist_options, arm_twist_tried, arm_twists
     from common.sequence import load_sequence
 
     seq = load_sequence(five_frames)
@@ -882,15 +883,15 @@ def test_a_straight_arm_twisted_half_a_turn_is_turned_back(model, five_frames):
         assert best.energy < twisted.energy
         assert joint_errors_mm(model, best.params, truth).max() < 30.0
     # a neighbour whose arm is twisted as this one is: no turn is towards it, nothing fitted,
-    # but the turned arms' solves were made and count
+    # but the turned arms' solves were made (as jobs) and count
     kept = one_stage(model, data, Stage(("twists",)), twisted, start=twisted.params)
     np.testing.assert_array_equal(kept.params, twisted.params)
-    _, solves = arm_twist_alternative(model, data, "left_arm", twisted.params, options, twisted.params)
-    assert kept.evaluations > twisted.evaluations and len(solves) == len(arm_twists(model, "left_arm", start))
+    solves = [solve_chain(model, data, "left_arm", y, arm_twist_options(options), iteration=1)
+              for y in arm_twists(model, "left_arm", twisted.params)]
     assert kept.evaluations - twisted.evaluations >= sum(r.evaluations for r in solves)
     bent = twisted.params.copy()
     bent[P["l_elbow"]] = ARM_TWIST_MAX_ELBOW_RAD
-    assert arm_twist_alternative(model, data, "left_arm", bent, options) == (None, [])
+    assert arm_twist_tried("left_arm", twisted.params) and not arm_twist_tried("left_arm", bent)
 
 
 # radians from the truth: the pelvis tilted and the spine bent back while the left leg swings
