@@ -72,25 +72,35 @@ def size_score(data: FrameData, fit: FrameResult, larger: bool) -> float:
 def frame_quality(data: FrameData, params: np.ndarray) -> dict:
     """How well the pose ``params`` (35,) explains one frame's masks, per camera: the XOR (model
     xor silhouette) as a share of the silhouette's area, the whole frame's share, and whether
-    (and which cameras) it is above QUALITY_FLAG_SHARE."""
-    xor = [int(v) for v in silhouette_disagreement(data, params).sum(axis=1)]
+    (and which cameras) it is above QUALITY_FLAG_SHARE. The XOR's two sides per camera too:
+    model pixels outside the silhouette (a body where the masks see none) and silhouette pixels
+    the model misses (a limb not found, or foreground no body explains: a prop sat on, a
+    shadow), which tell a wrong pose from masks that hold more than the actor."""
+    outside, missed = (np.asarray(v, dtype=np.int64) for v in silhouette_disagreement(data, params).T)
+    xor = [int(v) for v in outside + missed]
     sizes = [(c.height, c.width) for c in data.studio]
     area = [int(np.count_nonzero(m[:h, :w])) for m, (h, w) in zip(data.masks, sizes)]
     share = [x / a if a else (0.0 if x == 0 else 1.0) for x, a in zip(xor, area)]
     flagged = [c.name for c, v in zip(data.studio, share) if v > QUALITY_FLAG_SHARE]
     return {"xor_share": [round(v, 4) for v in share], "xor_pixels": xor, "silhouette_pixels": area,
+            "outside_pixels": [int(v) for v in outside], "missed_pixels": [int(v) for v in missed],
             "xor_share_total": round(sum(xor) / max(sum(area), 1), 4), "flagged_cameras": flagged}
 
 
 def quality_summary(records: list[dict], cameras: list[str]) -> dict:
-    """Fit quality over the records: the mean and worst XOR share, per camera too, and the
-    frames flagged (``frame_quality``) with the cameras that disagree."""
+    """Fit quality over the records: the mean and worst XOR share, per camera too, the mean
+    shares of its two sides (model outside the silhouettes, silhouette missed; records written
+    before they were kept have none), and the frames flagged (``frame_quality``) with the
+    cameras that disagree."""
     q = [r["fit_quality"] for r in records if "fit_quality" in r]
     if not q:
         return {}
     total = np.array([v["xor_share_total"] for v in q])
     per_camera = np.array([v["xor_share"] for v in q])
+    sides = {side: float(np.mean([sum(v[f"{side}_pixels"]) / max(sum(v["silhouette_pixels"]), 1) for v in q]))
+             for side in ("outside", "missed") if all(f"{side}_pixels" in v for v in q)}
     return {"mean_xor_share": float(total.mean()), "max_xor_share": float(total.max()),
+            **{f"mean_{side}_share": value for side, value in sides.items()},
             "per_camera_mean_xor_share": {c: float(v) for c, v in zip(cameras, per_camera.mean(axis=0))},
             "flag_share": QUALITY_FLAG_SHARE,
             "frames_flagged": [{"frame": r["frame"], "cameras": r["fit_quality"]["flagged_cameras"]}

@@ -686,3 +686,18 @@ def refinement_note(summary: dict) -> str:
 def tracking_error_note(summary: dict) -> str:
     """'MEAN / MAX mm': a refined run's joint error as tracking left its frames."""
     return f"{summary['tracking_mean_joint_error_mm']:.1f} / {summary['tracking_max_joint_error_mm']:.1f} mm"
+
+
+# the XOR's missed side this many times its outside side: the masks hold more than the body
+MOSTLY_MISSED = 3.0
+
+
+def xor_sides(quality: dict) -> str:
+    """The fit quality's XOR split into its two sides, as the report says it: the body outside
+    the masks (a pose wrong where it shows), the masks the body misses (a limb not found, or
+    foreground no body explains: props sat on, shadows, a larger actor)."""
+    outside, missed = quality["mean_outside_share"], quality["mean_missed_share"]
+    text = f"body outside the masks {outside:.0%}, masks the body misses {missed:.0%}"
+    if missed > MOSTLY_MISSED * outside:
+        text += " (mostly foreground no body part covers: a prop, shadows, loose clothes; see the overlays)"
+    return text

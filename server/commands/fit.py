@@ -20,7 +20,7 @@ from server.progress import Progress
 from server.output import add_overwrite_argument, check_folder_target, replace_file
 from server.results import MOTION_FILE, POSES_FILE, RESULT_FILES, load_records, read_done_frames
 from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, resolve_threads, run_fit,
-                            tracking_error_note)
+                            tracking_error_note, xor_sides)
 
 INIT_CHOICES = ("auto", "truth", "standing")
 
@@ -149,6 +149,8 @@ def print_summary(summary: dict, out) -> None:
         rows.append(("XOR / silhouette area", f"{quality['mean_xor_share']:.0%} mean, {quality['max_xor_share']:.0%} "
                                               f"worst; {flagged} of {summary['frames']} frames over "
                                               f"{quality['flag_share']:.0%} in a camera (report.html names them)"))
+        if "mean_missed_share" in quality:
+            rows.append(("of which", xor_sides(quality)))
     rows += _cluster_rows(summary)
     width = max(len(k) for k, _ in rows)
     for k, v in rows:
