@@ -136,8 +136,8 @@ def studio_to_json(studio: Studio) -> dict:
 
 
 def _checks(source) -> FieldChecks:
-    """Field checks whose failures are CalibrationError ("<file>" for the whole file)."""
-    return FieldChecks(source, error=lambda path, where, problem: CalibrationError(path, where or "<file>", problem))
+    """Field checks whose failures are CalibrationError (no field for the whole file)."""
+    return FieldChecks(source, error=lambda path, where, problem: CalibrationError(path, where, problem))
 
 
 def studio_from_json(doc, source: str, units: str | None = None) -> Studio:
@@ -191,11 +191,11 @@ def load_calibration(path, units: str | None = None, fmt: str | None = None,
     if units is not None and units not in UNIT_SCALE:
         raise CalibrationError(str(path), "units", f"expected one of {sorted(UNIT_SCALE)}, got {units!r}")
     if not path.exists():
-        raise CalibrationError(str(path), "<file>", "does not exist")
+        raise CalibrationError(str(path), "", "does not exist")
     fmt = fmt or detect_format(path)
     if fmt == "json":
         if path.is_dir():
-            raise CalibrationError(str(path), "<file>", "is a folder, expected a calibration JSON file")
+            raise CalibrationError(str(path), "", "is a folder, expected a calibration JSON file")
         studio = studio_from_json(_read_json(path), str(path), units)
         _check_image_sizes(studio, str(path))
         return studio
@@ -277,7 +277,7 @@ def save_calibration(studio: Studio, path, fmt: str | None = None) -> None:
     path = Path(path)
     fmt = output_format(path, fmt)
     if fmt in ("json", "pose2sim", "anipose") and path.is_dir():
-        raise CalibrationError(str(path), "<file>", f"is a folder; {fmt} calibration is a single file")
+        raise CalibrationError(str(path), "", f"is a folder; {fmt} calibration is a single file")
     if fmt == "json":
         text = json.dumps(studio_to_json(studio), indent=1)
         _write(path, text)
@@ -294,7 +294,7 @@ def save_calibration(studio: Studio, path, fmt: str | None = None) -> None:
         _check_names(studio, str(path), FILE_NAME, "it must be usable as a file name")
         if path.suffix.lower() == ".xml":
             if len(studio) != 1:
-                raise CalibrationError(str(path), "<file>", f"one .xml file holds one camera, the studio has "
+                raise CalibrationError(str(path), "", f"one .xml file holds one camera, the studio has "
                                        f"{len(studio)}; give a folder to write one file per camera")
             _write(path, _xml_text(studio[0]))
         else:
@@ -441,7 +441,7 @@ def _write(path: Path, text: str, newline: str | None = None) -> None:
         with open(path, "w", encoding="utf-8", newline=newline) as f:
             f.write(text)
     except OSError as exc:
-        raise CalibrationError(str(path), "<file>", f"cannot write ({exc})") from None
+        raise CalibrationError(str(path), "", f"cannot write ({exc})") from None
 
 
 def _numbers(value, source: str, field: str) -> np.ndarray:
@@ -582,7 +582,7 @@ def _read_opencv_yaml(path: Path) -> dict:
         doc = yaml.load(text, Loader=_OpenCVYamlLoader)
     except yaml.YAMLError as exc:
         problem = " ".join(str(exc).split())
-        raise CalibrationError(str(path), "<file>", f"not valid OpenCV YAML ({problem})") from None
+        raise CalibrationError(str(path), "", f"not valid OpenCV YAML ({problem})") from None
     if not isinstance(doc, dict):
         raise CalibrationError(str(path), "<root>", "expected a mapping of named nodes")
     return doc
@@ -592,7 +592,7 @@ def _read_easymocap(folder: Path, scale: float, size) -> Studio:
     intri_path, extri_path = folder / EASYMOCAP_FILES[0], folder / EASYMOCAP_FILES[1]
     for p in (intri_path, extri_path):
         if not p.is_file():
-            raise CalibrationError(str(p), "<file>", "does not exist (EasyMocap needs intri.yml and extri.yml)")
+            raise CalibrationError(str(p), "", "does not exist (EasyMocap needs intri.yml and extri.yml)")
     intri, extri = _read_opencv_yaml(intri_path), _read_opencv_yaml(extri_path)
     si, se = str(intri_path), str(extri_path)
     names = intri.get("names")
@@ -648,7 +648,7 @@ def _read_toml_doc(path: Path) -> dict:
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise CalibrationError(str(path), "<file>", f"not valid TOML ({exc})") from None
+        raise CalibrationError(str(path), "", f"not valid TOML ({exc})") from None
 
 
 def _toml_camera_sections(doc: dict) -> list[str]:
@@ -845,7 +845,7 @@ def _parse_xml(path: Path) -> ET.Element:
     try:
         return ET.fromstring(data)
     except ET.ParseError as exc:
-        raise CalibrationError(str(path), "<file>", f"not valid XML ({exc})") from None
+        raise CalibrationError(str(path), "", f"not valid XML ({exc})") from None
 
 
 def _xml_nodes(path: Path, root: ET.Element) -> dict:

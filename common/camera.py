@@ -19,13 +19,14 @@ DIST_COEFFS = 5  # k1 k2 p1 p2 k3
 
 
 class CalibrationError(UserError, ValueError):
-    """A calibration that cannot be used; the message names the file and the field."""
+    """A calibration that cannot be used; the message names the file and the field (none where
+    the whole file is at fault: missing, unreadable, not the format)."""
 
     def __init__(self, source: str, field_name: str, problem: str):
         self.source = source
         self.field_name = field_name
         self.problem = problem
-        super().__init__(f"{source}: {field_name}: {problem}")
+        super().__init__(f"{source}: {field_name}: {problem}" if field_name else f"{source}: {problem}")
 
 
 @dataclass(frozen=True)

@@ -64,19 +64,37 @@ def settings_differences(before: dict, now: dict, prefix: str = "") -> list[str]
     return out
 
 
+def read_run_settings(path: Path) -> dict:
+    """A run.json's settings; InputFileError where it is not a JSON object."""
+    try:
+        settings = json.loads(path.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise InputFileError(path, "not valid JSON (corrupt?); fit again with --overwrite") from None
+    if not isinstance(settings, dict):
+        raise InputFileError(path, "expected a JSON object; fit again with --overwrite")
+    return settings
+
+
+def earlier_actor_scale(out_dir: Path) -> float | None:
+    """The actor's size (over the body model's) of the run that --resume continues in
+    ``out_dir``: its run.json's (written before its first frame), else its first record's;
+    None where nothing is there to continue (a --resume into a new folder fits afresh)."""
+    path = out_dir / RUN_FILE
+    if path.exists():
+        settings = read_run_settings(path)
+        if "actor_scale" in settings:
+            return float(settings["actor_scale"])
+    done = read_done_frames(out_dir / POSES_FILE)
+    return float(done[0].get("actor_scale", 1.0)) if done else None
+
+
 def check_resume(out_dir: Path, settings: dict) -> None:
     """Refuse to continue a run with other settings than those it was started with."""
     path = out_dir / RUN_FILE
     if not path.exists():
         raise InputFileError(path, "missing: no record of the settings the earlier frames were fitted with; "
                                    "fit again with --overwrite")
-    try:
-        before = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError):
-        raise InputFileError(path, "not valid JSON (corrupt?); fit again with --overwrite") from None
-    if not isinstance(before, dict):
-        raise InputFileError(path, "expected a JSON object; fit again with --overwrite")
-    differ = settings_differences(before, settings)
+    differ = settings_differences(read_run_settings(path), settings)
     if differ:
         raise UserError(f"--resume: the settings differ from the run being continued ({path}): "
                         + "; ".join(differ) + ". Pass the same options, or --overwrite to fit again")

@@ -597,6 +597,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     if ahead is not None:
         ahead.shutdown(wait=True)
     records = read_done_frames(poses_path)
+    if options.refine_passes:  # a resumed run's refinement starts again from tracking's fits, as the run's did
+        records = [tracked_record(r) for r in records]
     passes = []
     for k in range(options.refine_passes if len(records) > 1 else 0):
         t0, hops_before, hop_seconds_before = time.perf_counter(), stats.hops_run, stats.hop_seconds
@@ -658,6 +660,20 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     }
     write_text(out_dir / SUMMARY_FILE, json.dumps(summary, indent=1))
     return summary
+
+
+# what refinement and settling add to a record (``refine_pass``, ``settle_records``), and the
+# quality measured at the end
+AFTER_TRACKING_FIELDS = ("first_pass", "refine_seconds", "refine_evaluations", "settled_from", "fit_quality")
+
+
+def tracked_record(record: dict) -> dict:
+    """``record`` as tracking wrote it: a pose that refinement or settling replaced put back
+    (its "first_pass"), their fields dropped. A run stopped after a refinement pass was written
+    (each pass rewrites poses.jsonl whole) is refined again from tracking's fits when resumed,
+    so it ends as the run would have; the same record where tracking's fit was kept."""
+    out = {k: v for k, v in record.items() if k not in AFTER_TRACKING_FIELDS}
+    return out | record.get("first_pass", {})
 
 
 def finished_summary(out_dir: Path, frames: int) -> dict | None:

@@ -365,7 +365,7 @@ BAD = [
      ["Calib.toml: cam_01.rotation: expected a Rodrigues"]),
     ("pose2sim/Calib.toml", "", "matrix = [ [ 2058", "matrix = [ [ -2058",
      ["Calib.toml: cam_01.matrix: expected [[fx"]),
-    ("pose2sim/Calib.toml", "", "[cam_02]", "[cam_02", ["Calib.toml: <file>: not valid TOML"]),
+    ("pose2sim/Calib.toml", "", "[cam_02]", "[cam_02", ["Calib.toml: not valid TOML"]),
     ("anipose/calibration.toml", "", "distortions = [ -0.18", "distortions = [ true, -0.18",
      ["calibration.toml: cam_0.distortions: not numeric"]),
     ("easymocap", "intri.yml", "rows: 3\r\n  cols: 3\r\n  dt: d\r\n  data: [1158.047983, 0.000000, 958.129311, ",
@@ -374,7 +374,7 @@ BAD = [
     ("easymocap", "intri.yml", "dist_02:", "distortion_02:", ["intri.yml: dist_02: missing"]),
     ("easymocap", "intri.yml", "names:", "cameras:", ["intri.yml: names: missing"]),
     ("easymocap", "intri.yml", "data: [1158.047983", "data: [fx", ["intri.yml: K_01: not numeric"]),
-    ("easymocap", "intri.yml", "names:\r\n", "names: [\r\n", ["intri.yml: <file>: not valid OpenCV YAML"]),
+    ("easymocap", "intri.yml", "names:\r\n", "names: [\r\n", ["intri.yml: not valid OpenCV YAML"]),
     ("easymocap", "extri.yml", "T_03:", "Tvec_03:", ["extri.yml: T_03: missing"]),
     ("opencv_xml", "cam1.xml", "Translation", "Position",
      ["cam1.xml: Translation: missing (also accepted: T, tvec)"]),
@@ -383,11 +383,11 @@ BAD = [
     ("opencv_xml", "cam2.xml", "<ImageSize>\n  1280 720", "<ImageSize>\n  1280",
      ["cam2.xml: ImageSize: expected 2 values"]),
     ("opencv_xml", "cam2.xml", "<data>\n    7.18", "<data>\n    seven", ["cam2.xml: camera_matrix: not numeric"]),
-    ("opencv_xml", "cam1.xml", "</opencv_storage>", "", ["cam1.xml: <file>: not valid XML"]),
+    ("opencv_xml", "cam1.xml", "</opencv_storage>", "", ["cam1.xml: not valid XML"]),
     ("opencv_xml", "cam1.xml", "opencv_storage>", "storage>", ["cam1.xml: <root>: expected <opencv_storage>"]),
     ("json/calibration.json", "", '"width": 320', '"width": "wide"',
      ["calibration.json: cam1.width: expected a whole number >= 1, got the text 'wide'"]),
-    ("json/calibration.json", "", '"format"', '{"format"', ["calibration.json: <file>: not valid JSON"]),
+    ("json/calibration.json", "", '"format"', '{"format"', ["calibration.json: not valid JSON"]),
     ("json/calibration.json", "", '"width": 320', '"size_guessed": "yes", "width": 320',
      ["calibration.json: cameras[0].size_guessed: expected true or false"]),
     ("../calibration/qualisys/Calib.qca.txt", "", "<intrinsic ", "<intrinsics ",
@@ -434,7 +434,7 @@ def test_bad_input(tmp_path, capsys, fixture, inner, old, new, expected):
 
 def test_missing_and_empty_inputs(tmp_path, capsys):
     rc, _, err = cli(capsys, "calib", "show", tmp_path / "nothing.toml")
-    assert rc == 2 and "nothing.toml: <file>: does not exist" in err
+    assert rc == 2 and "nothing.toml: does not exist" in err
     rc, _, err = cli(capsys, "calib", "show", tmp_path)
     assert rc == 2 and f"{tmp_path}: <folder>: no calibration found" in err
     (tmp_path / "a").mkdir()
@@ -450,7 +450,7 @@ def test_missing_and_empty_inputs(tmp_path, capsys):
     shutil.rmtree(tmp_path / "a")
     folder = copy_fixture(tmp_path, "easymocap")
     (folder / "extri.yml").unlink()
-    with pytest.raises(CalibrationError, match=r"extri\.yml: <file>: does not exist"):
+    with pytest.raises(CalibrationError, match=r"extri\.yml: does not exist"):
         load_calibration(folder, fmt="easymocap")
     assert load_calibration(DATA / "easymocap" / "intri.yml").names == ["01", "02", "03", "04"]
 

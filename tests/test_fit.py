@@ -449,6 +449,50 @@ def test_fit_refuses_negative_refine_passes(small_sequence, tmp_path, capsys):
     assert "--refine-passes: expected an integer >= 0, got -1" in capsys.readouterr().err
 
 
+def test_a_run_stopped_after_its_refinement_was_written_ends_as_it_would_have(fresh_result, small_sequence,
+                                                                             tmp_path, monkeypatch):
+    """Stopped after the refinement pass rewrote poses.jsonl, before the summary: --resume
+    refines again from tracking's fits (each record's "first_pass"), not from the refined ones
+    (refining a refined take again can move it), and ends with the uninterrupted run's poses."""
+    import server.session as session
+
+    fresh = read_lines(fresh_result / "poses.jsonl")
+    assert any("first_pass" in r for r in fresh)  # the refinement replaced a frame
+    refined_from = []
+    real_pass = session.refine_pass
+
+    def logged_pass(model, seq, records, *args, **kwargs):
+        refined_from.append([r["params"] for r in records])
+        assert not any(k in r for r in records for k in session.AFTER_TRACKING_FIELDS)
+        return real_pass(model, seq, records, *args, **kwargs)
+
+    monkeypatch.setattr(session, "refine_pass", logged_pass)
+    out = tmp_path / "result"
+    out.mkdir()
+    shutil.copy(fresh_result / "poses.jsonl", out)
+    shutil.copy(fresh_result / "run.json", out)
+    assert fit(small_sequence, out, "--frames", "2", "--resume") == 0
+    assert refined_from == [[r.get("first_pass", r)["params"] for r in fresh]]  # tracking's fits
+    resumed = read_lines(out / "poses.jsonl")
+    assert [r["params"] for r in resumed] == [r["params"] for r in fresh]
+    assert [r.get("first_pass") for r in resumed] == [r.get("first_pass") for r in fresh]
+
+
+def test_a_resume_keeps_the_size_the_run_chose(small_sequence, tmp_path):
+    """A run stopped before its first frame was written left only run.json: --resume fits at
+    the size that run chose (its run.json's), not the model's, and is not refused."""
+    first = tmp_path / "first"
+    assert fit(small_sequence, first, "--frames", "1", "--actor-height", "1.9") == 0
+    scale = json.loads((first / "run.json").read_text())["actor_scale"]
+    assert scale != 1.0
+    out = tmp_path / "stopped"
+    out.mkdir()
+    shutil.copy(first / "run.json", out)
+    assert fit(small_sequence, out, "--frames", "1", "--resume") == 0
+    assert [r["actor_scale"] for r in read_lines(out / "poses.jsonl")] == [scale]
+    assert read_lines(out / "poses.jsonl")[0]["params"] == read_lines(first / "poses.jsonl")[0]["params"]
+
+
 def test_mocap_fit_resume_after_a_crash(fresh_result, small_sequence, tmp_path):
     fresh = (fresh_result / "poses.jsonl").read_text().splitlines(keepends=True)
     out = tmp_path / "result"
@@ -1360,3 +1404,49 @@ def test_a_body_rotated_off_the_truth_is_rotated_back(model, five_frames):
     found = one_stage(model, data, (Stage(("rotations",), ("deep",), rounds=3), *POLISHED), leaned)
     assert joint_errors_mm(model, found.params, truth).mean() < 15.0
     assert found.energy < leaned.energy
+
+
+def test_ctrl_c_inside_a_compiled_loop_says_interrupted(small_sequence, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while a numba loop runs reaches Python as a SystemError ("returned a result with
+    an exception set") whose context is the KeyboardInterrupt: one line and exit 130, as any
+    Ctrl-C; a SystemError of another cause is not hidden."""
+    import server.commands.fit as fit_command
+
+    def stopped(args):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise SystemError("CPUDispatcher(<function _powell>) returned a result with an exception set")
+
+    monkeypatch.setattr(fit_command, "run", stopped)
+    assert fit(small_sequence, tmp_path / "r") == 130
+    assert capsys.readouterr().err.strip() == "mocap fit: interrupted"
+
+    def broken(args):
+        raise SystemError("something else")
+
+    monkeypatch.setattr(fit_command, "run", broken)
+    with pytest.raises(SystemError, match="something else"):
+        fit(small_sequence, tmp_path / "r")
+
+
+@pytest.mark.parametrize("scale, edge", [(1.4, "largest"), (0.9, "smallest"), (1.2, None)])
+def test_a_size_at_the_search_s_end_is_warned(model, small_loaded, tmp_path, monkeypatch, capsys, scale, edge):
+    """The size search ends at its range's edges: a size chosen there may be cut short (the
+    seated take's 1.4), and the user is told what can cause it and how to set the size."""
+    import argparse
+
+    import server.commands.fit as fit_command
+    from server.session import ACTOR_SCALES, ActorSize
+
+    assert (ACTOR_SCALES[0], ACTOR_SCALES[-1]) == (0.9, 1.4)
+    monkeypatch.setattr(fit_command, "choose_actor_scale", lambda *a: ActorSize(scale, 0, (), {}, 0.0))
+    args = argparse.Namespace(actor_height="auto", resume=False, threads=1, out=tmp_path / "r")
+    actor, size = fit_command.actor_model(model, small_loaded, FitOptions(), args, "auto")
+    assert size.scale == scale and actor.height == pytest.approx(model.height * scale)
+    err = capsys.readouterr().err
+    if edge is None:
+        assert err == ""
+    else:
+        assert err.count("\n") == 1 and f"actor size {scale:.2f} is the {edge} the size search tries" in err
+        assert "--actor-height" in err and "calib show" in err

@@ -18,7 +18,7 @@ from server.local_cluster import LocalCluster, add_cluster_arguments, terminate_
 from server.config import PRESETS
 from server.progress import Progress
 from server.output import add_overwrite_argument, check_folder_target, replace_file
-from server.results import MOTION_FILE, POSES_FILE, RESULT_FILES, load_records, read_done_frames
+from server.results import MOTION_FILE, RESULT_FILES, earlier_actor_scale, load_records
 from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, resolve_threads, run_fit,
                             tracking_error_note, xor_sides)
 
@@ -205,13 +205,19 @@ def actor_model(model, seq, options, args, init: str):
         if not 0.5 <= height <= 3.0:
             raise UserError(f"--actor-height: expected 0.5 to 3 metres, got {height}")
         return model.scaled(height / model.height), None
-    if args.resume:  # the size the run being continued chose
-        done = read_done_frames(args.out / POSES_FILE)
-        scale = float(done[0].get("actor_scale", 1.0)) if done else 1.0
+    scale = earlier_actor_scale(args.out) if args.resume else None
+    if scale is not None:  # the size the run being continued chose
         return (model.scaled(scale) if scale != 1.0 else model), None
     if init == "truth":
         return model, None
     size = choose_actor_scale(model, seq, options, resolve_threads(args.threads, options))
+    if size.scale in (ACTOR_SCALES[0], ACTOR_SCALES[-1]):
+        edge = "largest" if size.scale == ACTOR_SCALES[-1] else "smallest"
+        print_warning(f"actor size {size.scale:.2f} is the {edge} the size search tries ({ACTOR_SCALES[0]:g}-"
+                      f"{ACTOR_SCALES[-1]:g} times the body model): the actor may be {'larger' if edge == 'largest' else 'smaller'} "
+                      "still, the masks may hold more or less than the actor (a prop sat on, shadows, parts "
+                      "missing), or the calibration's scale may be off (mocap calib show prints the cameras' "
+                      "heights); --actor-height sets the size")
     return (model.scaled(size.scale) if size.scale != 1.0 else model), size
 
 

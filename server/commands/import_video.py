@@ -316,7 +316,8 @@ def run(args) -> int:
     lo, hi, warning = _common_range(counts, offsets)
     frames = range(begin, hi if args.stop is None else min(hi, args.stop), args.step)
     if len(frames) == 0:
-        raise UserError(f"--start {args.start} --stop {args.stop} --step {args.step}: no frames selected "
+        stop = "" if args.stop is None else f" --stop {args.stop}"
+        raise UserError(f"--start {args.start}{stop} --step {args.step}: no frames selected "
                         f"(the recordings have frames {lo}..{hi - 1} in common)")
     if warning:
         print_warning(warning)
