@@ -158,16 +158,26 @@ def _clear_line() -> None:
         sys.stderr.write("\r\033[K")
 
 
+def quality_cell(take: dict) -> str:
+    """A take's fit quality as the tables say it: 'XOR% (outside%)', the mean XOR share of the
+    silhouettes and its side of the body outside them (a wrong pose shows there; foreground no
+    body covers, a prop, only in the XOR); '' before a fit."""
+    if "mean_xor_share" not in take:
+        return ""
+    outside = f" ({take['mean_outside_share']:.0%})" if "mean_outside_share" in take else ""
+    return f"{take['mean_xor_share']:.0%}{outside}"
+
+
 def summary_table(record: dict) -> list[str]:
-    """One row per take: frames, s/frame, accuracy where there is truth, status."""
-    rows = [("take", "frames", "s/frame", "mean/max mm", "status")]
+    """One row per take: frames, s/frame, fit quality, accuracy where there is truth, status."""
+    rows = [("take", "frames", "s/frame", "XOR (outside)", "mean/max mm", "status")]
     for t in record["takes"]:
         acc = (f"{t['mean_joint_error_mm']:.1f}/{t['max_joint_error_mm']:.1f}" if "mean_joint_error_mm" in t else "-")
         spf = f"{t['seconds_per_frame']:.2f}" if t.get("seconds_per_frame") else "-"
         status = t["status"] + (f": {t['error']}" if t.get("error") else "")
-        rows.append((t["name"], str(t.get("frames", "-")), spf, acc, status))
-    widths = [max(len(r[i]) for r in rows) for i in range(4)]
-    return ["  " + "  ".join(r[i].ljust(widths[i]) for i in range(4)) + "  " + r[4] for r in rows]
+        rows.append((t["name"], str(t.get("frames", "-")), spf, quality_cell(t) or "-", acc, status))
+    widths = [max(len(r[i]) for r in rows) for i in range(5)]
+    return ["  " + "  ".join(r[i].ljust(widths[i]) for i in range(5)) + "  " + r[5] for r in rows]
 
 
 def index_html(record: dict) -> str:
@@ -181,12 +191,14 @@ def index_html(record: dict) -> str:
             name = f'<a href="{html.escape(os.path.relpath(report, project))}">{name}</a>'
         acc = (f"{t['mean_joint_error_mm']:.1f} / {t['max_joint_error_mm']:.1f}" if "mean_joint_error_mm" in t else "")
         spf = f"{t['seconds_per_frame']:.2f}" if t.get("seconds_per_frame") else ""
-        body.append(f"<tr><td>{name}</td><td>{t.get('frames', '')}</td><td>{spf}</td><td>{acc}</td>"
+        body.append(f"<tr><td>{name}</td><td>{t.get('frames', '')}</td><td>{spf}</td><td>{quality_cell(t)}</td>"
+                    f"<td>{acc}</td>"
                     f"<td>{html.escape(t['status'])}</td><td>{html.escape(t.get('error') or '')}</td></tr>")
     return ("<!doctype html><meta charset='utf-8'><title>mocap batch</title>"
             "<style>body{font:14px sans-serif;margin:2em}td,th{padding:4px 10px;text-align:left}"
             "tr:nth-child(even){background:#f3f3f3}</style>"
             f"<h1>{html.escape(project.name)}</h1><p>{len(record['takes'])} takes on {record['workers']} workers "
             f"({html.escape(record['scheduler'])}), {record['seconds']:.0f} s</p><table><tr><th>take</th>"
-            "<th>frames</th><th>s/frame</th><th>mean / max joint error, mm</th><th>status</th><th>error</th></tr>"
+            "<th>frames</th><th>s/frame</th><th>XOR of the silhouettes (body outside them)</th>"
+            "<th>mean / max joint error, mm</th><th>status</th><th>error</th></tr>"
             + "".join(body) + "</table>")

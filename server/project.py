@@ -305,7 +305,8 @@ def _resume_if_interrupted(take: Path, step: Step, command: tuple[str, ...]) -> 
 
 
 def result_figures(result: Path) -> dict:
-    """Frames, seconds per frame and accuracy (where there was truth) of a result folder."""
+    """Frames, seconds per frame, the actor's size, the fit quality (the mean XOR share, its two
+    sides, the frames flagged) and accuracy (where there was truth) of a result folder."""
     try:
         summary = json.loads((result / "summary.json").read_text())
     except (OSError, ValueError):
@@ -313,9 +314,15 @@ def result_figures(result: Path) -> dict:
     frames = summary.get("frames") or 0
     out = {"frames": frames,
            "seconds_per_frame": summary["wall_seconds"] / frames if frames and summary.get("wall_seconds") else None}
-    for key in ("mean_joint_error_mm", "max_joint_error_mm"):
+    for key in ("actor_scale", "mean_joint_error_mm", "max_joint_error_mm"):
         if key in summary:
             out[key] = summary[key]
+    quality = summary.get("fit_quality") or {}
+    for key in ("mean_xor_share", "mean_outside_share", "mean_missed_share"):
+        if key in quality:
+            out[key] = quality[key]
+    if "frames_flagged" in quality:
+        out["frames_flagged"] = len(quality["frames_flagged"])
     return out
 
 

@@ -104,8 +104,16 @@ def test_run_redoes_only_what_changed(project, capsys):
     assert [s["status"] for s in first["steps"]] == ["done"] * 3  # fit, export, report
     assert (take / "result" / "motion.trc").is_file() and (take / "result" / "report.html").is_file()
     fitted = (take / "result" / "poses.jsonl").stat().st_mtime_ns
+    assert first["actor_scale"] == 1.0 and 0 <= first["mean_outside_share"] <= first["mean_xor_share"] < 0.3
+    assert first["mean_xor_share"] == pytest.approx(first["mean_outside_share"] + first["mean_missed_share"], abs=1e-3)
+    assert first["frames_flagged"] == 0
     again = run_take(take)
     assert again["status"] == "skipped" and {s["status"] for s in again["steps"]} == {"up to date"}
+    capsys.readouterr()
+    assert main(["run", str(take)]) == 0  # what a take is checked by, also when nothing ran
+    said = capsys.readouterr().out
+    assert "actor size 1.00 x the body model" in said and "masks the body misses" in said
+    assert "0 frames flagged" in said
     (take / "Config.toml").write_text("[export]\nformats = ['csv', 'json']\n")
     changed = run_take(take)
     assert [s["status"] for s in changed["steps"]] == ["up to date", "done", "up to date"]
@@ -151,6 +159,20 @@ def test_run_on_a_broken_take_is_one_line(project, capsys):
     assert len(err) == 1 and "cam2" in err[0] and "000001.png" in err[0]
 
 
+def test_the_batch_table_says_each_take_s_fit_quality():
+    """A take without truth is judged by its XOR and the XOR's side of the body outside the
+    masks; a failed take, or one fitted before the sides were kept, shows what it has."""
+    from server.batch import summary_table
+
+    takes = [{"name": "seated", "status": "done", "frames": 22, "seconds_per_frame": 1.5,
+              "mean_xor_share": 0.40, "mean_outside_share": 0.01, "mean_missed_share": 0.39},
+             {"name": "old", "status": "skipped", "frames": 5, "mean_xor_share": 0.2},
+             {"name": "broken", "status": "failed", "error": "cam2: missing"}]
+    header, seated, old, broken = summary_table({"takes": takes})
+    assert "XOR (outside)" in header and "40% (1%)" in seated and "20%" in old and "(" not in old
+    assert broken.split()[3] == "-" and broken.rstrip().endswith("failed: cam2: missing")
+
+
 def test_find_takes(project):
     assert [t.name for t in find_takes(project)] == ["broken", "walk_a", "walk_b"]
     with pytest.raises(UserError, match="not a take"):
@@ -176,9 +198,10 @@ def test_batch_on_a_local_dask_cluster(project, tmp_path, capsys):
         assert poses(project / name) == poses(alone / name)
     assert by_name["broken"]["status"] == "failed"
     assert "cam2" in by_name["broken"]["error"] and "\n" not in by_name["broken"]["error"]
-    assert "failed" in out and "walk_a" in out
+    assert "failed" in out and "walk_a" in out and "XOR (outside)" in out
+    assert all(0 <= by_name[n]["mean_outside_share"] <= by_name[n]["mean_xor_share"] for n in ("walk_a", "walk_b"))
     index = (project / "index.html").read_text()
-    assert 'href="walk_a/result/report.html"' in index
+    assert 'href="walk_a/result/report.html"' in index and "body outside them" in index
     before = {n: (project / n / "result" / "poses.jsonl").stat().st_mtime_ns for n in ("walk_a", "walk_b")}
     assert main(["batch", str(project), "--workers", "2", "--quiet"]) == 1
     again = {t["name"]: t["status"] for t in json.loads((project / "batch.json").read_text())["takes"]}
