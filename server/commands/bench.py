@@ -12,37 +12,41 @@ from common.argtypes import count, non_negative, real
 BENCH_CLIP_FRAMES = 20  # frames of the bundled walk used for fitting benchmarks
 
 
+JSON_HELP = "also write the figures to this JSON file"
+FRAMES_HELP = "frames of the sequence to fit"
+
+
 def register(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks (energy, fit, cluster, hops, presets, segment, voxels, clean, batch, all)")
     bsub = p.add_subparsers(dest="bench", metavar="WHAT")
     bsub.required = True
     e = bsub.add_parser("energy", help="XOR energy evaluations per second (paper Table 1)")
-    e.add_argument("--backends", default="cpu,gl")
-    e.add_argument("--json", type=Path, default=None)
+    e.add_argument("--backends", default="cpu,gl", help="energy backends, comma separated (gl needs OpenGL)")
+    e.add_argument("--json", type=Path, default=None, metavar="FILE", help=JSON_HELP)
     f = bsub.add_parser("fit", help="seconds per frame, single process (paper Table 2)")
     f.add_argument("sequence", type=Path, nargs="?", default=None,
                    help="sequence folder (default: synthesise the bundled walk)")
-    f.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES)
-    f.add_argument("--json", type=Path, default=None)
+    f.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES, help=FRAMES_HELP)
+    f.add_argument("--json", type=Path, default=None, metavar="FILE", help=JSON_HELP)
     c = bsub.add_parser("cluster", help="single process vs server + clients (paper Table 2)")
-    c.add_argument("sequence", type=Path)
-    c.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES)
-    c.add_argument("--clients", type=count(0), default=4)
-    c.add_argument("--json", type=Path, default=None)
+    c.add_argument("sequence", type=Path, help="sequence folder")
+    c.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES, help=FRAMES_HELP)
+    c.add_argument("--clients", type=count(0), default=4, help="local clients beside the server")
+    c.add_argument("--json", type=Path, default=None, metavar="FILE", help=JSON_HELP)
     h = bsub.add_parser("hops", help="the refinement's hops, single process vs server + clients side by side")
-    h.add_argument("sequence", type=Path)
-    h.add_argument("--frames", type=count(1), default=10)
-    h.add_argument("--clients", type=count(0), default=4)
+    h.add_argument("sequence", type=Path, help="sequence folder")
+    h.add_argument("--frames", type=count(1), default=10, help=FRAMES_HELP)
+    h.add_argument("--clients", type=count(0), default=4, help="local clients beside the server")
     h.add_argument("--hops", type=count(0), default=20, metavar="N", help="as mocap fit --refine-hops")
-    h.add_argument("--json", type=Path, default=None)
+    h.add_argument("--json", type=Path, default=None, metavar="FILE", help=JSON_HELP)
     s = bsub.add_parser("segment", help="background subtraction frames/s and error rates")
-    s.add_argument("--json", type=Path, default=None)
+    s.add_argument("--json", type=Path, default=None, metavar="FILE", help=JSON_HELP)
     v = bsub.add_parser("voxels", help="SPOT voxel reconstruction frames/s")
-    v.add_argument("--json", type=Path, default=None)
+    v.add_argument("--json", type=Path, default=None, metavar="FILE", help=JSON_HELP)
     cl = bsub.add_parser("clean", help="multi-view cleaning of a frame's masks frames/s")
-    cl.add_argument("--json", type=Path, default=None)
+    cl.add_argument("--json", type=Path, default=None, metavar="FILE", help=JSON_HELP)
     acc = bsub.add_parser("accuracy", help="joint error on walk, dance and basketball clips (virtual studio)")
-    acc.add_argument("--frames", type=count(1), default=100)
+    acc.add_argument("--frames", type=count(1), default=100, help="frames of each clip")
     acc.add_argument("--turn-hypotheses", type=count(0), default=None, metavar="N",
                      help="as mocap fit --turn-hypotheses (default: its default)")
     acc.add_argument("--turn-step", type=real(0.0, math.pi, exclusive_minimum=True), default=None, metavar="RAD",
@@ -58,34 +62,34 @@ def register(sub) -> None:
                      help="energy backends to compare on the same sequences, comma separated (e.g. cpu,volume)")
     acc.add_argument("--no-restart", action="store_true",
                      help="skip tracking the last 40 frames again from the truth of the first of them (drift_mm)")
-    acc.add_argument("--json", type=Path, default=None)
+    acc.add_argument("--json", type=Path, default=None, metavar="FILE", help=JSON_HELP)
     ini = bsub.add_parser("init", help="automatic first-frame initialisation on every clip")
     ini.add_argument("clips", type=Path, nargs="*",
                      help="BVH clips (default: all of ../shared/data/mocap if there, else the bundled ones)")
     ini.add_argument("--bundled", action="store_true", help="the bundled clips, even where shared data exists")
     ini.add_argument("--tpose", action="store_true", help="also start at frame 0 (the CMU clips' added T-pose)")
-    ini.add_argument("--frames", type=count(1), default=10)
+    ini.add_argument("--frames", type=count(1), default=10, help="frames fitted from each start")
     ini.add_argument("--first-frame-only", action="store_true",
                      help="fit only the first frame of each run (the search alone), on the same clips and starts")
     ini.add_argument("--refine-search", action="store_true", help="both runs as mocap fit --refine-search")
     ini.add_argument("--refine-hops", type=count(0), default=0, metavar="N", help="both runs as mocap fit --refine-hops")
     ini.add_argument("--jobs", type=count(1), default=1,
                      help="starts fitted at once, one process (and core) each; the same rows as one")
-    ini.add_argument("--json", type=Path, default=None)
+    ini.add_argument("--json", type=Path, default=None, metavar="FILE", help=JSON_HELP)
     pr = bsub.add_parser("presets", help="mocap fit --preset fast|default|best on the same frames: time and error")
     pr.add_argument("sequence", type=Path, nargs="?", default=None,
                     help="sequence folder (default: synthesise the bundled walk)")
-    pr.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES)
+    pr.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES, help=FRAMES_HELP)
     pr.add_argument("--presets", default=None, help="comma-separated (default: all)")
-    pr.add_argument("--json", type=Path, default=None)
+    pr.add_argument("--json", type=Path, default=None, metavar="FILE", help=JSON_HELP)
     bb = bsub.add_parser("batch", help="mocap batch against a serial loop of mocap run, on the same takes")
-    bb.add_argument("--takes", type=count(1), default=4)
+    bb.add_argument("--takes", type=count(1), default=4, help="synthetic takes in the project")
     bb.add_argument("--frames", type=count(1), default=20, help="frames per take")
-    bb.add_argument("--workers", type=count(1), default=2)
-    bb.add_argument("--json", type=Path, default=None)
+    bb.add_argument("--workers", type=count(1), default=2, help="batch workers (processes)")
+    bb.add_argument("--json", type=Path, default=None, metavar="FILE", help=JSON_HELP)
     a = bsub.add_parser("all", help="everything, into a folder of JSON files")
-    a.add_argument("--out", type=Path, default=Path("bench"))
-    a.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES)
+    a.add_argument("--out", type=Path, default=Path("bench"), help="folder for the JSON files")
+    a.add_argument("--frames", type=count(1), default=BENCH_CLIP_FRAMES, help=FRAMES_HELP)
     p.set_defaults(func=run)
 
 
