@@ -436,6 +436,11 @@ def test_mocap_export_several_formats_and_rest(tmp_path, result_dir, capsys):
     rest, _ = rest_positions(bvh)
     arm = rest[bvh.names.index("LeftHand")] - rest[bvh.names.index("LeftArm")]
     assert abs(arm[1]) < 1e-6  # T-pose: the arm horizontal at rest
+    # several formats into what names a file: refused, nothing made
+    single = tmp_path / "single.glb"
+    assert cli_main(["export", str(result_dir), "--format", "glb,trc", "--out", str(single), "--fps", "25"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "several formats are written into a folder" in err and not single.exists()
     # a folder format: refused when there, replaced whole with --overwrite
     kp = tmp_path / "kp"
     assert cli_main(["export", str(result_dir), "--format", "keypoints3d", "--out", str(kp), "--fps", "25",

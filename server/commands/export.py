@@ -20,13 +20,15 @@ from pathlib import Path
 
 from common.errors import UserError
 from common.export import (
-    BVH_RESTS, DEFAULT_BVH_REST, FOLDER_FORMATS, FORMATS, export_motion, export_name,
+    BVH_RESTS, DEFAULT_BVH_REST, FOLDER_FORMATS, FORMATS, SUFFIXES, export_motion, export_name,
 )
 from common.argtypes import real
 from server.output import (
     add_overwrite_argument, check_file_target, check_folder_target, replace_file, staged_folder,
 )
 from server.pictures import load_result
+
+FILE_SUFFIXES = {suffix for suffix in SUFFIXES.values() if suffix.startswith(".")}  # the formats written as files
 
 ALL = "all"
 
@@ -107,6 +109,9 @@ def run(args) -> int:
     motion = result.motion
     if several:
         folder = args.out or args.result
+        if not folder.exists() and folder.suffix.lower() in FILE_SUFFIXES:  # a file's name, for a folder
+            raise UserError(f"--out {folder}: several formats are written into a folder, and this names a "
+                            f"{folder.suffix} file; give a folder, or one format")
         check_folder_target(folder, (), overwrite=True)  # a file, or not writable: refused
         folder.mkdir(parents=True, exist_ok=True)
         targets = [(f, folder / export_name(f)) for f in formats]
