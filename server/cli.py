@@ -15,6 +15,7 @@ from common.argtypes import OneLineParser
 
 EXIT_OK = 0
 EXIT_USAGE = 2  # bad input: missing/corrupt files, bad calibration, wrong arguments
+ACTION_DESTS = ("calib_command", "config_command", "bench")  # the commands' own subcommands
 
 COMMAND_MODULES = (
     "calib", "synth", "fit", "server", "keys", "bench", "segment", "import_video", "voxels", "live", "export",
@@ -57,6 +58,9 @@ def main(argv: list[str] | None = None) -> int:
     from common.errors import UserError
     from common.argtypes import one_line
 
+    # what the messages name: the command and its action where it has one ("calib convert")
+    name = " ".join(str(v) for v in (args.command, *(getattr(args, a, None) for a in ACTION_DESTS)) if v)
+
     try:
         if hasattr(args, "command_parser") and (args.config is not None or args.preset is not None):
             # a preset's and a Config.toml's values become the command's defaults; options given win
@@ -66,21 +70,21 @@ def main(argv: list[str] | None = None) -> int:
             args = parser.parse_args(argv)
         return int(args.func(args) or EXIT_OK)
     except UserError as exc:
-        print(f"mocap {args.command}: error: {one_line(exc)}", file=sys.stderr)
+        print(f"mocap {name}: error: {one_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as exc:  # the disk, not the input: full, read-only, a folder where a file goes
         where = f"{exc.filename}: " if exc.filename else ""
-        print(f"mocap {args.command}: error: {one_line(where + str(exc.strerror or exc))}", file=sys.stderr)
+        print(f"mocap {name}: error: {one_line(where + str(exc.strerror or exc))}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
-        print(f"mocap {args.command}: interrupted", file=sys.stderr)
+        print(f"mocap {name}: interrupted", file=sys.stderr)
         return 130
     except SystemError as exc:
         # Ctrl-C while a compiled (numba) loop runs: the interrupt arrives as it returns and
         # comes out as "returned a result with an exception set", the interrupt its context
         if not _interrupted(exc):
             raise
-        print(f"mocap {args.command}: interrupted", file=sys.stderr)
+        print(f"mocap {name}: interrupted", file=sys.stderr)
         return 130
 
 

@@ -295,7 +295,7 @@ def test_spoiled_calibration_files_are_one_error(tmp_path, capsys, fmt, spoil):
     rc = main(["calib", "show", str(path), *fmt_option, *(["--units", "mm"] if fmt == "qualisys" else [])])
     err = capsys.readouterr().err
     assert rc == 2, err
-    assert err.count("\n") == 1 and err.startswith("mocap calib: error: ") and str(path) in err, err
+    assert err.count("\n") == 1 and err.startswith("mocap calib show: error: ") and str(path) in err, err
 
 
 def test_easymocap_and_toml_camera_names(tmp_path):

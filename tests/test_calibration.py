@@ -427,7 +427,7 @@ def test_bad_input(tmp_path, capsys, fixture, inner, old, new, expected):
     rc, stdout, err = cli(capsys, "calib", "show", path, *(["--units", "mm"] if "anipose" in fixture else []))
     assert rc == 2
     assert stdout == "" and err.count("\n") == 1
-    assert err.startswith("mocap calib: error: " + str(path))
+    assert err.startswith("mocap calib show: error: " + str(path))
     for part in expected:
         assert part in err
 
@@ -803,7 +803,7 @@ def test_projection_errors(tmp_path, capsys):
             load_calibration(path, size=(640, 480))
         rc, stdout, err = cli(capsys, "calib", "show", path, "--size", "640x480")
         assert rc == 2 and stdout == "" and err.count("\n") == 1
-        assert err.startswith(f"mocap calib: error: {path}: {problem}") and "Traceback" not in err
+        assert err.startswith(f"mocap calib show: error: {path}: {problem}") and "Traceback" not in err
 
 
 def test_cli_refuses_read_only_output_formats(tmp_path, capsys):
