@@ -76,12 +76,9 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"mocap {name}: error: {one_line(where + str(exc.strerror or exc))}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        print(f"mocap {name}: interrupted", file=sys.stderr)
-        return 130
-    except SystemError as exc:
-        # Ctrl-C while a compiled (numba) loop runs: the interrupt arrives as it returns and
-        # comes out as "returned a result with an exception set", the interrupt its context
+    except (KeyboardInterrupt, SystemError) as exc:
+        # Ctrl-C while a compiled (numba) loop runs arrives as that loop returns, as a
+        # SystemError ("returned a result with an exception set") whose context is the interrupt
         if not _interrupted(exc):
             raise
         print(f"mocap {name}: interrupted", file=sys.stderr)

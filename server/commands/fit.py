@@ -212,12 +212,12 @@ def actor_model(model, seq, options, args, init: str):
         return model, None
     size = choose_actor_scale(model, seq, options, resolve_threads(args.threads, options))
     if size.scale in (ACTOR_SCALES[0], ACTOR_SCALES[-1]):
-        edge = "largest" if size.scale == ACTOR_SCALES[-1] else "smallest"
+        edge, beyond = ("largest", "larger") if size.scale == ACTOR_SCALES[-1] else ("smallest", "smaller")
         print_warning(f"actor size {size.scale:.2f} is the {edge} the size search tries ({ACTOR_SCALES[0]:g}-"
-                      f"{ACTOR_SCALES[-1]:g} times the body model): the actor may be {'larger' if edge == 'largest' else 'smaller'} "
-                      "still, the masks may hold more or less than the actor (a prop sat on, shadows, parts "
-                      "missing), or the calibration's scale may be off (mocap calib show prints the cameras' "
-                      "heights); --actor-height sets the size")
+                      f"{ACTOR_SCALES[-1]:g} times the body model): the actor may be {beyond} still, the masks "
+                      "may hold more or less than the actor (a prop sat on, shadows, parts missing), or the "
+                      "calibration's scale may be off (mocap calib show prints the cameras' heights); "
+                      "--actor-height sets the size")
     return (model.scaled(size.scale) if size.scale != 1.0 else model), size
 
 

@@ -31,8 +31,9 @@ def run(args) -> int:
     else:
         print(f"{done['name']}: {done['status']} -> {done['result']}")
         if "mean_xor_share" in done:  # what a take without truth is checked by (mocap fit's table)
-            sides = (f" (body outside the masks {done['mean_outside_share']:.0%}, masks the body misses "
-                     f"{done['mean_missed_share']:.0%})" if "mean_missed_share" in done else "")
+            from server.session import xor_sides  # here: the fitting modules load only where a take has a fit
+
+            sides = f" ({xor_sides(done)})" if "mean_missed_share" in done else ""
             print(f"  {done['frames']} frames, actor size {done.get('actor_scale', 1.0):.2f} x the body model, "
                   f"XOR {done['mean_xor_share']:.0%} of the silhouettes{sides}, "
                   f"{done.get('frames_flagged', 0)} frames flagged (report.html)")
