@@ -221,6 +221,13 @@ class Studio:
     def names(self) -> list[str]:
         return [c.name for c in self.cameras]
 
+    @cached_property
+    def projection_matrices(self) -> np.ndarray:
+        """(K, 3, 4) the cameras' P (``Camera.projection_matrix``), never written (left writable:
+        the compiled kernels are compiled for writable arrays, a read-only one would be another
+        signature to compile)."""
+        return np.stack([c.projection_matrix for c in self.cameras])
+
     @property
     def sizes(self) -> list[tuple[int, int]]:
         """(K, 2) (width, height) of each camera's image, pixels."""

@@ -22,13 +22,16 @@ One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
+from typing import NamedTuple
 
 import numpy as np
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
 
 from common.body import _SEGMENT_PARENTS, PARAM_COUNT, BodyModel, _forward_kinematics, _segment_mask, forward_kinematics
 from common.camera import Studio
+from common.conic_bits import (_ALL_BITS, _conic_row_form, _conic_rows, _popcount, _row_span, conic_coverage,
+                               window_value_bits, cut_windows, xor_bits)
 from common.packing import inside_images, padded_shape
 
 ARM_WINDOW = 128   # pixels, windows for upper arm + forearm, thigh + shin
@@ -37,9 +40,9 @@ MIN_DEPTH_M = 0.1  # ellipsoids closer to a camera than this are not drawn
 POSE_CHUNK = 32    # poses whose conics one compiled evaluation makes at once (pose_energies)
 
 
-@dataclass(frozen=True)
-class Window:
-    """A rectangle of one camera's image, in that camera's pixel grid (may extend past edges)."""
+class Window(NamedTuple):
+    """A rectangle of one camera's image, in that camera's pixel grid (may extend past edges).
+    (A named tuple: a fit makes some 3,000 of them a frame, a frozen dataclass's init took 3 us.)"""
 
     x0: int
     y0: int
@@ -48,19 +51,13 @@ class Window:
 
 
 @njit(cache=True, nogil=True)
-def centred_cuts(R: np.ndarray, t: np.ndarray, K: np.ndarray, sizes: np.ndarray, masks: np.ndarray,
-                 centre: np.ndarray, size: int) -> tuple:
-    """A window of ``size`` pixels centred on each camera's projection of ``centre`` (its corner
-    at the pixel nearest to centre - size / 2), and that window of the camera's mask, for all
-    cameras in one compiled call (a fit cuts windows some 400 times a frame).
-
-    R (K, 3, 3), t (K, 3), K (K, 3, 3) pinhole cameras without distortion; sizes (K, 2) image
-    width and height; masks (K, H, W) bool; centre (3,) world -> corners (K, 2) int (x0, y0),
-    cuts (K, size, size) bool (zeros outside the image).
-    """
+def window_corners(R: np.ndarray, t: np.ndarray, K: np.ndarray, centre: np.ndarray, size: int) -> np.ndarray:
+    """The corners of windows of ``size`` pixels centred on each camera's projection of
+    ``centre``: the pixel nearest to centre - size / 2 (a fit places windows some 400 times a
+    frame). R (K, 3, 3), t (K, 3), K (K, 3, 3) pinhole cameras without distortion; centre (3,)
+    world -> (K, 2) int (x0, y0)."""
     n = R.shape[0]
     corners = np.empty((n, 2), np.int64)
-    cuts = np.zeros((n, size, size), np.bool_)
     for k in range(n):
         xc = np.empty(3)
         for i in range(3):
@@ -68,14 +65,9 @@ def centred_cuts(R: np.ndarray, t: np.ndarray, K: np.ndarray, sizes: np.ndarray,
         x, y = xc[0] / xc[2], xc[1] / xc[2]
         u = K[k, 0, 0] * x + K[k, 0, 1] * y + K[k, 0, 2]
         v = K[k, 1, 1] * y + K[k, 1, 2]
-        x0 = int(np.floor(u - size / 2 + 0.5))
-        y0 = int(np.floor(v - size / 2 + 0.5))
-        corners[k, 0], corners[k, 1] = x0, y0
-        xs, ys = max(x0, 0), max(y0, 0)
-        xe, ye = min(x0 + size, sizes[k, 0]), min(y0 + size, sizes[k, 1])
-        if xs < xe and ys < ye:
-            cuts[k, ys - y0:ye - y0, xs - x0:xe - x0] = masks[k, ys:ye, xs:xe]
-    return corners, cuts
+        corners[k, 0] = int(np.floor(u - size / 2 + 0.5))
+        corners[k, 1] = int(np.floor(v - size / 2 + 0.5))
+    return corners
 
 
 # --------------------------------------------------------------------------- geometry
@@ -161,119 +153,6 @@ def image_conics(P: np.ndarray, centres: np.ndarray, A: np.ndarray) -> tuple:
     return C, drawable
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _conic_rows(C: np.ndarray, drawable: bool, y0: float, rows: int) -> tuple:
-    """Window rows [first, last) a conic C (3, 3) covers (pixel centres at integer coordinates
-    are inside where the conic is negative); (0, 0) when it covers none."""
-    c00, c01, c02 = C[0, 0], C[0, 1], C[0, 2]
-    c11, c12, c22 = C[1, 1], C[1, 2], C[2, 2]
-    # y-extent: where the quadratic in x has a double root
-    qa = c01 * c01 - c00 * c11
-    qb = 2.0 * (c01 * c02 - c00 * c12)
-    qc = c02 * c02 - c00 * c22
-    disc_y = qb * qb - 4.0 * qa * qc
-    if not (drawable and qa < 0 and c00 > 0 and disc_y > 0):
-        return 0, 0
-    sq = np.sqrt(disc_y)
-    y_lo = (-qb + sq) / (2.0 * qa)  # qa < 0: this is the smaller root
-    y_hi = (-qb - sq) / (2.0 * qa)
-    first = int(min(max(np.ceil(y_lo - y0), 0.0), float(rows)))
-    last = int(min(max(np.floor(y_hi - y0) + 1.0, 0.0), float(rows)))
-    return first, max(first, last)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _conic_row_form(C: np.ndarray, x0: float) -> tuple:
-    """A conic C (3, 3) drawn on rows (``_conic_rows``) as its span on image row y: centre
-    cu + cv y and squared half-width q0 + y (q1 + y q2), window columns (x0 the window's
-    left edge). -> (cu, cv, q0, q1, q2)."""
-    c00, c01, c02 = C[0, 0], C[0, 1], C[0, 2]
-    inv = 1.0 / c00
-    inv2 = inv * inv
-    return (-c02 * inv - x0, -c01 * inv, (c02 * c02 - c00 * C[2, 2]) * inv2,
-            2.0 * (c01 * c02 - c00 * C[1, 2]) * inv2, (c01 * c01 - c00 * C[1, 1]) * inv2)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _row_span(cu: float, cv: float, q0: float, q1: float, q2: float, y: float, width: float) -> tuple:
-    """Window columns [start, end) a conic in row form covers on image row y (end <= start: none)."""
-    centre = cu + cv * y
-    half = np.sqrt(max(q0 + y * (q1 + y * q2), 0.0))
-    return (int(min(max(np.ceil(centre - half), 0.0), width)),
-            int(min(max(np.floor(centre + half) + 1.0, 0.0), width)))
-
-
-@njit(cache=True, nogil=True)
-def conic_coverage(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.ndarray, rows: int,
-                   width: int) -> np.ndarray:
-    """Pixels covered by any of the conics: C (B, K, S, 3, 3) (negative inside), drawable
-    (B, K, S), y0, x0 (K,) window corners -> (B, K, rows, width) bool."""
-    B, K, S = C.shape[0], C.shape[1], C.shape[2]
-    out = np.zeros((B, K, rows, width), np.bool_)
-    for b in range(B):
-        for k in range(K):
-            for s in range(S):
-                first, last = _conic_rows(C[b, k, s], drawable[b, k, s], y0[k], rows)
-                if last <= first:
-                    continue
-                cu, cv, q0, q1, q2 = _conic_row_form(C[b, k, s], x0[k])
-                for row in range(first, last):
-                    start, end = _row_span(cu, cv, q0, q1, q2, float(row) + y0[k], float(width))
-                    out[b, k, row, start:end] = True
-    return out
-
-
-@intrinsic
-def _popcount(typingctx, x):
-    """The set bits of a uint64 (LLVM's ctpop: one instruction where the CPU has one)."""
-    def codegen(context, builder, signature, args):
-        return builder.ctpop(args[0])
-    return types.uint64(types.uint64), codegen
-
-
-_ALL_BITS = np.uint64(0xFFFFFFFFFFFFFFFF)
-
-
-def xor_bits(static: np.ndarray, inputs: np.ndarray) -> tuple:
-    """static, inputs (K, h, w) bool -> the value a moving part adds by covering a pixel
-    (0 where static covers it, else 1 - 2 * input) as two bit masks per row, gain (+1: neither
-    static nor input) and loss (-1: input, not static), (K, h, ceil(w / 64)) uint64, bit
-    c % 64 of word c // 64 for column c; and the static parts' own XOR count |static xor inputs|.
-    Rows are read 8 pixels (bytes) at a time, as uint64 words; a row of another width is
-    padded to a multiple of 8 with pixels static and input both cover (no bits, no count), as
-    a window's pixels beyond its camera's image are (``CpuEnergy``)."""
-    K, h, w = inputs.shape
-    spare = -w % 8
-    static, inputs = (np.pad(np.asarray(a, dtype=np.bool_), ((0, 0), (0, 0), (0, spare)), constant_values=True)
-                      if spare else np.ascontiguousarray(a, dtype=np.bool_) for a in (static, inputs))
-    return _xor_bits_octets(static.view(np.uint64), inputs.view(np.uint64), (w + 63) // 64)
-
-
-# Eight bytes of 0 or 1 (pixels c..c+7, c first in memory) times this, shifted down by 56: the
-# byte whose bit i is pixel c + i (each byte's bit lands at its own place among the top 8 bits,
-# the other products below them or past the top, with no carry into them)
-_GATHER_BYTES = np.uint64(0x0102040810204080)
-_BYTE_LOW_BITS = np.uint64(0x0101010101010101)
-
-
-@njit(cache=True, nogil=True)
-def _xor_bits_octets(static: np.ndarray, inputs: np.ndarray, words: int) -> tuple:
-    """``xor_bits`` of rows whose 8-pixel groups are read as uint64: static, inputs (K, h, w / 8)."""
-    K, h, octets = inputs.shape
-    gain = np.zeros((K, h, words), np.uint64)
-    loss = np.zeros((K, h, words), np.uint64)
-    base = 0
-    for k in range(K):
-        for r in range(h):
-            for o in range(octets):
-                s, i = static[k, r, o], inputs[k, r, o]
-                base += _popcount(s ^ i)
-                shift = np.uint64(8 * (o & 7))
-                gain[k, r, o >> 3] |= (((~s & ~i & _BYTE_LOW_BITS) * _GATHER_BYTES) >> np.uint64(56)) << shift
-                loss[k, r, o >> 3] |= (((~s & i & _BYTE_LOW_BITS) * _GATHER_BYTES) >> np.uint64(56)) << shift
-    return gain, loss, base
-
-
 @njit(cache=True, nogil=True)
 def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.ndarray, rows: int, width: int,
                   gain: np.ndarray, loss: np.ndarray) -> np.ndarray:
@@ -357,24 +236,43 @@ class EnergySetup:
     inputs: (K, h, w) bool input silhouette windows, h and w the largest window height and
     width, window k's pixels at [:height, :width] (windows of one size fill it; whole images of
     cameras of different sizes are padded, as ``packing.pad_stack``): pixels beyond a window
-    are outside it and count for nothing, whatever covers them; moving: segments that move;
-    static_params: (35,) pose whose other segments are pre-rendered.
+    are outside it and count for nothing, whatever covers them; or None where ``packed`` is
+    given; moving: segments that move; static_params: (35,) pose whose other segments are
+    pre-rendered; packed: (K, H, words) uint64 the whole images' silhouettes as row bits
+    (``conic_bits.pack_rows``) that windows of one size are cut from (``input_windows``), which
+    the cpu energy reads without cutting byte windows.
     """
 
     studio: Studio
     windows: tuple
-    inputs: np.ndarray
+    inputs: np.ndarray | None
     moving: tuple
     static_params: np.ndarray
     prerender: bool = True
     volume_points: np.ndarray | None = None  # (n, 3) surface voxel centres, for the volume energy
+    packed: np.ndarray | None = None
+
+    @cached_property
+    def input_windows(self) -> np.ndarray:
+        """(K, h, w) bool: ``inputs``, or the windows cut from ``packed``."""
+        if self.inputs is not None:
+            return self.inputs
+        x0, y0 = window_origins(self.windows)
+        return cut_windows(self.packed, x0, y0, self.windows[0].height, self.windows[0].width)
+
+
+def window_origins(windows) -> tuple:
+    """The windows' corners as (K,) int64 arrays (x0, y0)."""
+    return (np.array([w.x0 for w in windows], dtype=np.int64), np.array([w.y0 for w in windows], dtype=np.int64))
 
 
 def window_pixels(setup: EnergySetup) -> np.ndarray | None:
-    """(K, h, w) bool: the pixels of ``setup.inputs`` inside each camera's window; None when
-    every window fills the inputs (windows of one size: nothing to leave out, nothing to pay).
+    """(K, h, w) bool: the pixels of ``setup.input_windows`` inside each camera's window; None
+    when every window fills them (windows of one size: nothing to leave out, nothing to pay).
     ValueError when the windows do not fit the inputs."""
-    K, h, w = setup.inputs.shape
+    if setup.inputs is None and len({(w.width, w.height) for w in setup.windows}) == 1:
+        return None  # cut from packed rows: windows of one size by construction
+    K, h, w = setup.input_windows.shape
     if len(setup.studio) != K or len(setup.windows) != K:
         raise ValueError(f"{len(setup.studio)} cameras need as many windows and input windows, got "
                          f"{len(setup.windows)} and {K}")
@@ -462,24 +360,28 @@ class CpuEnergy:
         self.setup = setup
         self.evaluations = 0
         studio, windows = setup.studio, setup.windows
-        K = len(studio)
-        h, w = setup.inputs.shape[1:]
-        self.width, self.rows = w, h
         self.inside = window_pixels(setup)
-        self.P = np.stack([c.projection_matrix for c in studio])
-        self.y0 = np.array([win.y0 for win in windows], dtype=np.float64)
-        self.x0 = np.array([win.x0 for win in windows], dtype=np.float64)
-        self.moving = tuple(setup.moving) if setup.prerender else tuple(range(16))
-        static = tuple(s for s in range(16) if s not in self.moving)
-        if static:
-            M = self._render(setup.static_params, static)
+        if setup.inputs is None:
+            self.rows, self.width = windows[0].height, windows[0].width
         else:
-            M = np.zeros((K, h, w), dtype=bool)
-        self.static_mask = M
-        inputs = np.ascontiguousarray(setup.inputs, dtype=np.bool_)
-        if self.inside is not None:  # beyond a window static and input both set: v = 0, no base
-            M, inputs = M | ~self.inside, inputs | ~self.inside
-        self.gain, self.loss, base = xor_bits(M, inputs)
+            self.rows, self.width = setup.inputs.shape[1:]
+        self.P = studio.projection_matrices
+        x0, y0 = window_origins(windows)
+        self.x0, self.y0 = x0.astype(np.float64), y0.astype(np.float64)
+        self.moving = tuple(setup.moving) if setup.prerender else tuple(range(16))
+        self._static = tuple(s for s in range(16) if s not in self.moving)
+        if setup.packed is not None and self.inside is None:  # straight from the row bits
+            if self._static:
+                C, drawable = self._conics(np.atleast_2d(setup.static_params)[:1], self._static)
+            else:
+                C, drawable = np.zeros((1, len(studio), 0, 3, 3)), np.zeros((1, len(studio), 0), np.bool_)
+            self.gain, self.loss, base = window_value_bits(setup.packed, x0, y0, self.rows, self.width, C, drawable)
+        else:
+            M = self.static_mask
+            inputs = np.ascontiguousarray(setup.input_windows, dtype=np.bool_)
+            if self.inside is not None:  # beyond a window static and input both set: v = 0, no base
+                M, inputs = M | ~self.inside, inputs | ~self.inside
+            self.gain, self.loss, base = xor_bits(M, inputs)
         self.base = int(base)
         seg = np.asarray(self.moving, dtype=np.int64)
         self.kernel_tables = (*model.kinematic_tables[:3], _SEGMENT_PARENTS, *model.kinematic_tables[3:],
@@ -487,6 +389,13 @@ class CpuEnergy:
                                np.ascontiguousarray(model.ellipsoid_centres[seg]),
                                model.ellipsoid_axes[seg] * model.ellipsoid_radii[seg][:, None, :],
                                self.P, self.y0, self.x0, self.rows, self.width, self.gain, self.loss)
+
+    @cached_property
+    def static_mask(self) -> np.ndarray:
+        """(K, h, w) bool: the pre-rendered parts' pixels."""
+        if self._static:
+            return self._render(self.setup.static_params, self._static)
+        return np.zeros((len(self.setup.studio), self.rows, self.width), dtype=bool)
 
     def _conics(self, params: np.ndarray, segments) -> tuple:
         pose = forward_kinematics(self.model, params, tuple(segments))

@@ -222,7 +222,7 @@ class GlEnergy:
         self.ctx = ctx = gl_context()
         self.renderer_name = gl_renderer_name()
         self.K = K = len(setup.studio)
-        self.h, self.w = h, w = setup.inputs.shape[1:]
+        self.h, self.w = h, w = setup.input_windows.shape[1:]
         self.inside = window_pixels(setup)  # tiles are h x w; a smaller window fills its top-left
         self.moving = tuple(setup.moving) if setup.prerender else tuple(range(SEGMENTS))
         static = tuple(s for s in range(SEGMENTS) if s not in self.moving)
@@ -261,7 +261,7 @@ class GlEnergy:
         self.count_buf = self._own(ctx.buffer(reserve=16))
         self._id = next(_INSTANCES)
 
-        I = np.asarray(setup.inputs, dtype=bool)
+        I = np.asarray(setup.input_windows, dtype=bool)
         M = self._render(np.asarray(setup.static_params, dtype=np.float64), "static")
         self.static_mask = M
         if self.inside is not None:  # beyond a window static and input both set: v = 0, no base (as cpu)

@@ -11,7 +11,8 @@ import numpy as np
 
 from common.body import BodyModel, forward_kinematics, rest_params
 from common.camera import Camera, Studio, distort_normalized
-from common.energy import EnergySetup, Window, centred_cuts
+from common.conic_bits import pack_rows
+from common.energy import EnergySetup, Window, window_corners
 from common.objective import make_energy
 from common.packing import clear_padding, downsample_masks, pad_stack
 
@@ -113,6 +114,15 @@ class FrameData:
         return clear_padding(downsample_masks(self.masks, 2), self.half_studio.sizes)
 
     @cached_property
+    def packed_masks(self) -> np.ndarray:
+        """``masks`` as row bits (``conic_bits.pack_rows``): what energies' windows are cut from."""
+        return pack_rows(self.masks)
+
+    @cached_property
+    def half_packed_masks(self) -> np.ndarray:
+        return pack_rows(self.half_masks)
+
+    @cached_property
     def surface_points(self) -> np.ndarray:
         """(n, 3) centres of the frame's SPOT surface voxels (for the volume energy)."""
         return spot_grid(self.studio, self.masks, VOLUME_GRID).reconstruct(self.masks).surface_points()
@@ -121,7 +131,10 @@ class FrameData:
         studio = self.half_studio if half else self.studio
         masks = self.half_masks if half else self.masks
         windows = tuple(Window(0, 0, c.width, c.height) for c in studio)
-        return EnergySetup(studio, windows, masks, tuple(range(16)), np.asarray(params), prerender=False)
+        # cameras of one size: their images are windows of one size, cut from the row bits
+        packed = (self.half_packed_masks if half else self.packed_masks) if len(set(studio.sizes)) == 1 else None
+        return EnergySetup(studio, windows, masks, tuple(range(16)), np.asarray(params), prerender=False,
+                           packed=packed)
 
     def whole_image_energy(self, half: bool = False):
         """The ``cpu`` energy of the whole images with every segment moving. Nothing is
@@ -144,15 +157,15 @@ class FrameData:
         R, o = pose.rotations[0, list(segments)], pose.origins[0, list(segments)]
         # the mean of the parts' ellipsoid centres: the middle of the bones, not the joints
         centre = (np.einsum("sij,sj->si", R, self.model.ellipsoid_centres[list(segments)]) + o).mean(axis=0)
-        corners, cuts = centred_cuts(*self._pinholes, self.masks, centre, size)
+        corners = window_corners(*self._pinholes, centre, size)
         windows = tuple(Window(int(x0), int(y0), size, size) for x0, y0 in corners)
-        return EnergySetup(self.studio, windows, cuts, tuple(segments), np.asarray(params), prerender=prerender)
+        return EnergySetup(self.studio, windows, None, tuple(segments), np.asarray(params), prerender=prerender,
+                           packed=self.packed_masks)
 
     @cached_property
     def _pinholes(self) -> tuple:
-        """The undistorted cameras as arrays for ``centred_cuts``: R (K, 3, 3), t (K, 3),
-        K (K, 3, 3), image sizes (K, 2)."""
+        """The undistorted cameras as arrays for ``window_corners``: R (K, 3, 3), t (K, 3),
+        K (K, 3, 3)."""
         cams = self.studio.cameras
         return (np.stack([c.R for c in cams]).astype(np.float64), np.stack([c.t for c in cams]).astype(np.float64),
-                np.stack([c.K for c in cams]).astype(np.float64),
-                np.array([(c.width, c.height) for c in cams], dtype=np.int64))
+                np.stack([c.K for c in cams]).astype(np.float64))

@@ -247,7 +247,8 @@ class ModelPainter:
 
     def _ellipsoid_labels(self, params: np.ndarray, cam: Camera) -> np.ndarray:
         """(H, W) int16 segment label image of the ellipsoids, far segments painted first."""
-        from common.energy import conic_coverage, ellipsoid_world, image_conics
+        from common.conic_bits import conic_coverage
+        from common.energy import ellipsoid_world, image_conics
 
         pose = forward_kinematics(self.model, params)
         centres, A = ellipsoid_world(self.model, pose.rotations, pose.origins, range(16))

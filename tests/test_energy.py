@@ -9,7 +9,7 @@ import pytest
 
 from common.body import CHAINS, PARAM_COUNT, clip_to_limits, forward_kinematics, rest_params
 from common.camera import circle_studio
-from common.energy import ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window, ellipsoid_world
+from common.energy import ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window, ellipsoid_world, window_origins
 from common.objective import make_energy
 from common.fitting import FrameData
 
@@ -56,9 +56,9 @@ def test_energy_is_the_popcount_of_render_xor_input(model, frame, rng):
         poses = perturbed(truth, rng, 6)
         for p in poses:
             rendered = energy.render(p)
-            assert rendered.shape == setup.inputs.shape
+            assert rendered.shape == setup.input_windows.shape
             assert rendered.any(), name
-            expected = np.count_nonzero(rendered ^ setup.inputs)
+            expected = np.count_nonzero(rendered ^ setup.input_windows)
             assert int(energy(p)[0]) == expected, name
 
 
@@ -66,7 +66,8 @@ def test_compiled_span_sums_equal_per_pixel_sums_of_the_rendered_union(model, fr
     """The compiled conic rasteriser against the conics evaluated at every pixel centre, and
     the span sums against summing the per-pixel values over that coverage: overlapping
     segments counted once, spans clipped at window edges, several poses in one batch."""
-    from common.energy import conic_coverage, image_conics, xor_span_sums
+    from common.conic_bits import conic_coverage
+    from common.energy import image_conics, xor_span_sums
 
     data, x = frame
     energy = CpuEnergy(model, data.full_setup(x))
@@ -372,7 +373,7 @@ def test_whole_image_energy_is_built_once_per_frame_and_resolution(model, frame,
 def test_xor_bits_masks_pixel_by_pixel(shape):
     """The static-and-input bit masks, read 8 pixels at a time (a row of 70 padded to 72),
     against their definition, bit by bit."""
-    from common.energy import xor_bits
+    from common.conic_bits import xor_bits
 
     rng = np.random.default_rng(shape[2])
     static, inputs = rng.random(shape) < 0.3, rng.random(shape) < 0.4
@@ -390,3 +391,55 @@ def test_xor_bits_masks_pixel_by_pixel(shape):
     spare = (-shape[2]) % 64
     if spare:
         assert not np.any(gain[..., -1] >> np.uint64(64 - spare)) and not np.any(loss[..., -1] >> np.uint64(64 - spare))
+
+
+def _cut(masks: np.ndarray, x0: np.ndarray, y0: np.ndarray, rows: int, width: int) -> np.ndarray:
+    """Windows cut from masks by slicing, clear outside the images (the definition)."""
+    K, H, W = masks.shape
+    out = np.zeros((K, rows, width), bool)
+    for k in range(K):
+        xs, ys, xe, ye = max(x0[k], 0), max(y0[k], 0), min(x0[k] + width, W), min(y0[k] + rows, H)
+        if xs < xe and ys < ye:
+            out[k, ys - y0[k]:ye - y0[k], xs - x0[k]:xe - x0[k]] = masks[k, ys:ye, xs:xe]
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_windows_cut_from_row_bits(seed):
+    """Windows of any size at any corner (off every edge too) cut from the packed rows are the
+    sliced windows, pixel by pixel."""
+    from common.conic_bits import cut_windows, pack_rows
+
+    rng = np.random.default_rng(seed)
+    K, H, W = 3, int(rng.integers(20, 200)), int(rng.integers(20, 200))
+    masks = rng.random((K, H, W)) < 0.4
+    rows, width = int(rng.integers(1, 150)), int(rng.integers(1, 150))
+    x0, y0 = rng.integers(-160, W + 20, K), rng.integers(-160, H + 20, K)
+    np.testing.assert_array_equal(cut_windows(pack_rows(masks), x0, y0, rows, width), _cut(masks, x0, y0, rows, width))
+
+
+def test_value_bits_from_row_bits_equal_the_byte_windows(model, frame, rng):
+    """An energy whose windows are cut from the frame's row bits (limb, extremity and odd-sized
+    windows, the whole images) has the bit masks, base and energies of the same energy built
+    from byte windows."""
+    data, truth = frame
+    arm, leg = CHAINS["left_arm"].segments, CHAINS["right_leg"].segments
+    for k, x in enumerate(perturbed(truth, rng, 6, spread=0.4)):
+        x = x.copy()
+        x[:2] += 0.6 * (k % 2)  # the body moved off, its windows past the images' edges
+        built = [replace(data.window_setup(x, arm[:2], ARM_WINDOW, True), moving=arm),
+                 data.window_setup(x, leg[2:], SMALL_WINDOW, k % 3 == 0),
+                 data.window_setup(x, CHAINS["head"].segments, 100, True),
+                 replace(data.full_setup(x, half=k % 2 == 1), moving=leg, prerender=True)]
+        for setup in built:
+            assert setup.packed is not None
+            fast = CpuEnergy(model, setup)
+            masks = data.half_masks if setup.studio is data.half_studio else data.masks
+            cut = _cut(masks, *window_origins(setup.windows), setup.windows[0].height, setup.windows[0].width)
+            plain = CpuEnergy(model, replace(setup, inputs=cut, packed=None))
+            np.testing.assert_array_equal(fast.gain, plain.gain)
+            np.testing.assert_array_equal(fast.loss, plain.loss)
+            assert fast.base == plain.base
+            poses = perturbed(x, rng, 8)
+            np.testing.assert_array_equal(fast(poses), plain(poses))
+            np.testing.assert_array_equal(fast.render(x), plain.render(x))

@@ -184,7 +184,7 @@ def test_interface(ctx, model, studio):
     assert single.shape == (1,) and single.dtype == np.int64
     assert gl(np.repeat(p[None], 3, axis=0)).shape == (3,)
     assert gl.evaluations == 4
-    assert gl.render(p).shape == setup.inputs.shape and gl.render(p).dtype == bool
+    assert gl.render(p).shape == setup.input_windows.shape and gl.render(p).dtype == bool
     with pytest.raises(ValueError):
         GlEnergy(model, setup, surface="cylinders")
 

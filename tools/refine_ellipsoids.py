@@ -23,7 +23,8 @@ sys.path.insert(0, str(ROOT))
 from common import optimize  # noqa: E402
 from common.body import forward_kinematics, load_body_model, rotvec_to_matrix, skinned_vertices  # noqa: E402
 from common.camera import circle_studio  # noqa: E402
-from common.energy import conic_coverage, image_conics, xor_prefix, xor_span_sums  # noqa: E402
+from common.conic_bits import conic_coverage, xor_bits  # noqa: E402
+from common.energy import image_conics, xor_span_sums  # noqa: E402
 from common.motion_import import import_bvh  # noqa: E402
 from common.render_gl import MeshRenderer  # noqa: E402
 
@@ -79,12 +80,12 @@ def main() -> None:
     for rnd in range(ROUNDS):
         for seg in range(16):
             others = [s for s in range(16) if s != seg]
-            prefixes, bases = [], []
+            values, bases = [], []
             for i in range(len(params)):
                 c, A = world(centres[others], shape_A(axes[others], radii[others]), i, others)
                 C, ok = image_conics(P, c[None], A[None])
-                prefix, base = xor_prefix(conic_coverage(C, ok, y0, x0, H, W)[0], np.ascontiguousarray(targets[i], bool))
-                prefixes.append(prefix)
+                gain, loss, base = xor_bits(conic_coverage(C, ok, y0, x0, H, W)[0], np.ascontiguousarray(targets[i], bool))
+                values.append((gain, loss))
                 bases.append(int(base))
 
             def f(Z):
@@ -98,7 +99,7 @@ def main() -> None:
                     cw = (c_loc @ R.T + o)[:, None]
                     Aw = (R @ A_loc)[:, None]
                     C, ok = image_conics(P, cw, Aw)
-                    out += bases[i] + xor_span_sums(C, ok, y0, x0, H, W, prefixes[i])
+                    out += bases[i] + xor_span_sums(C, ok, y0, x0, H, W, *values[i])
                 return out
 
             res = optimize.powell(f, np.zeros(9), SHAPE_LIMITS[:, 0], SHAPE_LIMITS[:, 1], SHAPE_STEPS,
