@@ -10,6 +10,8 @@ windows, 1 segment) and a hop's (whole images, all 16 segments); then times ``po
 on batches of 4 poses near the truth inside one compiled loop (no Python per call, as in the
 compiled Powell), best of 9 repeats; and the grids a fit evaluates in one call: a limb's
 (3 points per parameter, 81 poses) and a re-detection's (its 2,916 poses at half resolution).
+Each row also says how long building that energy takes, as a solve builds it (the windows
+placed and cut, the still parts drawn, the value masks made), best of 5 runs of 200 builds.
 To compare two versions, run it in each checkout one after the other: the machine's speed
 drifts, so compare ratios measured close together.
 """
@@ -35,6 +37,8 @@ from server.session import frame_data  # noqa: E402
 BATCH = 4          # poses per call, as a line search's probes
 EVALUATIONS = 8000  # evaluations per timed repeat
 REPEATS = 9
+BUILDS = 200       # energy builds per timed repeat
+BUILD_REPEATS = 5
 SPREAD_RAD = 0.05  # joint angles drawn this far around the truth
 
 
@@ -61,31 +65,45 @@ def main(argv=None) -> int:
     data = frame_data(model, seq, args.frame)
     x = np.asarray(truth[args.frame].params, dtype=np.float64)
     arm, leg = CHAINS["left_arm"].segments, CHAINS["right_leg"].segments
-    limb = replace(data.window_setup(x, arm[:2], ARM_WINDOW, True), moving=arm)
-    setups = {  # name: (setup, poses per call)
-        "torso (half-resolution images, 16 segments)": (data.full_setup(x, half=True), BATCH),
+    def limb():
+        return replace(data.window_setup(x, arm[:2], ARM_WINDOW, True), moving=arm)
+
+    def redetection(half: bool):
+        return lambda: replace(data.full_setup(x, half=half), moving=leg, prerender=True)
+
+    setups = {  # name: (the setup as a solve makes it, poses per call)
+        "torso (half-resolution images, 16 segments)": (lambda: data.full_setup(x, half=True), BATCH),
         "limb (128-pixel windows, 3 segments)": (limb, BATCH),
-        "re-detection (whole images, 3 segments)": (replace(data.full_setup(x), moving=leg, prerender=True), BATCH),
-        "hand (64-pixel windows, 1 segment)": (data.window_setup(x, LIMB_PARTS["left_arm"][2], SMALL_WINDOW, True),
-                                               BATCH),
-        "hop (whole images, 16 segments)": (data.full_setup(x), BATCH),
+        "re-detection (whole images, 3 segments)": (redetection(False), BATCH),
+        "hand (64-pixel windows, 1 segment)": (lambda: data.window_setup(x, LIMB_PARTS["left_arm"][2], SMALL_WINDOW,
+                                                                         True), BATCH),
+        "hop (whole images, 16 segments)": (lambda: data.full_setup(x), BATCH),
         "limb grid (128-pixel windows, 81 poses)": (limb, 81),
-        "re-detection grid (half resolution, 2916 poses)": (replace(data.full_setup(x, half=True), moving=leg,
-                                                                    prerender=True), 2916),
+        "re-detection grid (half resolution, 2916 poses)": (redetection(True), 2916),
     }
     rng = np.random.default_rng(0)
     rows = []
     for name, (setup, batch) in setups.items():
-        tables = CpuEnergy(model, setup).kernel_tables
+        tables = CpuEnergy(model, setup()).kernel_tables
         poses = x[None] + SPREAD_RAD * rng.standard_normal((batch, x.size)) * (np.arange(x.size) >= 3)
         calls = max(1, EVALUATIONS // batch)
         _repeat(1, poses, tables)  # compile
         best = min(_timed(calls, poses, tables) for _ in range(REPEATS))
-        rows.append({"energy": name, "poses_per_call": batch, "us_per_evaluation": 1e6 * best / (calls * batch)})
-        print(f"{name:48s} {rows[-1]['us_per_evaluation']:7.2f} us per evaluation")
+        build = min(_built(BUILDS, model, setup) for _ in range(BUILD_REPEATS))
+        rows.append({"energy": name, "poses_per_call": batch, "us_per_evaluation": 1e6 * best / (calls * batch),
+                     "us_per_build": 1e6 * build / BUILDS})
+        print(f"{name:48s} {rows[-1]['us_per_evaluation']:7.2f} us per evaluation, "
+              f"{rows[-1]['us_per_build']:8.1f} us per build")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
     return 0
+
+
+def _built(builds: int, model, setup) -> float:
+    t0 = time.perf_counter()
+    for _ in range(builds):
+        CpuEnergy(model, setup())
+    return time.perf_counter() - t0
 
 
 def _timed(calls, poses, tables) -> float:
