@@ -1,0 +1,65 @@
+"""tools/schedule_report.py: where a fit's evaluations go, and which proposer's start each
+schedule keeps, counted on a real run without changing its poses."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+
+import common.search as search  # noqa: E402
+from schedule_report import Watcher  # noqa: E402
+from schedule_report import main as schedule_report  # noqa: E402
+from server.cli import main as mocap  # noqa: E402
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture
+def restore_search():
+    """The tool wraps common.search's functions in this process: put them back afterwards."""
+    saved = search._fit_or_recall, search.run_schedule, dict(search.PROPOSERS)
+
+    def restore():
+        search._fit_or_recall, search.run_schedule = saved[:2]
+        search.PROPOSERS.clear()
+        search.PROPOSERS.update(saved[2])
+
+    yield restore
+    restore()
+
+
+def params(out: Path) -> list:
+    return [json.loads(line)["params"] for line in (out / "poses.jsonl").read_text().splitlines()]
+
+
+def test_every_tracked_and_refined_frame_is_counted_once(small_sequence, tmp_path, restore_search):
+    """3 frames, the first from the truth's pose: each tracked once (TRACKING); the backward pass
+    refines its first frame (2) by REFINE_SEARCH with hops, frames 1 and 0 by REFINE; the fits
+    and re-detection's grids spend evaluations; the poses are those of the same fit unwatched."""
+    watcher = Watcher()
+    watcher.install()
+    assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "watched"), "--threads", "1", "--quiet"]) == 0
+    restore_search()
+    assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "plain"), "--threads", "1", "--quiet"]) == 0
+    assert params(tmp_path / "watched") == params(tmp_path / "plain")
+    report = watcher.report()
+    assert sum(report["winners"]["TRACKING"].values()) == 3
+    assert sum(report["winners"]["REFINE"].values()) == 2
+    assert sum(report["winners"]["REFINE_SEARCH+AFTER_HOPS"].values()) == 1
+    tracking = [r for r in report["stages"] if r["schedule"] == "TRACKING"]
+    assert tracking[0]["proposers"].startswith("start+start_turns") and tracking[0]["starts"] >= 3 * 5
+    assert all(r["evaluations"] > 0 for r in report["stages"] if r["starts"])
+    assert report["proposers_spending"]["redetected"]["evaluations"] > 0
+
+
+def test_the_command_prints_and_writes_the_counts(small_sequence, tmp_path, restore_search, capsys):
+    out = tmp_path / "report.json"
+    assert schedule_report([str(small_sequence), "--threads", "1", "--refine-passes", "0", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "3 frames in" in printed and "joint error" in printed and "TRACKING" in printed
+    report = json.loads(out.read_text())
+    assert "REFINE" not in report["winners"] and report["fit"]["frames"] == 3
