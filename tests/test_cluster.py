@@ -1,5 +1,6 @@
 """Server + clients over real sockets on 127.0.0.1 give the single-process poses, and report timing."""
 import json
+import os
 import subprocess
 
 import numpy as np
@@ -254,8 +255,20 @@ def test_bench_cluster_reports_the_comparison(seq_path):
     assert names == ["server", "local-1", "local-2"]
     assert r["jobs_per_round"] >= 3  # the whole fits of a frame's starts, the four limbs of a round
     assert r["serial_seconds_per_frame"] > r["critical_path_seconds_per_frame"] > 0
+    assert 1.0 <= r["this_machine_bound_speedup"] <= max(os.cpu_count(), 1) + 1e-9
     table = format_table(r)
-    assert "3.300" in table and "1.160" in table
+    assert "3.300" in table and "1.160" in table and "nothing lost" in table
+
+
+def test_jobs_sharing_cores_end_when_the_cores_have_done_their_work():
+    from server.bench_cluster import shared_makespan
+
+    assert shared_makespan([1.0, 1.0], 2) == pytest.approx(1.0)
+    assert shared_makespan([1.0, 1.0, 1.0, 1.0], 2) == pytest.approx(2.0)
+    assert shared_makespan([1.0, 1.0, 1.0], 2) == pytest.approx(1.5)  # each at two thirds
+    assert shared_makespan([3.0, 1.0], 2) == pytest.approx(3.0)  # the long job alone at the end
+    assert shared_makespan([2.0, 1.0, 1.0], 2) == pytest.approx(2.5)  # 1.5 shared, then 1 alone
+    assert shared_makespan([], 2) == 0.0 and shared_makespan([2.0], 1) == pytest.approx(2.0)
 
 
 @pytest.mark.timeout(240)
