@@ -4,7 +4,8 @@
 
 Runs ``mocap fit SEQUENCE --out <temporary folder> --quiet`` with the options given and
 counts, for every stage of every schedule (``common.search``: TRACKING, LIMBS_LOST, REFINE,
-SEARCH, ...), the starts fitted, their evaluations and the wall seconds of their fits, and
+SEARCH, ...), the starts fitted, their evaluations and the wall seconds of their fits (fits an
+earlier schedule of the frame made, recalled from its memo, are not counted again), and
 the evaluations and seconds the proposers spend themselves (limb re-detection's grids, an
 arm's twists, a limb's other basins); and for every schedule run, the proposer whose start
 ended lowest ("initial": the fit the schedule was given, such as a refinement's tracked fit;
@@ -57,13 +58,14 @@ class Watcher:
         def counted_fits(ctx, jobs, keys, memo, drop=None, score=None):
             caller = sys._getframe(1).f_locals  # run_schedule's: the stage being run
             schedule, stage = caller["schedule"], caller["stage"]
+            fresh = [k not in memo for k in keys]  # fits an earlier schedule made are recalled, not spent again
             t0 = time.perf_counter()
             fits = fit_or_recall(ctx, jobs, keys, memo, drop, score)
             key = (schedule_name(schedule), schedule.stages.index(stage),
                    "+".join(stage.proposers) + ":" + ",".join(stage.variants or ("as fitted",)))
             row = watcher.stages[key]
-            row["starts"] += len(jobs)
-            row["evaluations"] += sum(f.evaluations for f in fits)
+            row["starts"] += sum(fresh)
+            row["evaluations"] += sum(f.evaluations for f, new in zip(fits, fresh) if new)
             row["seconds"] += time.perf_counter() - t0
             return fits
 
