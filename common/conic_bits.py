@@ -7,7 +7,7 @@ counts per word (``common.energy.xor_span_sums``, against ``xor_bits``' masks).
 A frame's silhouettes are packed into row bits once (``pack_rows``), and an energy's windows are
 cut from them straight into its value masks (``window_value_bits``): a limb's solve builds two
 energies, and cutting 8 byte windows, drawing the parts that do not move into 8 more and
-gathering both into bits cost about 0.3 ms a build, a tenth of the solve. A window's row is two
+gathering both into bits took most of a build's 0.38 ms (a limb's; now 0.16). A window's row is two
 shifted words of its image row, and the still parts' spans are ORed as an evaluation ORs the
 moving ones; the masks are the bits ``xor_bits`` makes of the byte windows
 (``tests/test_energy.py``), so the energies, and the poses, are the same.
@@ -137,7 +137,9 @@ WORD_BITS = 64
 
 def pack_rows(masks: np.ndarray) -> np.ndarray:
     """(K, H, W) bool -> (K, H, ceil(W / 64)) uint64: bit c % 64 of word c // 64 is column c
-    (columns past W clear)."""
+    (columns past W clear). A padded stack of cameras of different sizes must have each
+    camera's pixels beyond its own image cleared first (``packing.clear_padding``): windows cut
+    from the rows take them for outside the image."""
     masks = np.asarray(masks, dtype=np.bool_)
     K, H, W = masks.shape
     words = (W + WORD_BITS - 1) // WORD_BITS

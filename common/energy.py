@@ -22,7 +22,6 @@ One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``)
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -239,8 +238,10 @@ class EnergySetup:
     are outside it and count for nothing, whatever covers them; or None where ``packed`` is
     given; moving: segments that move; static_params: (35,) pose whose other segments are
     pre-rendered; packed: (K, H, words) uint64 the whole images' silhouettes as row bits
-    (``conic_bits.pack_rows``) that windows of one size are cut from (``input_windows``), which
-    the cpu energy reads without cutting byte windows.
+    (``conic_bits.pack_rows``, each camera's pixels beyond its own image clear), which windows
+    of one size are cut from (``input_windows``) and which the cpu energy reads without cutting
+    byte windows. Where both are given they must hold the same pixels; the cpu energy reads
+    ``packed``.
     """
 
     studio: Studio
@@ -252,9 +253,20 @@ class EnergySetup:
     volume_points: np.ndarray | None = None  # (n, 3) surface voxel centres, for the volume energy
     packed: np.ndarray | None = None
 
-    @cached_property
+    def __post_init__(self):
+        if self.inputs is None and self.packed is None:
+            raise ValueError("an energy setup needs its input windows or the packed silhouettes they are cut from")
+        if self.packed is not None:
+            if not len(self.studio) == len(self.windows) == self.packed.shape[0]:
+                raise ValueError(f"{len(self.studio)} cameras need as many windows and packed silhouettes, got "
+                                 f"{len(self.windows)} and {self.packed.shape[0]}")
+            if len({(w.width, w.height) for w in self.windows}) != 1:
+                raise ValueError("windows cut from packed silhouettes must be of one size")
+
+    @property
     def input_windows(self) -> np.ndarray:
-        """(K, h, w) bool: ``inputs``, or the windows cut from ``packed``."""
+        """(K, h, w) bool: ``inputs``, or the windows cut from ``packed`` (cut on each call: the
+        byte energies, gl, read them once per build)."""
         if self.inputs is not None:
             return self.inputs
         x0, y0 = window_origins(self.windows)
@@ -270,8 +282,8 @@ def window_pixels(setup: EnergySetup) -> np.ndarray | None:
     """(K, h, w) bool: the pixels of ``setup.input_windows`` inside each camera's window; None
     when every window fills them (windows of one size: nothing to leave out, nothing to pay).
     ValueError when the windows do not fit the inputs."""
-    if setup.inputs is None and len({(w.width, w.height) for w in setup.windows}) == 1:
-        return None  # cut from packed rows: windows of one size by construction
+    if setup.inputs is None:
+        return None  # cut from packed rows: windows of one size (checked by EnergySetup)
     K, h, w = setup.input_windows.shape
     if len(setup.studio) != K or len(setup.windows) != K:
         raise ValueError(f"{len(setup.studio)} cameras need as many windows and input windows, got "
@@ -370,6 +382,7 @@ class CpuEnergy:
         self.x0, self.y0 = x0.astype(np.float64), y0.astype(np.float64)
         self.moving = tuple(setup.moving) if setup.prerender else tuple(range(16))
         self._static = tuple(s for s in range(16) if s not in self.moving)
+        self._static_mask = None
         if setup.packed is not None and self.inside is None:  # straight from the row bits
             if self._static:
                 C, drawable = self._conics(np.atleast_2d(setup.static_params)[:1], self._static)
@@ -377,7 +390,7 @@ class CpuEnergy:
                 C, drawable = np.zeros((1, len(studio), 0, 3, 3)), np.zeros((1, len(studio), 0), np.bool_)
             self.gain, self.loss, base = window_value_bits(setup.packed, x0, y0, self.rows, self.width, C, drawable)
         else:
-            M = self.static_mask
+            self._static_mask = M = self._render_static()
             inputs = np.ascontiguousarray(setup.input_windows, dtype=np.bool_)
             if self.inside is not None:  # beyond a window static and input both set: v = 0, no base
                 M, inputs = M | ~self.inside, inputs | ~self.inside
@@ -390,9 +403,15 @@ class CpuEnergy:
                                model.ellipsoid_axes[seg] * model.ellipsoid_radii[seg][:, None, :],
                                self.P, self.y0, self.x0, self.rows, self.width, self.gain, self.loss)
 
-    @cached_property
+    @property
     def static_mask(self) -> np.ndarray:
-        """(K, h, w) bool: the pre-rendered parts' pixels."""
+        """(K, h, w) bool: the pre-rendered parts' pixels (drawn on first use where the energy
+        was built from packed rows)."""
+        if self._static_mask is None:
+            self._static_mask = self._render_static()
+        return self._static_mask
+
+    def _render_static(self) -> np.ndarray:
         if self._static:
             return self._render(self.setup.static_params, self._static)
         return np.zeros((len(self.setup.studio), self.rows, self.width), dtype=bool)

@@ -120,6 +120,7 @@ class FrameData:
 
     @cached_property
     def half_packed_masks(self) -> np.ndarray:
+        """``half_masks`` as row bits."""
         return pack_rows(self.half_masks)
 
     @cached_property

@@ -6,12 +6,13 @@ take what this module builds; the energy modules import neither, so there is no 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable
 
 import numpy as np
 
 from common.body import P, BodyModel, clip_to_limits, hold_limbs_in_world
+from common.conic_bits import pack_rows
 from common.energy import CpuEnergy, EnergySetup, VolumeEnergy, Window
 
 ENERGY_BACKENDS = {"cpu": CpuEnergy, "volume": VolumeEnergy}
@@ -39,10 +40,13 @@ def compile_kernels() -> None:
 
     model = load_body_model()
     studio = circle_studio(1, 16, 16)
-    setup = EnergySetup(studio, (Window(0, 0, 16, 16),), np.zeros((1, 16, 16), dtype=bool), (4,), rest_params(model))
+    masks = np.zeros((1, 16, 16), dtype=bool)
+    setup = EnergySetup(studio, (Window(0, 0, 16, 16),), masks, (4,), rest_params(model))
     energy = CpuEnergy(model, setup)
     energy(rest_params(model))
     powell_cpu(energy, rest_params(model), [11], np.array([0.1]), 0.1, 1e-4, 10)
+    # a solve's windows are cut from the frame's packed rows (conic_bits.window_value_bits)
+    CpuEnergy(model, replace(setup, inputs=None, packed=pack_rows(masks)))
 
 
 @dataclass(frozen=True)

@@ -443,3 +443,54 @@ def test_value_bits_from_row_bits_equal_the_byte_windows(model, frame, rng):
             poses = perturbed(x, rng, 8)
             np.testing.assert_array_equal(fast(poses), plain(poses))
             np.testing.assert_array_equal(fast.render(x), plain.render(x))
+
+
+def _ellipse(cx: float, cy: float, a: float, b: float, angle: float) -> np.ndarray:
+    """(3, 3) conic of an ellipse centred at (cx, cy) with half-axes a, b, negative inside."""
+    R = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    M = R @ np.diag([1 / a ** 2, 1 / b ** 2]) @ R.T
+    c = np.array([cx, cy])
+    Q = np.zeros((3, 3))
+    Q[:2, :2], Q[:2, 2], Q[2, :2], Q[2, 2] = M, -M @ c, -M @ c, c @ M @ c - 1
+    return Q
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_value_bits_from_row_bits_equal_those_of_byte_windows(seed):
+    """window_value_bits against its definition, xor_bits of the still parts' coverage and the
+    sliced windows: random masks, 0-3 still ellipses (some not drawable, some covering many
+    words), corners off every edge, windows wider and taller than the image, widths that are not
+    a multiple of 64; and cut_windows against the sliced windows."""
+    from common.conic_bits import conic_coverage, cut_windows, pack_rows, window_value_bits, xor_bits
+
+    rng = np.random.default_rng(seed)
+    K, H, W = int(rng.integers(1, 4)), int(rng.integers(1, 200)), int(rng.integers(1, 260))
+    masks = rng.random((K, H, W)) < rng.random()
+    rows, width = int(rng.integers(1, 200)), int(rng.integers(1, 300))
+    x0, y0 = rng.integers(-350, W + 80, K), rng.integers(-250, H + 80, K)
+    S = int(rng.integers(0, 4))
+    C, drawable = np.zeros((1, K, S, 3, 3)), rng.random((1, K, S)) < 0.85
+    for k in range(K):
+        for s in range(S):
+            C[0, k, s] = rng.uniform(0.1, 10) * _ellipse(
+                x0[k] + rng.uniform(-50, width + 50), y0[k] + rng.uniform(-50, rows + 50),
+                rng.uniform(0.3, 120), rng.uniform(0.3, 120), rng.uniform(0, np.pi))
+    packed = pack_rows(masks)
+    gain, loss, base = window_value_bits(packed, x0, y0, rows, width, C, drawable)
+    still = conic_coverage(C, drawable, y0.astype(float), x0.astype(float), rows, width)[0]
+    expected = xor_bits(still, _cut(masks, x0, y0, rows, width))
+    np.testing.assert_array_equal(gain, expected[0])
+    np.testing.assert_array_equal(loss, expected[1])
+    assert base == expected[2]
+    np.testing.assert_array_equal(cut_windows(packed, x0, y0, rows, width), _cut(masks, x0, y0, rows, width))
+
+
+def test_setups_cut_from_packed_rows_are_checked(model, frame):
+    data, truth = frame
+    setup = data.window_setup(truth, CHAINS["head"].segments, SMALL_WINDOW, True)
+    with pytest.raises(ValueError, match="as many windows"):
+        replace(setup, windows=setup.windows[:-1])
+    with pytest.raises(ValueError, match="one size"):
+        replace(setup, windows=(Window(0, 0, 32, 32),) + setup.windows[1:])
+    with pytest.raises(ValueError, match="needs its input windows"):
+        replace(setup, packed=None)

@@ -19,31 +19,34 @@ pytestmark = pytest.mark.timeout(300)
 
 
 @pytest.fixture
-def restore_search():
-    """The tool wraps common.search's functions in this process: put them back afterwards."""
-    saved = search._fit_or_recall, search.run_schedule, dict(search.PROPOSERS)
+def saved_search():
+    """What the tool wraps, to check that it puts everything back."""
+    import server.session as session
 
-    def restore():
-        search._fit_or_recall, search.run_schedule = saved[:2]
-        search.PROPOSERS.clear()
-        search.PROPOSERS.update(saved[2])
+    return search._fit_or_recall, search.run_schedule, session.run_schedule, dict(search.PROPOSERS)
 
-    yield restore
-    restore()
+
+def assert_restored(saved) -> None:
+    import server.session as session
+
+    assert (search._fit_or_recall, search.run_schedule, session.run_schedule, dict(search.PROPOSERS)) == saved
 
 
 def params(out: Path) -> list:
     return [json.loads(line)["params"] for line in (out / "poses.jsonl").read_text().splitlines()]
 
 
-def test_every_tracked_and_refined_frame_is_counted_once(small_sequence, tmp_path, restore_search):
+def test_every_tracked_and_refined_frame_is_counted_once(small_sequence, tmp_path, saved_search):
     """3 frames, the first from the truth's pose: each tracked once (TRACKING); the backward pass
     refines its first frame (2) by REFINE_SEARCH with hops, frames 1 and 0 by REFINE; the fits
     and re-detection's grids spend evaluations; the poses are those of the same fit unwatched."""
     watcher = Watcher()
     watcher.install()
-    assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "watched"), "--threads", "1", "--quiet"]) == 0
-    restore_search()
+    try:
+        assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "watched"), "--threads", "2", "--quiet"]) == 0
+    finally:
+        watcher.uninstall()
+    assert_restored(saved_search)
     assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "plain"), "--threads", "1", "--quiet"]) == 0
     assert params(tmp_path / "watched") == params(tmp_path / "plain")
     report = watcher.report()
@@ -56,10 +59,11 @@ def test_every_tracked_and_refined_frame_is_counted_once(small_sequence, tmp_pat
     assert report["proposers_spending"]["redetected"]["evaluations"] > 0
 
 
-def test_the_command_prints_and_writes_the_counts(small_sequence, tmp_path, restore_search, capsys):
+def test_the_command_prints_and_writes_the_counts(small_sequence, tmp_path, saved_search, capsys):
     out = tmp_path / "report.json"
     assert schedule_report([str(small_sequence), "--threads", "1", "--refine-passes", "0", "--json", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "3 frames in" in printed and "joint error" in printed and "TRACKING" in printed
     report = json.loads(out.read_text())
     assert "REFINE" not in report["winners"] and report["fit"]["frames"] == 3
+    assert_restored(saved_search)

@@ -19,6 +19,7 @@ import argparse
 import json
 import sys
 import tempfile
+import threading
 import time
 from collections import Counter, defaultdict
 from pathlib import Path
@@ -28,6 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import common.search as search  # noqa: E402
+import server.session as session  # noqa: E402  (calls run_schedule by the name it imported)
 
 SPENDING_PROPOSERS = ("redetected", "twists", "basins")
 
@@ -43,16 +45,21 @@ def schedule_name(schedule) -> str:
 
 
 class Watcher:
-    """Wraps common.search's fits and proposers, counting what they spend and what wins."""
+    """Wraps common.search's fits and proposers (and server.session's name for run_schedule),
+    counting what they spend and what wins; ``uninstall`` puts them back. Safe with a fit's
+    threads: counts under a lock, each thread's schedule's starts apart."""
 
     def __init__(self):
         self.stages = defaultdict(lambda: {"starts": 0, "evaluations": 0, "seconds": 0.0})
         self.spent = defaultdict(lambda: {"evaluations": 0, "seconds": 0.0})
         self.winners = defaultdict(Counter)
-        self._origin: dict[bytes, str] = {}
+        self._lock = threading.Lock()
+        self._local = threading.local()  # origin: {start bytes: proposer} of this thread's schedule
+        self._saved = None
 
     def install(self) -> None:
         fit_or_recall, run_schedule = search._fit_or_recall, search.run_schedule
+        self._saved = (fit_or_recall, run_schedule, session.run_schedule, dict(search.PROPOSERS))
         watcher = self
 
         def counted_fits(ctx, jobs, keys, memo, drop=None, score=None):
@@ -63,22 +70,28 @@ class Watcher:
             fits = fit_or_recall(ctx, jobs, keys, memo, drop, score)
             key = (schedule_name(schedule), schedule.stages.index(stage),
                    "+".join(stage.proposers) + ":" + ",".join(stage.variants or ("as fitted",)))
-            row = watcher.stages[key]
-            row["starts"] += sum(fresh)
-            row["evaluations"] += sum(f.evaluations for f, new in zip(fits, fresh) if new)
-            row["seconds"] += time.perf_counter() - t0
+            with watcher._lock:
+                row = watcher.stages[key]
+                row["starts"] += sum(fresh)
+                row["evaluations"] += sum(f.evaluations for f, new in zip(fits, fresh) if new)
+                row["seconds"] += time.perf_counter() - t0
             return fits
 
         def watched_schedule(ctx, schedule, initial=None, memo=None):
-            watcher._origin.clear()
-            result = run_schedule(ctx, schedule, initial, memo)
+            outer = getattr(watcher._local, "origin", None)  # a schedule run inside another's proposer
+            watcher._local.origin = origin = {}
+            try:
+                result = run_schedule(ctx, schedule, initial, memo)
+            finally:
+                watcher._local.origin = outer
             if initial is not None and np.array_equal(result.params, initial.params):
                 won = "initial"
             elif result.start is None:
                 won = "fitted by its proposer"
             else:
-                won = watcher._origin.get(np.asarray(result.start, dtype=np.float64).tobytes(), "?")
-            watcher.winners[schedule_name(schedule)][won] += 1
+                won = origin.get(np.asarray(result.start, dtype=np.float64).tobytes(), "?")
+            with watcher._lock:
+                watcher.winners[schedule_name(schedule)][won] += 1
             return result
 
         def watched(name, proposer):
@@ -86,17 +99,27 @@ class Watcher:
                 e0, t0 = spent.evaluations, time.perf_counter()
                 starts = proposer(ctx, source, spent, own)
                 if name in SPENDING_PROPOSERS:
-                    watcher.spent[name]["evaluations"] += spent.evaluations - e0
-                    watcher.spent[name]["seconds"] += time.perf_counter() - t0
+                    with watcher._lock:
+                        watcher.spent[name]["evaluations"] += spent.evaluations - e0
+                        watcher.spent[name]["seconds"] += time.perf_counter() - t0
+                origin = getattr(watcher._local, "origin", None)
                 for start in starts:
-                    if not isinstance(start, search.FrameResult):
-                        watcher._origin.setdefault(np.asarray(start, dtype=np.float64).tobytes(), name)
+                    if origin is not None and not isinstance(start, search.FrameResult):
+                        origin.setdefault(np.asarray(start, dtype=np.float64).tobytes(), name)
                 return starts
             return propose
 
-        search._fit_or_recall, search.run_schedule = counted_fits, watched_schedule
+        search._fit_or_recall = counted_fits
+        search.run_schedule = session.run_schedule = watched_schedule
         for name, proposer in list(search.PROPOSERS.items()):
             search.PROPOSERS[name] = watched(name, proposer)
+
+    def uninstall(self) -> None:
+        if self._saved is not None:
+            search._fit_or_recall, search.run_schedule, session.run_schedule, proposers = self._saved
+            search.PROPOSERS.clear()
+            search.PROPOSERS.update(proposers)
+            self._saved = None
 
     def report(self) -> dict:
         return {"stages": [{"schedule": s, "stage": i, "proposers": p, **v} for (s, i, p), v in sorted(self.stages.items())],
@@ -109,17 +132,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("sequence", type=Path)
     p.add_argument("--json", type=Path, default=None, help="also write the counts there")
     args, fit_options = p.parse_known_args(argv)
-    watcher = Watcher()
-    watcher.install()
     from server.cli import main as mocap
 
-    with tempfile.TemporaryDirectory(prefix="schedule-report-") as tmp:
-        t0 = time.perf_counter()
-        code = mocap(["fit", str(args.sequence), "--out", str(Path(tmp) / "fit"), "--quiet", *fit_options])
-        wall = time.perf_counter() - t0
-        if code:
-            return code
-        summary = json.loads((Path(tmp) / "fit" / "summary.json").read_text())
+    watcher = Watcher()
+    watcher.install()
+    try:
+        with tempfile.TemporaryDirectory(prefix="schedule-report-") as tmp:
+            t0 = time.perf_counter()
+            code = mocap(["fit", str(args.sequence), "--out", str(Path(tmp) / "fit"), "--quiet", *fit_options])
+            wall = time.perf_counter() - t0
+            if code:
+                return code
+            summary = json.loads((Path(tmp) / "fit" / "summary.json").read_text())
+    finally:
+        watcher.uninstall()
     report = watcher.report()
     report["fit"] = {"frames": summary["frames"], "wall_seconds": wall,
                      "mean_joint_error_mm": summary.get("mean_joint_error_mm"),
