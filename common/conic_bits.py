@@ -18,6 +18,7 @@ import numpy as np
 from numba import njit, types
 from numba.extending import intrinsic
 
+
 @njit(cache=True, nogil=True, inline="always")
 def _conic_rows(C: np.ndarray, drawable: bool, y0: float, rows: int) -> tuple:
     """Window rows [first, last) a conic C (3, 3) covers (pixel centres at integer coordinates
@@ -91,6 +92,22 @@ def _popcount(typingctx, x):
 _ALL_BITS = np.uint64(0xFFFFFFFFFFFFFFFF)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _or_span(words: np.ndarray, row: int, start: int, end: int) -> None:
+    """Set columns [start, end) (end > start) of ``row`` of (rows, n) 64-pixel words, bit c % 64
+    of word c // 64 (indexed in place: a row view per span cost the energy's loop 4%)."""
+    ws, we = start >> 6, (end - 1) >> 6
+    head = _ALL_BITS << np.uint64(start & 63)
+    tail = _ALL_BITS >> np.uint64(63 - ((end - 1) & 63))
+    if ws == we:
+        words[row, ws] |= head & tail
+    else:
+        words[row, ws] |= head
+        for j in range(ws + 1, we):
+            words[row, j] = _ALL_BITS
+        words[row, we] |= tail
+
+
 def xor_bits(static: np.ndarray, inputs: np.ndarray) -> tuple:
     """static, inputs (K, h, w) bool -> the value a moving part adds by covering a pixel
     (0 where static covers it, else 1 - 2 * input) as two bit masks per row, gain (+1: neither
@@ -129,7 +146,6 @@ def _xor_bits_octets(static: np.ndarray, inputs: np.ndarray, words: int) -> tupl
                 gain[k, r, o >> 3] |= (((~s & ~i & _BYTE_LOW_BITS) * _GATHER_BYTES) >> np.uint64(56)) << shift
                 loss[k, r, o >> 3] |= (((~s & i & _BYTE_LOW_BITS) * _GATHER_BYTES) >> np.uint64(56)) << shift
     return gain, loss, base
-
 
 
 WORD_BITS = 64
@@ -190,18 +206,8 @@ def window_value_bits(packed: np.ndarray, x0: np.ndarray, y0: np.ndarray, rows: 
             cu, cv, q0, q1, q2 = _conic_row_form(C[0, k, s], float(x0[k]))
             for r in range(first, last):
                 start, end = _row_span(cu, cv, q0, q1, q2, float(r) + float(y0[k]), fw)
-                if end <= start:
-                    continue
-                ws, we = start >> 6, (end - 1) >> 6
-                head = _ALL_BITS << np.uint64(start & 63)
-                tail = _ALL_BITS >> np.uint64(63 - ((end - 1) & 63))
-                if ws == we:
-                    still[r, ws] |= head & tail
-                else:
-                    still[r, ws] |= head
-                    for j in range(ws + 1, we):
-                        still[r, j] = _ALL_BITS
-                    still[r, we] |= tail
+                if end > start:
+                    _or_span(still, r, start, end)
         for r in range(rows):
             y = y0[k] + r
             inside_rows = 0 <= y < H

@@ -29,8 +29,8 @@ from numba import njit
 
 from common.body import _SEGMENT_PARENTS, PARAM_COUNT, BodyModel, _forward_kinematics, _segment_mask, forward_kinematics
 from common.camera import Studio
-from common.conic_bits import (_ALL_BITS, _conic_row_form, _conic_rows, _popcount, _row_span, conic_coverage,
-                               window_value_bits, cut_windows, xor_bits)
+from common.conic_bits import (_conic_row_form, _conic_rows, _or_span, _popcount, _row_span, conic_coverage,
+                               cut_windows, window_value_bits, xor_bits)
 from common.packing import inside_images, padded_shape
 
 ARM_WINDOW = 128   # pixels, windows for upper arm + forearm, thigh + shin
@@ -178,19 +178,8 @@ def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.nd
                 cu, cv, q0, q1, q2 = _conic_row_form(C[b, k, s], x0[k])
                 for row in range(first, last):
                     start, end = _row_span(cu, cv, q0, q1, q2, float(row) + y0[k], fw)
-                    if end <= start:
-                        continue
-                    ws, we = start >> 6, (end - 1) >> 6
-                    head = _ALL_BITS << np.uint64(start & 63)
-                    tail = _ALL_BITS >> np.uint64(63 - ((end - 1) & 63))
-                    u = union[row]
-                    if ws == we:
-                        u[ws] |= head & tail
-                    else:
-                        u[ws] |= head
-                        for j in range(ws + 1, we):
-                            u[j] = _ALL_BITS
-                        u[we] |= tail
+                    if end > start:
+                        _or_span(union, row, start, end)
             for row in range(top, bottom):
                 u, g, l = union[row], gain[k, row], loss[k, row]
                 for j in range(words):

@@ -102,7 +102,6 @@ def player_data(result: ResultData) -> dict:
 
 
 
-
 def summary_rows(result: ResultData) -> list[tuple[str, str]]:
     s, m = result.summary, result.motion
     step = frame_step(m.frames)
