@@ -109,38 +109,34 @@ def image_conics(P: np.ndarray, centres: np.ndarray, A: np.ndarray) -> tuple:
     B, S, K = centres.shape[0], centres.shape[1], P.shape[0]
     C = np.empty((B, K, S, 3, 3))
     drawable = np.empty((B, K, S), np.bool_)
-    Q = np.empty((4, 4))
-    PQ = np.empty((3, 4))
-    D = np.empty((3, 3))
+    M = np.empty((3, 3))
     x = np.empty(3)
     for b in range(B):
         for s in range(S):
-            # dual quadric Q* = T diag(1,1,1,-1) T^T with T = [[A, c], [0, 1]]
-            c = centres[b, s]
-            for i in range(3):
-                for j in range(3):
-                    AAt = A[b, s, i, 0] * A[b, s, j, 0] + A[b, s, i, 1] * A[b, s, j, 1] + A[b, s, i, 2] * A[b, s, j, 2]
-                    Q[i, j] = AAt - c[i] * c[j]
-                Q[i, 3] = Q[3, i] = -c[i]
-            Q[3, 3] = -1.0
+            c, a = centres[b, s], A[b, s]
             for k in range(K):
-                # dual conic D = P Q* P^T
+                # the dual conic D = P Q* P^T, Q* = T diag(1, 1, 1, -1) T^T the dual quadric,
+                # T = [[A, c], [0, 1]]: with P T = [M, x], D = M M^T - x x^T (x: the projected
+                # centre), two thirds of the arithmetic of P Q* P^T
                 for i in range(3):
-                    for j in range(4):
-                        PQ[i, j] = P[k, i, 0] * Q[0, j] + P[k, i, 1] * Q[1, j] + P[k, i, 2] * Q[2, j] + P[k, i, 3] * Q[3, j]
-                for i in range(3):
+                    p0, p1, p2 = P[k, i, 0], P[k, i, 1], P[k, i, 2]
                     for j in range(3):
-                        D[i, j] = PQ[i, 0] * P[k, j, 0] + PQ[i, 1] * P[k, j, 1] + PQ[i, 2] * P[k, j, 2] + PQ[i, 3] * P[k, j, 3]
+                        M[i, j] = p0 * a[0, j] + p1 * a[1, j] + p2 * a[2, j]
+                    x[i] = p0 * c[0] + p1 * c[1] + p2 * c[2] + P[k, i, 3]
+                d00 = M[0, 0] * M[0, 0] + M[0, 1] * M[0, 1] + M[0, 2] * M[0, 2] - x[0] * x[0]
+                d11 = M[1, 0] * M[1, 0] + M[1, 1] * M[1, 1] + M[1, 2] * M[1, 2] - x[1] * x[1]
+                d22 = M[2, 0] * M[2, 0] + M[2, 1] * M[2, 1] + M[2, 2] * M[2, 2] - x[2] * x[2]
+                d01 = M[0, 0] * M[1, 0] + M[0, 1] * M[1, 1] + M[0, 2] * M[1, 2] - x[0] * x[1]
+                d02 = M[0, 0] * M[2, 0] + M[0, 1] * M[2, 1] + M[0, 2] * M[2, 2] - x[0] * x[2]
+                d12 = M[1, 0] * M[2, 0] + M[1, 1] * M[2, 1] + M[1, 2] * M[2, 2] - x[1] * x[2]
                 # adjugate of the (symmetric) dual conic = conic up to a scale whose sign is fixed
                 # by the projected centre, which is inside
-                a00 = D[1, 1] * D[2, 2] - D[1, 2] * D[1, 2]
-                a11 = D[0, 0] * D[2, 2] - D[0, 2] * D[0, 2]
-                a22 = D[0, 0] * D[1, 1] - D[0, 1] * D[0, 1]
-                a01 = D[0, 2] * D[1, 2] - D[0, 1] * D[2, 2]
-                a02 = D[0, 1] * D[1, 2] - D[0, 2] * D[1, 1]
-                a12 = D[0, 1] * D[0, 2] - D[0, 0] * D[1, 2]
-                for i in range(3):
-                    x[i] = P[k, i, 0] * c[0] + P[k, i, 1] * c[1] + P[k, i, 2] * c[2] + P[k, i, 3]
+                a00 = d11 * d22 - d12 * d12
+                a11 = d00 * d22 - d02 * d02
+                a22 = d00 * d11 - d01 * d01
+                a01 = d02 * d12 - d01 * d22
+                a02 = d01 * d12 - d02 * d11
+                a12 = d01 * d02 - d00 * d12
                 inside = (x[0] * (a00 * x[0] + a01 * x[1] + a02 * x[2]) + x[1] * (a01 * x[0] + a11 * x[1] + a12 * x[2])
                           + x[2] * (a02 * x[0] + a12 * x[1] + a22 * x[2]))
                 sign = -1.0 if inside > 0 else 1.0

@@ -98,6 +98,45 @@ def test_compiled_span_sums_equal_per_pixel_sums_of_the_rendered_union(model, fr
     assert (energy(poses) == energy.base + sums).all()
 
 
+def test_image_conics_are_the_adjugate_of_the_projected_dual_quadric(rng):
+    """The compiled conics (D = M M^T - x x^T with P T = [M, x]) against the textbook ones: the
+    adjugate of P Q* P^T, Q* = T diag(1, 1, 1, -1) T^T, signed negative at the projected
+    centre; and the points on each ellipsoid's rim (tangent to the viewing ray) on its conic."""
+    from common.energy import image_conics
+
+    K, B, S = 3, 2, 4
+    studio = circle_studio(K, radius=3.0)
+    P = studio.projection_matrices
+    centres = rng.uniform(-0.4, 0.4, (B, S, 3)) + [0.0, 0.0, 1.0]
+    A = np.einsum("bsij,bsj->bsij", np.linalg.qr(rng.standard_normal((B, S, 3, 3)))[0],
+                  rng.uniform(0.03, 0.2, (B, S, 3)))  # rotation times radii
+    C, drawable = image_conics(P, centres, A)
+    assert drawable.all()
+    for b in range(B):
+        for k in range(K):
+            for s in range(S):
+                T = np.eye(4)
+                T[:3, :3], T[:3, 3] = A[b, s], centres[b, s]
+                D = P[k] @ T @ np.diag([1.0, 1.0, 1.0, -1.0]) @ T.T @ P[k].T
+                adj = np.linalg.inv(D) * np.linalg.det(D)
+                x = P[k] @ np.append(centres[b, s], 1.0)
+                expected = adj if x @ adj @ x < 0 else -adj
+                np.testing.assert_allclose(C[b, k, s], expected, rtol=1e-9, atol=1e-9 * np.abs(adj).max())
+                # rim points: u on the unit sphere with the ray from the camera centre tangent
+                # to the ellipsoid there (grad . (p - o) = 0), found along a great circle
+                o = studio.cameras[k].center
+                d = np.linalg.solve(A[b, s], o - centres[b, s])  # the camera centre in sphere units
+                e1 = np.cross(d, [0.3, 0.5, 0.8])
+                e1 /= np.linalg.norm(e1)
+                e2 = np.cross(d, e1) / np.linalg.norm(d)
+                for angle in np.linspace(0.0, 2 * np.pi, 7):
+                    u = np.cos(angle) * e1 + np.sin(angle) * e2  # u . d = 0 ...
+                    u = u * np.sqrt(1 - 1 / d.dot(d)) + d / d.dot(d)  # ... moved to u . d = 1: the rim
+                    h = P[k] @ np.append(centres[b, s] + A[b, s] @ u, 1.0)
+                    h /= np.linalg.norm(h)
+                    assert abs(h @ C[b, k, s] @ h) < 1e-9 * np.abs(C[b, k, s]).max()
+
+
 def test_energy_is_not_trivially_zero(model, frame):
     """At the truth the model covers most of the input; far off it does not."""
     data, truth = frame
