@@ -20,7 +20,7 @@ Rotation vectors (exponential maps) have no gimbal lock inside |angle| < pi, whi
 Powell's line searches well conditioned; the root uses heading + tilt so that turning on the
 spot (pirouettes) never wraps.
 
-One module of about 600 lines: the kinematic tree, its parameters and limits, forward
+One module of about 640 lines: the kinematic tree, its parameters and limits, forward
 kinematics and the mesh/ellipsoid surfaces are the body model every other module takes.
 """
 from __future__ import annotations

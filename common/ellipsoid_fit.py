@@ -17,7 +17,7 @@ factor (M = 4 * covariance), which is exact for no closed surface (a sphere's su
 uniform area density, has the measured second moments (a small fixed-point iteration), so a
 complete shell is recovered exactly and a partial one stays bounded.
 
-One module of about 750 lines: the shells, the body's volume energy and the staged fit share
+One module of about 840 lines: the shells, the body's volume energy and the staged fit share
 the shell distances and the segment ellipsoids; apart, each would import the others.
 """
 from __future__ import annotations

@@ -12,7 +12,7 @@ A chain's solve (``solve_chain``), a limb's search over its whole range (``searc
 hop of basin hopping (``hop``) are the units of work below a fit; which starts are fitted, and
 in what order, is ``common.search``.
 
-One module of about 520 lines: the fit's chain solves, limb searches and hops share the
+One module of about 570 lines: the fit's chain solves, limb searches and hops share the
 optimizers and options above.
 """
 from __future__ import annotations

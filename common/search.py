@@ -28,7 +28,7 @@ Schedules:
   re-detected; its pelvis turned alone; its arms' other twists (and its limbs' other basins);
   hops where asked, their best turned and its pelvis turned alone.
 
-One module of about 570 lines: the schedules, the loop that runs them, the jobs their fits go
+One module of about 640 lines: the schedules, the loop that runs them, the jobs their fits go
 out as and the proposers are read together (a stage names its proposers and variants, the
 loop its jobs).
 """
