@@ -10,8 +10,13 @@ windows, 1 segment) and a hop's (whole images, all 16 segments); then times ``po
 on batches of 4 poses near the truth inside one compiled loop (no Python per call, as in the
 compiled Powell), best of 9 repeats; and the grids a fit evaluates in one call: a limb's
 (3 points per parameter, 81 poses) and a re-detection's (its 2,916 poses at half resolution).
-Each row also says how long building that energy takes, as a solve builds it (the windows
-placed and cut, the still parts drawn, the value masks made), best of 5 runs of 200 builds.
+Each row also says how much of an evaluation the kinematics and the conics take (the same
+poses through ``_forward_kinematics``, ``_pose_ellipsoids`` and ``image_conics`` alone: the
+rest is the pixels' spans and counts), and how long building that energy takes, as a solve
+builds it (the windows placed and cut, the still parts drawn, the value masks made), best of
+5 runs of 200 builds. A last row times the compiled Powell (``powell_cpu``) on the limb's
+energy from 200 starts about the truth, per evaluation: beside the limb's own row, what the
+line searches add.
 To compare two versions, run it in each checkout one after the other: the machine's speed
 drifts, so compare ratios measured close together.
 """
@@ -29,8 +34,10 @@ from numba import njit
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common.body import CHAINS, LIMB_PARTS, load_body_model  # noqa: E402
-from common.energy import ARM_WINDOW, SMALL_WINDOW, CpuEnergy, pose_energies  # noqa: E402
+from common.body import CHAINS, LIMB_PARTS, _forward_kinematics, load_body_model  # noqa: E402
+from common.energy import (ARM_WINDOW, POSE_CHUNK, SMALL_WINDOW, CpuEnergy, _pose_ellipsoids, image_conics,  # noqa: E402
+                           pose_energies)
+from common.powell_cpu import powell_cpu  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
 from server.session import frame_data  # noqa: E402
 
@@ -42,11 +49,29 @@ BUILD_REPEATS = 5
 SPREAD_RAD = 0.05  # joint angles drawn this far around the truth
 
 
+POWELL_STARTS = 200
+POWELL_SPREAD_RAD = 0.15  # the starts' spread about the truth on the arm's parameters
+
+
 @njit(cache=True)
 def _repeat(calls, poses, tables):
     total = 0
     for _ in range(calls):
         total += pose_energies(poses, *tables)[0]
+    return total
+
+
+@njit(cache=True)
+def _repeat_conics(calls, poses, tables):
+    """``pose_energies``' kinematics and conics alone, POSE_CHUNK poses at a time as it makes
+    them (tables as ``CpuEnergy.kernel_tables``)."""
+    total = 0.0
+    for _ in range(calls):
+        for c0 in range(0, poses.shape[0], POSE_CHUNK):
+            rot, org, _ = _forward_kinematics(poses[c0:c0 + POSE_CHUNK], *tables[:7])
+            centres, A = _pose_ellipsoids(rot, org, tables[7], tables[8], tables[9])
+            C, _ = image_conics(tables[10], centres, A)
+            total += C[0, 0, 0, 0, 0]
     return total
 
 
@@ -88,12 +113,18 @@ def main(argv=None) -> int:
         poses = x[None] + SPREAD_RAD * rng.standard_normal((batch, x.size)) * (np.arange(x.size) >= 3)
         calls = max(1, EVALUATIONS // batch)
         _repeat(1, poses, tables)  # compile
-        best = min(_timed(calls, poses, tables) for _ in range(REPEATS))
+        _repeat_conics(1, poses, tables)
+        best = min(_timed(_repeat, calls, poses, tables) for _ in range(REPEATS))
+        conics = min(_timed(_repeat_conics, calls, poses, tables) for _ in range(REPEATS))
         build = min(_built(BUILDS, model, setup) for _ in range(BUILD_REPEATS))
         rows.append({"energy": name, "poses_per_call": batch, "us_per_evaluation": 1e6 * best / (calls * batch),
+                     "us_kinematics_and_conics": 1e6 * conics / (calls * batch),
                      "us_per_build": 1e6 * build / BUILDS})
-        print(f"{name:48s} {rows[-1]['us_per_evaluation']:7.2f} us per evaluation, "
+        print(f"{name:48s} {rows[-1]['us_per_evaluation']:7.2f} us per evaluation "
+              f"({rows[-1]['us_kinematics_and_conics']:5.2f} kinematics and conics), "
               f"{rows[-1]['us_per_build']:8.1f} us per build")
+    rows.append(_powell_row(model, limb(), x, rng))
+    print(f"{rows[-1]['energy']:48s} {rows[-1]['us_per_evaluation']:7.2f} us per evaluation")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1) + "\n")
     return 0
@@ -106,10 +137,33 @@ def _built(builds: int, model, setup) -> float:
     return time.perf_counter() - t0
 
 
-def _timed(calls, poses, tables) -> float:
+def _timed(loop, calls, poses, tables) -> float:
     t0 = time.perf_counter()
-    _repeat(calls, poses, tables)
+    loop(calls, poses, tables)
     return time.perf_counter() - t0
+
+
+def _powell_row(model, setup, x, rng) -> dict:
+    """The compiled Powell over the left arm's proximal parameters, as a limb's solve runs it."""
+    from common.fitting import FitOptions
+
+    options = FitOptions()
+    energy = CpuEnergy(model, setup)
+    idx = np.asarray(LIMB_PARTS["left_arm"][0])
+    steps = np.full(len(idx), options.limb_step_rad)
+    starts = [x + POWELL_SPREAD_RAD * rng.standard_normal(x.size) * np.isin(np.arange(x.size), idx)
+              for _ in range(POWELL_STARTS)]
+    solve = lambda start: powell_cpu(energy, start, idx, steps, options.xtol, options.ftol, options.max_evals_limb)
+    solve(starts[0])  # compile
+    best = np.inf
+    for _ in range(3):
+        energy.evaluations = 0
+        t0 = time.perf_counter()
+        for start in starts:
+            solve(start)
+        best = min(best, time.perf_counter() - t0)
+    return {"energy": f"limb's Powell solves ({POWELL_STARTS} starts)", "poses_per_call": None,
+            "us_per_evaluation": 1e6 * best / energy.evaluations, "evaluations": energy.evaluations}
 
 
 if __name__ == "__main__":
