@@ -235,7 +235,8 @@ def test_compiled_powell_takes_the_same_steps_as_optimize_powell(model, frame, r
 
 def test_compiled_powell_refuses_shapes_its_loops_would_read_past(model, frame):
     """The compiled loops index without bounds checks: a short pose, steps that do not match the
-    indices, an index past 35 and held rotations of the wrong shape are refused."""
+    indices, an index past 35, held rotations of the wrong shape and a line-search resolution
+    (xtol) that is not positive, which sizes the probes' arrays, are refused."""
     from common.powell_cpu import powell_cpu
 
     data, truth = frame
@@ -247,6 +248,9 @@ def test_compiled_powell_refuses_shapes_its_loops_would_read_past(model, frame):
             (truth, [0, 1], [0.1, 0.1], np.eye(3), r"\(16, 3, 3\)")):
         with pytest.raises(ValueError, match=message):
             powell_cpu(energy, x0, idx, np.array(steps), 0.02, 1e-4, 50, hold_rotations=hold)
+    for xtol in (0.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match="xtol must be positive"):
+            powell_cpu(energy, truth, [0, 1], np.array([0.1, 0.1]), xtol, 1e-4, 50)
     assert energy.evaluations == 0
 
 
