@@ -100,6 +100,8 @@ def powell(f, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, steps: np.nd
     xtol: line-search resolution in units of a direction's length; ftol: relative decrease
     per iteration below which the search stops.
     """
+    if not xtol > 0:  # the line searches refine until their spacing is below it
+        raise ValueError(f"xtol must be positive, got {xtol}")
     counter = _Counter(f, max_evals)
     lo, hi = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
     x = np.clip(np.asarray(x0, dtype=np.float64), lo, hi)

@@ -123,15 +123,15 @@ def test_image_conics_are_the_adjugate_of_the_projected_dual_quadric(rng):
                 expected = adj if x @ adj @ x < 0 else -adj
                 np.testing.assert_allclose(C[b, k, s], expected, rtol=1e-9, atol=1e-9 * np.abs(adj).max())
                 # rim points: u on the unit sphere with the ray from the camera centre tangent
-                # to the ellipsoid there (grad . (p - o) = 0), found along a great circle
+                # to the ellipsoid there (grad . (p - o) = 0): the small circle u . d = 1
                 o = studio.cameras[k].center
                 d = np.linalg.solve(A[b, s], o - centres[b, s])  # the camera centre in sphere units
                 e1 = np.cross(d, [0.3, 0.5, 0.8])
                 e1 /= np.linalg.norm(e1)
                 e2 = np.cross(d, e1) / np.linalg.norm(d)
-                for angle in np.linspace(0.0, 2 * np.pi, 7):
-                    u = np.cos(angle) * e1 + np.sin(angle) * e2  # u . d = 0 ...
-                    u = u * np.sqrt(1 - 1 / d.dot(d)) + d / d.dot(d)  # ... moved to u . d = 1: the rim
+                for angle in np.linspace(0.0, 2 * np.pi, 6, endpoint=False):
+                    u = np.cos(angle) * e1 + np.sin(angle) * e2  # the great circle u . d = 0 ...
+                    u = u * np.sqrt(1 - 1 / d.dot(d)) + d / d.dot(d)  # ... shrunk and moved to u . d = 1
                     h = P[k] @ np.append(centres[b, s] + A[b, s] @ u, 1.0)
                     h /= np.linalg.norm(h)
                     assert abs(h @ C[b, k, s] @ h) < 1e-9 * np.abs(C[b, k, s]).max()
@@ -198,7 +198,8 @@ def test_prerendered_parts_stay_where_they_were_rendered(model, frame):
 def test_compiled_powell_takes_the_same_steps_as_optimize_powell(model, frame, rng):
     """``fitting.powell`` runs the compiled twin (``common.powell_cpu``) on the cpu energy and
     ``optimize.powell`` on any other callable: the same poses, objectives, evaluation counts
-    and iterations, for a limb in its window, the torso with its limbs held and the spine prior
+    and iterations, for a limb in its window (also with line searches refined down to 1e-9,
+    the most probes a line search makes), the torso with its limbs held and the spine prior
     (half resolution), and all 35 parameters with the prior (a hop)."""
     from common.body import P
     from common.fitting import FitOptions, powell
@@ -211,22 +212,24 @@ def test_compiled_powell_takes_the_same_steps_as_optimize_powell(model, frame, r
     torso_energy = CpuEnergy(model, data.full_setup(truth, half=True))
     hold = HeldLimbs(model, forward_kinematics(model, truth).rotations[0])
     every = np.arange(PARAM_COUNT)
-    cases = [
-        ("arm", CpuEnergy(model, arm_setup), arm.params[:4], np.full(4, 0.2), None, 400),
+    cases = [  # name, objective, indices, steps, completion, budget, line-search resolution
+        ("arm", CpuEnergy(model, arm_setup), arm.params[:4], np.full(4, 0.2), None, 400, options.xtol),
+        # the most probes a line search makes: refined down to 1e-9
+        ("arm, fine", CpuEnergy(model, arm_setup), arm.params[:4], np.full(4, 0.2), None, 400, 1e-9),
         ("torso", SpinePrior(torso_energy, 1500.0), CHAINS["torso"].params, np.array([0.03] * 3 + [0.1] * 6), hold,
-         600),
+         600, options.xtol),
         ("hop", SpinePrior(CpuEnergy(model, data.full_setup(truth)), 1500.0), every,
-         np.where(every < 3, 0.03, 0.1), None, 300),
+         np.where(every < 3, 0.03, 0.1), None, 300, options.xtol),
     ]
-    for name, energy, idx, steps, complete, budget in cases:
+    for name, energy, idx, steps, complete, budget, xtol in cases:
         start = perturbed(truth, rng, 1, spread=0.2, indices=idx)[0]
         if isinstance(energy, SpinePrior):
             start[P["spine_z"]] = 0.1  # the prior pulls
             plain = SpinePrior(lambda p, e=energy.energy: e(p), energy.weight)
         else:
             plain = (lambda p, e=energy: e(p))
-        compiled = powell(energy, start, idx, steps, options, budget, complete=complete)
-        reference = powell(plain, start, idx, steps, options, budget, complete=complete)
+        compiled = powell(energy, start, idx, steps, replace(options, xtol=xtol), budget, complete=complete)
+        reference = powell(plain, start, idx, steps, replace(options, xtol=xtol), budget, complete=complete)
         np.testing.assert_array_equal(compiled[0], reference[0], err_msg=name)
         assert compiled[1:] == reference[1:], name
         assert compiled[1] < float(plain(start[None])[0]), name  # it did move downhill

@@ -167,3 +167,11 @@ def test_powell_evaluates_only_inside_the_bounds():
         pts = rec.all_points
         outside += int(np.any(pts < lo) or np.any(pts > hi))
     assert outside == 0
+
+
+@pytest.mark.parametrize("xtol", [0.0, -0.01, float("nan")])
+def test_powell_refuses_a_line_search_resolution_that_is_not_positive(xtol):
+    """The line searches refine until their spacing is below xtol: 0 or less would never stop
+    refining short of the budget (and the compiled twin sizes its probes' arrays by it)."""
+    with pytest.raises(ValueError, match="xtol must be positive"):
+        powell(lambda X: np.sum(X ** 2, axis=1), np.ones(2), -np.ones(2), np.ones(2), np.full(2, 0.1), xtol=xtol)

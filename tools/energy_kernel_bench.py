@@ -37,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common.body import CHAINS, LIMB_PARTS, _forward_kinematics, load_body_model  # noqa: E402
 from common.energy import (ARM_WINDOW, POSE_CHUNK, SMALL_WINDOW, CpuEnergy, _pose_ellipsoids, image_conics,  # noqa: E402
                            pose_energies)
+from common.fitting import FitOptions  # noqa: E402
 from common.powell_cpu import powell_cpu  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
 from server.session import frame_data  # noqa: E402
@@ -145,8 +146,6 @@ def _timed(loop, calls, poses, tables) -> float:
 
 def _powell_row(model, setup, x, rng) -> dict:
     """The compiled Powell over the left arm's proximal parameters, as a limb's solve runs it."""
-    from common.fitting import FitOptions
-
     options = FitOptions()
     energy = CpuEnergy(model, setup)
     idx = np.asarray(LIMB_PARTS["left_arm"][0])

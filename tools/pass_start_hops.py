@@ -59,9 +59,9 @@ def main(argv: list[str] | None = None) -> int:
                 bests.append((done + 1, int(energy), best, evaluations))
         return FrameResult(best, int(energy), hops, evaluations, tried)
 
-    search.hop_fit = watched_hop_fit
     out = {}
     try:
+        search.hop_fit = watched_hop_fit
         for clip in clips:
             seq = load_sequence(args.work / f"seq-{clip}")
             records = [json.loads(line) for line in (args.work / f"fit-{clip}-default-truth" / "poses.jsonl").open()]
