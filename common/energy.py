@@ -202,12 +202,21 @@ def pose_energies(p, rest_offsets, param_joint, param_axis, parents, offsets, he
     out = np.empty(B, np.int64)
     for c0 in range(0, B, POSE_CHUNK):
         c1 = min(B, c0 + POSE_CHUNK)
-        rot, org, _ = _forward_kinematics(p[c0:c1], rest_offsets, param_joint, param_axis, parents, offsets,
-                                          head_top_offset, needed)
-        centres, A = _pose_ellipsoids(rot, org, seg, local_centres, local_A)
-        C, drawable = image_conics(P, centres, A)
+        C, drawable = pose_conics(p[c0:c1], rest_offsets, param_joint, param_axis, parents, offsets, head_top_offset,
+                                  needed, seg, local_centres, local_A, P)
         out[c0:c1] = xor_span_sums(C, drawable, y0, x0, rows, width, gain, loss)
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def pose_conics(p, rest_offsets, param_joint, param_axis, parents, offsets, head_top_offset, needed, seg,
+                local_centres, local_A, P) -> tuple:
+    """``pose_energies``' geometry: poses p (B, 35) and the tables as it takes them -> the
+    moving segments' conics (B, K, S, 3, 3) and drawable (B, K, S), as ``image_conics``."""
+    rot, org, _ = _forward_kinematics(p, rest_offsets, param_joint, param_axis, parents, offsets, head_top_offset,
+                                      needed)
+    centres, A = _pose_ellipsoids(rot, org, seg, local_centres, local_A)
+    return image_conics(P, centres, A)
 
 
 # ------------------------------------------------------------------------ the energy

@@ -83,12 +83,7 @@ def _probe(offsets, x, d, lo, hi, tmin, tmax, line, nfev, max_evals, problem, sc
     n = 0
     for t in offsets:  # clipped, sorted by insertion, without repeats or earlier probes
         t = min(max(t, tmin), tmax)
-        seen = False
-        for i in range(count[0]):
-            seen = seen or ts[i] == t
-        for i in range(n):
-            seen = seen or keep[i] == t
-        if seen:
+        if _holds(ts, count[0], t) or _holds(keep, n, t):
             continue
         j = n
         while j > 0 and keep[j - 1] > t:
@@ -106,6 +101,15 @@ def _probe(offsets, x, d, lo, hi, tmin, tmax, line, nfev, max_evals, problem, sc
         ts[count[0]] = keep[r]
         fs[count[0]] = values[r]
         count[0] += 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _holds(values, count, t) -> bool:
+    """Whether t is among the first ``count`` values."""
+    for i in range(count):
+        if values[i] == t:
+            return True
+    return False
 
 
 @njit(cache=True, nogil=True)

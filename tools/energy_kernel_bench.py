@@ -11,8 +11,7 @@ on batches of 4 poses near the truth inside one compiled loop (no Python per cal
 compiled Powell), best of 9 repeats; and the grids a fit evaluates in one call: a limb's
 (3 points per parameter, 81 poses) and a re-detection's (its 2,916 poses at half resolution).
 Each row also says how much of an evaluation the kinematics and the conics take (the same
-poses through ``_forward_kinematics``, ``_pose_ellipsoids`` and ``image_conics`` alone: the
-rest is the pixels' spans and counts), and how long building that energy takes, as a solve
+poses through ``pose_conics`` alone: the rest is the pixels' spans and counts), and how long building that energy takes, as a solve
 builds it (the windows placed and cut, the still parts drawn, the value masks made), best of
 5 runs of 200 builds. A last row times the compiled Powell (``powell_cpu``) on the limb's
 energy from 200 starts about the truth, per evaluation: beside the limb's own row, what the
@@ -34,9 +33,8 @@ from numba import njit
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common.body import CHAINS, LIMB_PARTS, _forward_kinematics, load_body_model  # noqa: E402
-from common.energy import (ARM_WINDOW, POSE_CHUNK, SMALL_WINDOW, CpuEnergy, _pose_ellipsoids, image_conics,  # noqa: E402
-                           pose_energies)
+from common.body import CHAINS, LIMB_PARTS, load_body_model  # noqa: E402
+from common.energy import ARM_WINDOW, POSE_CHUNK, SMALL_WINDOW, CpuEnergy, pose_conics, pose_energies  # noqa: E402
 from common.fitting import FitOptions  # noqa: E402
 from common.powell_cpu import powell_cpu  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
@@ -48,8 +46,6 @@ REPEATS = 9
 BUILDS = 200       # energy builds per timed repeat
 BUILD_REPEATS = 5
 SPREAD_RAD = 0.05  # joint angles drawn this far around the truth
-
-
 POWELL_STARTS = 200
 POWELL_SPREAD_RAD = 0.15  # the starts' spread about the truth on the arm's parameters
 
@@ -64,14 +60,14 @@ def _repeat(calls, poses, tables):
 
 @njit(cache=True)
 def _repeat_conics(calls, poses, tables):
-    """``pose_energies``' kinematics and conics alone, POSE_CHUNK poses at a time as it makes
-    them (tables as ``CpuEnergy.kernel_tables``)."""
+    """``pose_energies``' kinematics and conics alone (``pose_conics``), POSE_CHUNK poses at a
+    time as it makes them (tables as ``CpuEnergy.kernel_tables``)."""
     total = 0.0
     for _ in range(calls):
         for c0 in range(0, poses.shape[0], POSE_CHUNK):
-            rot, org, _ = _forward_kinematics(poses[c0:c0 + POSE_CHUNK], *tables[:7])
-            centres, A = _pose_ellipsoids(rot, org, tables[7], tables[8], tables[9])
-            C, _ = image_conics(tables[10], centres, A)
+            t = tables  # spelled out: numba inlines pose_conics, which *args cannot reach
+            C, _ = pose_conics(poses[c0:c0 + POSE_CHUNK], t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7], t[8], t[9],
+                               t[10])
             total += C[0, 0, 0, 0, 0]
     return total
 
