@@ -28,6 +28,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
+from common.blobs import dilate, supported_blobs
 from common.camera import Studio, distortion
 
 HULL_GRID = 32               # voxels per side of the carved box (about 10 cm; blobs are judged whole, so
@@ -268,18 +269,8 @@ def footprint(pixels: np.ndarray, shape: tuple, radius: int, square: bool = Fals
 
 def dilated(mask: np.ndarray, iterations: int, square: bool = False) -> np.ndarray:
     """``ndimage.binary_dilation(mask, iterations=iterations)`` with the 4-connected (or, with
-    ``square``, 8-connected) step, computed on the box around ``mask``'s pixels only: the same
-    pixels, and what dilates the hull's splats over 8 whole images is most of a frame's cleaning."""
-    rows, columns = np.nonzero(mask.any(axis=1))[0], np.nonzero(mask.any(axis=0))[0]
-    if len(rows) == 0 or iterations < 1:
-        return mask.copy()
-    margin = iterations + 1  # nothing spreads further, so the box's own border adds nothing
-    r0, r1 = max(rows[0] - margin, 0), min(rows[-1] + margin + 1, mask.shape[0])
-    c0, c1 = max(columns[0] - margin, 0), min(columns[-1] + margin + 1, mask.shape[1])
-    out = np.zeros_like(mask)
-    structure = ndimage.generate_binary_structure(2, 2 if square else 1)
-    out[r0:r1, c0:c1] = ndimage.binary_dilation(mask[r0:r1, c0:c1], structure, iterations=iterations)
-    return out
+    ``square``, 8-connected) step (``common.blobs.dilate``); ``mask`` itself for fewer than one."""
+    return dilate(np.asarray(mask, dtype=bool), int(iterations), bool(square))
 
 
 def cell_radius_px(cam, points: np.ndarray, step: float) -> int:
@@ -312,17 +303,7 @@ def supported_masks(studio: Studio, masks: np.ndarray, centre: np.ndarray | None
     hull_pixels = [image_points(cam, points) for cam in studio]
     for k, (cam, mask) in enumerate(zip(studio, masks)):
         support = footprint(hull_pixels[k], mask.shape, SPLAT_RADIUS_PX)
-        labels, count = ndimage.label(mask)
-        if count == 0:
-            continue
-        sizes = np.bincount(labels.ravel(), minlength=count + 1)
-        covered = np.bincount(labels.ravel(), weights=(support & mask).ravel(), minlength=count + 1)
-        covered[0] = 0.0
-        keep = ((covered >= MIN_SUPPORTED_FRACTION * np.maximum(sizes, 1))
-                | (covered >= MIN_SUPPORT_OF_BEST * covered.max()))
-        keep &= covered > 0
-        keep[0] = False
-        out[k] = keep[labels]
+        out[k] = supported_blobs(mask, support, MIN_SUPPORTED_FRACTION, MIN_SUPPORT_OF_BEST)
     # the kept pixels far from the hull tested by their rays against the other cameras' kept
     # blobs (a floor seam two cameras see does not hold itself up); one within EDGE_TOLERANCE_PX
     # of a pixel that stays, stays

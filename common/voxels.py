@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.blobs import big_blobs_centroid
 from common.camera import Studio, circle_studio
 from common.errors import InputFileError, UserError
 from common.packing import pad_stack
@@ -77,19 +78,14 @@ def silhouette_centre(studio: Studio, masks: np.ndarray) -> np.ndarray | None:
     stack of ``packing.pad_stack`` when the cameras differ in size): a camera the actor has left
     sees only noise, whose centroid is the image's middle, and its ray would pull the centre
     (06_02 from source frame 262: three of eight cameras, the centre 1.6 m off)."""
-    from scipy import ndimage
-
     A = np.zeros((3, 3))
     b = np.zeros(3)
     for cam, mask in zip(studio, masks):
-        mask = mask[:cam.height, :cam.width]  # the camera's own image of a padded stack
-        labels, _ = ndimage.label(mask)
-        big = np.bincount(labels.ravel()) >= MIN_BLOB_FRACTION * mask.size
-        big[0] = False  # the background
-        ys, xs = np.nonzero(big[labels])
-        if xs.size == 0:
+        mask = np.asarray(mask[:cam.height, :cam.width], dtype=bool)  # the camera's own image of a padded stack
+        x, y, n = big_blobs_centroid(mask, MIN_BLOB_FRACTION * mask.size)
+        if n == 0:
             continue
-        ray = cam.R.T @ np.linalg.solve(cam.K, np.array([xs.mean(), ys.mean(), 1.0]))
+        ray = cam.R.T @ np.linalg.solve(cam.K, np.array([x, y, 1.0]))
         ray /= np.linalg.norm(ray)
         proj = np.eye(3) - np.outer(ray, ray)
         A += proj
