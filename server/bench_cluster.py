@@ -9,7 +9,8 @@ server and four client machines would get: the server's own work (torso, head, e
 one after another, each round's jobs (limb solves, hops, whole fits of a round's starts) side by
 side on the five machines (``critical_path``), against everything one after another, from the
 single-process run's CPU seconds. Per-process compute / waiting / transfer seconds come from the
-solvers.
+solvers; for the distributed run, the server's rounds (dispatched to all results checked) against
+their jobs' CPU seconds, and its time alone between rounds, say where the wall time went.
 """
 from __future__ import annotations
 
@@ -219,7 +220,20 @@ def bench_cluster(sequence, frames: int | None = None, clients: int = DEFAULT_CL
                              / PAPER_TABLE2["distributed_seconds_per_frame"]),
     }
     result["speedup"] = result["single_seconds_per_frame"] / result["distributed_seconds_per_frame"]
+    result["distributed_rounds"] = rounds_per_frame(fastest_cluster["processes"], n)
     return result
+
+
+def rounds_per_frame(processes: list[dict], frames: int) -> dict:
+    """Where a distributed run's wall time went, per frame, from its server's timing: rounds
+    (dispatched to all results checked) against their jobs' CPU seconds, and the server alone
+    between rounds (nothing out with the clients)."""
+    server = next(p for p in processes if p["role"] == "server")
+    frames = max(frames, 1)
+    return {"rounds_per_frame": server["rounds"] / frames, "jobs_per_frame": server["jobs"] / frames,
+            "round_seconds_per_frame": server["round_seconds"] / frames,
+            "round_job_cpu_seconds_per_frame": server["round_job_cpu_seconds"] / frames,
+            "server_alone_seconds_per_frame": server["between_rounds_seconds"] / frames}
 
 
 DEFAULT_HOPS = 20
@@ -281,6 +295,11 @@ def format_table(r: dict) -> str:
     lines += ["", f"serial {s(r['serial_seconds_per_frame'])} s/frame, critical path "
                   f"{s(r['critical_path_seconds_per_frame'])} on {r['critical_path_machines']} machines, "
                   f"{r['jobs_per_round']:.1f} jobs per round"]
+    d = r["distributed_rounds"]
+    lines += [f"distributed, per frame: {d['rounds_per_frame']:.1f} rounds of {d['jobs_per_frame']:.1f} jobs in all, "
+              f"{d['round_seconds_per_frame']:.3f} s for {d['round_job_cpu_seconds_per_frame']:.3f} s of the jobs' CPU "
+              f"({d['round_job_cpu_seconds_per_frame'] / r['shared_cores']:.3f} on {r['shared_cores']} cores); "
+              f"the server alone between rounds {d['server_alone_seconds_per_frame']:.3f} s"]
     lines += ["", f"{'process'.ljust(16)} {'compute':>8} {'waiting':>8} {'transfer':>8}  s/frame"]
     for mode in ("single", "distributed"):
         for p in r["processes"][mode]:

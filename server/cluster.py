@@ -175,6 +175,7 @@ class _Round:
     local: set = field(default_factory=set)              # chains the server is solving
     requests: dict = field(default_factory=dict)         # request id -> _Request
     dispatched: bool = False                             # the broker has handed out what it could
+    posted: float = 0.0                                  # perf_counter seconds when the caller asked for it
 
     def done(self) -> bool:
         return all(c in self.results for c in self.chains)
@@ -247,6 +248,12 @@ class ClusterSolver:
         # seconds: the caller's thread waiting for results, and encoding FRAMEs; the broker's I/O
         self._server = {"waiting_seconds": 0.0, "encode_seconds": 0.0, "io_seconds": 0.0,
                         "local_compute_seconds": 0.0, "check_seconds": 0.0}
+        # where a run's wall time goes: rounds (asked for to all results checked) against their
+        # jobs' CPU seconds, and the server alone between one round's end and the next's start
+        # (torso, head, proposals; a new frame's masks)
+        self._rounds = {"rounds": 0, "jobs": 0, "round_seconds": 0.0, "round_job_cpu_seconds": 0.0,
+                        "between_rounds_seconds": 0.0}
+        self._last_round_end: float | None = None
         self._start_wall = self._start_cpu = None
         self._data: FrameData | None = None
         self._current_frame = 0
@@ -340,12 +347,17 @@ class ClusterSolver:
                      dict(zip(chains, opts)), {c: o.solve_settings() for c, o in zip(chains, opts)})
         rnd.pending.extend(rnd.chains)
         with self._lock:
+            rnd.posted = time.perf_counter()
+            if self._last_round_end is not None:
+                self._rounds["between_rounds_seconds"] += rnd.posted - self._last_round_end
             self._round = rnd
         self._post(("round", rnd))
         return lambda: self._collect(rnd)
 
     def timing(self) -> dict:
-        """Per-process compute / waiting / transfer seconds, and the drop and failure counters."""
+        """Per-process compute / waiting / transfer seconds; the server's rounds (how many, their
+        jobs, their wall seconds and their jobs' CPU seconds) and its seconds alone between them;
+        and the drop and failure counters."""
         with self._lock:
             now = time.perf_counter()
             wall = now - self._start_wall if self._start_wall is not None else 0.0
@@ -360,6 +372,7 @@ class ClusterSolver:
                 "chains": self._counts["local_chains"],
                 "local_compute_seconds": srv["local_compute_seconds"],
                 "check_seconds": srv["check_seconds"],  # scoring the clients' results
+                **self._rounds,
             }]
             for name, s in sorted(self._stats.items()):
                 span = max(s.last_seen - s.first_seen, 0.0)
@@ -431,6 +444,7 @@ class ClusterSolver:
                 elif rnd.done():
                     if self._round is rnd:
                         self._round = None
+                    self._round_done(rnd)
                     return [rnd.results[c] for c in rnd.chains]
                 elif unmeasured is not None:
                     chain, claim = unmeasured, None
@@ -453,6 +467,15 @@ class ClusterSolver:
                 rnd.local.discard(chain)
                 rnd.results.setdefault(chain, result)
                 self._lock.notify_all()
+
+    def _round_done(self, rnd: _Round) -> None:
+        """Count ``rnd``, all of whose results are in and checked (the lock held)."""
+        self._last_round_end = time.perf_counter()
+        totals = self._rounds
+        totals["rounds"] += 1
+        totals["jobs"] += len(rnd.chains)
+        totals["round_seconds"] += self._last_round_end - rnd.posted
+        totals["round_job_cpu_seconds"] += sum(rnd.results[c].cpu_seconds for c in rnd.chains)
 
     def _unmeasured_job(self, rnd: _Round) -> tuple[str | None, float]:
         """(a chain out with a client for ``DEADLINE_FLOOR`` whose kind of job has no measured

@@ -62,6 +62,10 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     for p in timing["processes"]:
         for k in ("compute_seconds", "waiting_seconds", "transfer_seconds"):
             assert p[k] >= 0.0
+    server = timing["processes"][0]  # its rounds: every job was in one, and each took time and CPU
+    assert server["rounds"] >= 2 * EQUAL_FRAMES and server["jobs"] >= limb_solves + whole_fits
+    assert server["round_seconds"] > 0.0 and server["round_job_cpu_seconds"] > 0.0
+    assert server["between_rounds_seconds"] > 0.0  # torso and head, and each new frame
     assert all(w.dropped == {} for w in workers)
 
 
@@ -255,8 +259,13 @@ def test_bench_cluster_reports_the_comparison(seq_path):
     assert r["jobs_per_round"] >= 3  # the whole fits of a frame's starts, the four limbs of a round
     assert r["serial_seconds_per_frame"] > r["critical_path_seconds_per_frame"] > 0
     assert 1.0 <= r["shared_cores_speedup"] <= r["shared_cores"] + 1e-9
+    rounds = r["distributed_rounds"]
+    assert rounds["rounds_per_frame"] >= 2 and rounds["jobs_per_frame"] >= 3 * rounds["rounds_per_frame"] - 1e-9
+    assert rounds["round_seconds_per_frame"] > 0 and rounds["round_job_cpu_seconds_per_frame"] > 0
+    assert rounds["server_alone_seconds_per_frame"] > 0
     table = format_table(r)
     assert "3.300" in table and "1.160" in table and "nothing lost" in table
+    assert "the server alone between rounds" in table
 
 
 def test_jobs_sharing_cores_end_when_the_cores_have_done_their_work():
