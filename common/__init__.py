@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 
 # files whose kernels numba caches
-KERNEL_SOURCES = ("body.py", "conic_bits.py", "consistency.py", "energy.py", "ellipsoid_fit.py", "optimize.py", "powell_cpu.py")
+KERNEL_SOURCES = ("blobs.py", "body.py", "conic_bits.py", "consistency.py", "energy.py", "ellipsoid_fit.py", "optimize.py", "powell_cpu.py")
 
 
 def _kernel_cache_dir() -> str | None:
