@@ -295,3 +295,16 @@ def test_bench_hops_runs_them_side_by_side_with_the_same_poses(seq_path, tmp_pat
     assert single["speedup"] == 1.0 and distributed["speedup"] > 0
     assert main(["bench", "hops", str(seq_path), "--hops", "0"]) == 2
     assert "--hops >= 1" in capsys.readouterr().err
+
+
+def test_fit_table_shows_the_servers_rounds_per_frame():
+    from server.commands.fit import _cluster_rows
+
+    server = {"name": "server", "compute_seconds": 2.0, "waiting_seconds": 1.0, "transfer_seconds": 0.1, "chains": 3,
+              "rounds": 40, "jobs": 170, "round_seconds": 2.4, "round_job_cpu_seconds": 4.0,
+              "between_rounds_seconds": 0.2}
+    client = {"name": "local-1", "compute_seconds": 1.0, "waiting_seconds": 0.5, "transfer_seconds": 0.2, "chains": 9}
+    rows = dict(_cluster_rows({"frames_fitted_this_run": 10, "timing": {"processes": [server, client]}}))
+    assert rows["rounds"] == ("4.0 a frame, 0.240 s for 0.400 s of their jobs' CPU; the server alone between "
+                              "them 0.020 s/frame")
+    assert rows["local-1 compute/wait/transfer"] == "0.100 / 0.050 / 0.020 s/frame, 9 chains"

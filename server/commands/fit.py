@@ -158,12 +158,17 @@ def print_summary(summary: dict, out) -> None:
 
 
 def _cluster_rows(summary: dict) -> list:
-    """Compute / waiting / transfer per process (s/frame) and the failure counters of a cluster run."""
+    """Compute / waiting / transfer per process (s/frame), the server's rounds against their jobs'
+    CPU, and the failure counters of a cluster run."""
     timing, frames = summary.get("timing", {}), max(summary.get("frames_fitted_this_run") or 0, 1)
     rows = []
     for p in timing.get("processes", []):
         split = " / ".join(f"{p[k] / frames:.3f}" for k in ("compute_seconds", "waiting_seconds", "transfer_seconds"))
         rows.append((f"{p['name']} compute/wait/transfer", f"{split} s/frame, {p['chains']} chains"))
+        if p.get("rounds"):
+            rows.append(("rounds", f"{p['rounds'] / frames:.1f} a frame, {p['round_seconds'] / frames:.3f} s for "
+                                   f"{p['round_job_cpu_seconds'] / frames:.3f} s of their jobs' CPU; the server "
+                                   f"alone between them {p['between_rounds_seconds'] / frames:.3f} s/frame"))
     if "dropped" in timing:
         dropped = sum(timing["dropped"].values())
         rows.append(("dropped / resent / lost", f"{dropped} messages / {timing['resent']} chains / "
