@@ -1,13 +1,12 @@
 """Compiled operations on one binary image (H, W) bool: its 4-connected blobs, and dilation by
 a city-block or chessboard distance.
 
-A frame's mask cleaning (``common.consistency.supported_masks``, ``common.voxels.silhouette_centre``)
-labels each camera's blobs twice and dilates splats and blobs three or four times. With
-``scipy.ndimage`` that was most of 23 ms a frame for 8 cameras of 320x240, all of it holding the
-interpreter's lock: a cluster's server cleaned each frame while its clients waited, and could not
-clean the next one ahead, because its broker thread would have waited through the lock. These
-kernels give the same pixels (``tests/test_blobs.py`` holds them to ``scipy.ndimage``) in one or
-two passes over the image, without the lock.
+A frame's mask cleaning (``common.voxels.silhouette_centre``, then
+``common.consistency.supported_masks``) labels each camera's blobs twice and dilates splats and
+blobs three or four times. With ``scipy.ndimage`` that was most of 23 ms a frame for 8 cameras
+of 320x240, and a cluster's server cleans each frame while its clients wait. These kernels give
+the same pixels (``tests/test_blobs.py`` holds them to ``scipy.ndimage``) in one or two passes
+over the image, without holding the interpreter's lock.
 """
 from __future__ import annotations
 
@@ -136,6 +135,8 @@ def dilate(mask: np.ndarray, radius: int, square: bool) -> np.ndarray:
     ``scipy.ndimage.binary_dilation`` iterated ``radius`` times with the cross or the 3x3 square.
     Two raster passes of the distance transform (Rosenfeld and Pfaltz 1966, exact for both
     distances) over the box around the mask's pixels, grown by ``radius``."""
+    if radius < 1:
+        return mask.copy()
     H, W = mask.shape
     out = np.zeros((H, W), dtype=np.bool_)
     r0, r1, c0, c1 = H, -1, W, -1
@@ -146,8 +147,6 @@ def dilate(mask: np.ndarray, radius: int, square: bool) -> np.ndarray:
                 c0, c1 = min(c0, j), max(c1, j)
     if r1 < 0:
         return out
-    if radius < 1:
-        return mask.copy()
     r0, r1 = max(r0 - radius, 0), min(r1 + radius + 1, H)
     c0, c1 = max(c0 - radius, 0), min(c1 + radius + 1, W)
     far = radius + 1  # every distance beyond the radius is the same to us: no overflow

@@ -274,7 +274,7 @@ def footprint(pixels: np.ndarray, shape: tuple, radius: int, square: bool = Fals
 
 def dilated(mask: np.ndarray, iterations: int, square: bool = False) -> np.ndarray:
     """``ndimage.binary_dilation(mask, iterations=iterations)`` with the 4-connected (or, with
-    ``square``, 8-connected) step (``common.blobs.dilate``); ``mask`` itself for fewer than one."""
+    ``square``, 8-connected) step (``common.blobs.dilate``); a copy of ``mask`` for fewer than one."""
     return dilate(np.asarray(mask, dtype=bool), int(iterations), bool(square))
 
 
