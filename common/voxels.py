@@ -99,12 +99,20 @@ def actor_bounds(studio: Studio, masks: np.ndarray) -> np.ndarray:
     """(2, 3) a DEFAULT_EXTENT box centred on the actor (the silhouettes' centre, snapped to
     BOUNDS_LATTICE_M), z from 0: the studio's default box misses an actor who walks out of
     the middle of a large capture area. Falls back to ``default_bounds``."""
-    centre = silhouette_centre(studio, masks)
-    if centre is None:
+    return bounds_around(studio, [silhouette_centre(studio, masks)])
+
+
+def bounds_around(studio: Studio, centres: list) -> np.ndarray:
+    """(2, 3) the DEFAULT_EXTENT box around each of ``centres`` ((3,) actor centres, metres, or
+    None), all in one box, its sides snapped to BOUNDS_LATTICE_M, z from 0: where an actor
+    moves through a take. ``default_bounds`` where no centre is known."""
+    known = np.array([c[:2] for c in centres if c is not None]).reshape(-1, 2)
+    if not len(known):
         return default_bounds(studio)
-    c = np.round(centre[:2] / BOUNDS_LATTICE_M) * BOUNDS_LATTICE_M
-    lo = np.array([c[0] - DEFAULT_EXTENT[0] / 2, c[1] - DEFAULT_EXTENT[1] / 2, 0.0])
-    return np.stack([lo, lo + DEFAULT_EXTENT])
+    low = np.round(known.min(axis=0) / BOUNDS_LATTICE_M) * BOUNDS_LATTICE_M
+    high = np.round(known.max(axis=0) / BOUNDS_LATTICE_M) * BOUNDS_LATTICE_M
+    lo = np.array([*(low - DEFAULT_EXTENT[:2] / 2), 0.0])
+    return np.stack([lo, lo + DEFAULT_EXTENT + np.array([*(high - low), 0.0])])
 
 
 def false_acceptance_probability(xi: float, q: int, k: int) -> float:

@@ -245,3 +245,45 @@ def test_silhouette_centre_ignores_cameras_that_see_only_noise():
     found = silhouette_centre(studio, masks | specks)
     assert np.linalg.norm(found - centre) < 0.1
     assert np.allclose(silhouette_centre(studio, masks), found, atol=0.05)
+
+
+def test_the_default_box_holds_the_actor_wherever_the_take_puts_it(tmp_path, capsys):
+    """``mocap voxels`` without --bounds: one box around the silhouettes' centres of the take's
+    frames, not around the cameras' aim point, which a real rig's actor can sit beside (the
+    seated recording: 0.5 m of the actor cut off)."""
+    from common.voxels import bounds_around, default_bounds
+
+    studio = circle_studio(8, 320, 240, radius=4.0)
+    walk = [np.array([-1.5, 0.4, 0.9]), np.array([0.2, 0.5, 0.9]), np.array([1.6, 0.3, 0.9])]
+    box = bounds_around(studio, [walk[0], None, *walk[1:]])
+    for c in walk:  # each place with its 1.2 m margin either side, on the floor, 2.2 m high
+        assert np.all(box[0] <= c - [1.2, 1.2, 0.9] + 0.13) and np.all(c + [1.2, 1.2, 0] <= box[1] + 0.13)
+    assert box[0, 2] == 0.0 and box[1, 2] == pytest.approx(2.2)
+    assert np.array_equal(bounds_around(studio, [None]), default_bounds(studio))
+
+    root = tmp_path / "seq"
+    save_calibration(studio, root / "calibration.json")
+    frames = range(len(walk))
+    for frame, c in zip(frames, walk):
+        masks = render_ellipsoids(studio, [c], [np.eye(3)], [[0.25, 0.25, 0.8]])
+        for cam, mask in zip(studio, masks):
+            write_mask_png(root / "silhouettes" / cam.name / f"{frame:06d}.png", mask)
+    write_sequence_meta(root, list(frames), 30.0, studio.names)
+    out = tmp_path / "vox"
+    assert main(["voxels", str(root), "--out", str(out), "--grid", "48", "--quiet"]) == 0
+    summary = json.loads((out / "voxels.json").read_text())
+    lo, hi = np.array(summary["bounds"])
+    assert lo[0] < -2.6 and hi[0] > 2.7  # the whole walk, not the middle 2.4 m
+    for frame, row in zip(frames, summary["frames"]):
+        result = load_voxels(out / "voxels" / f"{frame:06d}.npz")
+        occupied = result.occupied
+        assert row["occupied"] > 100
+        # nothing of the actor at the box's faces: it is inside
+        assert not (occupied[0].any() or occupied[-1].any() or occupied[:, 0].any() or occupied[:, -1].any())
+
+
+def test_a_grid_too_large_for_memory_is_refused(tmp_path, sequence, capsys):
+    assert main(["voxels", str(sequence), "--out", str(tmp_path / "o"), "--grid", "1500"]) == 2
+    err = capsys.readouterr().err
+    assert "--grid" in err and "256" in err and "Traceback" not in err
+    assert not (tmp_path / "o").exists()

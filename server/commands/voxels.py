@@ -21,9 +21,11 @@ from common.sequence import FRAME_NAME, load_sequence
 from common.argtypes import count, real
 from server.commands.fit import add_world_arguments
 from server.output import add_overwrite_argument, check_folder_target, staged_folder, write_text
-from common.voxels import SpotGrid, save_voxels
+from common.voxels import SpotGrid, bounds_around, save_voxels, silhouette_centre
 
 SUMMARY = "voxels.json"
+MAX_GRID = 256  # voxels per side: the lookup table takes about 110 bytes a voxel (1.8 GB at 256)
+BOUNDS_SAMPLES = 30  # frames whose silhouettes' centres place the default box
 PICTURE_SIZE = 240  # pixels per view
 BACKGROUND = (24, 24, 28)
 POINT_COLOUR = np.array([120.0, 190.0, 255.0])  # nearest points; farther ones are darker
@@ -42,12 +44,14 @@ def register(subparsers) -> None:
                                           "by SPOT (Cheung et al. 2000) and write them with pictures.")
     p.add_argument("sequence", type=Path, help="sequence folder (calibration.json + silhouettes/)")
     p.add_argument("--out", type=Path, required=True, help="result folder")
-    p.add_argument("--grid", type=count(2), default=64, help="voxels per side N of the N^3 grid (default 64)")
+    p.add_argument("--grid", type=count(2, MAX_GRID), default=64,
+                   help=f"voxels per side N of the N^3 grid (default 64, at most {MAX_GRID}: about 2 GB of memory)")
     p.add_argument("--q", type=count(1), default=2, help="sample pixels per voxel and camera (default 2)")
     p.add_argument("--epsilon", type=real(0.0, 1.0), default=None,
                    help="a voxel is inside a camera's silhouette with at least epsilon*Q samples (default 1/Q)")
     p.add_argument("--bounds", type=real(), nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
-                   help="volume of interest in metres (default 2.4 x 2.4 x 2.2 m around the studio target)")
+                   help="volume of interest in metres (default: 2.4 x 2.4 x 2.2 m around the actor wherever the "
+                        "take's silhouettes put it, one box for all frames)")
     p.add_argument("--frames", type=count(1), default=None, help="only the first N frames")
     p.add_argument("--pictures", type=count(0), default=1, metavar="EVERY",
                    help="a picture every EVERY frames (0: none; default 1)")
@@ -67,10 +71,13 @@ def run(args) -> int:
     bounds = None if args.bounds is None else np.array(args.bounds).reshape(2, 3)
     if bounds is not None and not np.all(bounds[0] < bounds[1]):
         raise UserError(f"--bounds: expected X0 Y0 Z0 below X1 Y1 Z1, got {' '.join(f'{v:g}' for v in args.bounds)}")
+    frames = seq.frames[:args.frames] if args.frames else seq.frames
+    if bounds is None:  # around the actor wherever it goes (the studio's middle can miss it)
+        sampled = frames[::max(1, -(-len(frames) // BOUNDS_SAMPLES))]
+        bounds = bounds_around(seq.studio, [silhouette_centre(seq.studio, seq.silhouettes(f)) for f in sampled])
     start = time.perf_counter()
     grid = SpotGrid.build(seq.studio, grid=args.grid, q=args.q, bounds=bounds, epsilon=args.epsilon)
     build_seconds = time.perf_counter() - start
-    frames = seq.frames[:args.frames] if args.frames else seq.frames
     rows = []
     # the voxels and their pictures of every frame, or the old ones as they were
     pictures = staged_folder(args.out / "pictures") if args.pictures else nullcontext()
