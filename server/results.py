@@ -15,7 +15,9 @@ POSES_FILE = "poses.jsonl"
 SUMMARY_FILE = "summary.json"
 RUN_FILE = "run.json"  # the settings of the run that wrote poses.jsonl, which --resume must match
 MOTION_FILE = "motion.bvh"
-RESULT_FILES = (POSES_FILE, SUMMARY_FILE, RUN_FILE, MOTION_FILE)
+# a result's files: not run.json, which is written before the first frame, so that a folder
+# holding only that (a run stopped or refused before any frame was fitted) is no result to keep
+RESULT_FILES = (POSES_FILE, SUMMARY_FILE, MOTION_FILE)
 # made from a result, so stale once it is replaced (mocap report, mocap export's default names)
 DERIVED_FILES = ("report.html", "pictures") + tuple(export_name(f) for f in FORMATS if export_name(f) != MOTION_FILE)
 

@@ -194,14 +194,19 @@ def silhouette_centre(data: FrameData) -> np.ndarray:
     return centre
 
 
+def truth_start(seq: Sequence) -> np.ndarray:
+    """(35,) the truth's pose of the sequence's first frame; UserError where there is none."""
+    truth = seq.truth()
+    if truth is None or seq.frames[0] not in truth:
+        raise UserError(f"{seq.path}: --init truth needs truth.jsonl with frame {seq.frames[0]}")
+    return truth[seq.frames[0]].params.copy()
+
+
 def initial_starts(model: BodyModel, seq: Sequence, data: FrameData, init: str) -> list[np.ndarray]:
     """The first frame's start poses: 'truth' (the sequence's truth), 'auto' (automatic
     initialisation from the frame's voxels, several starts) or 'standing' at the silhouettes."""
     if init == "truth":
-        truth = seq.truth()
-        if truth is None or seq.frames[0] not in truth:
-            raise UserError(f"{seq.path}: --init truth needs truth.jsonl with frame {seq.frames[0]}")
-        return [truth[seq.frames[0]].params.copy()]
+        return [truth_start(seq)]
     if init == "standing":
         centre = silhouette_centre(data)
         return [rest_params(model, position=(centre[0], centre[1], model.joint_rest[0, 2]))]
@@ -521,6 +526,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     truth = seq.truth()
     if init is None:  # the truth's first pose where there is one, else automatic initialisation
         init = "truth" if truth else "auto"
+    if init == "truth":
+        truth_start(seq)  # refused before the result folder is touched
     done = prepare_result_folder(out_dir, run_settings(model, seq, options, init), resume, overwrite)
     if done and [d["frame"] for d in done] != frames[:len(done)]:
         raise InputFileError(out_dir / POSES_FILE, f"does not hold the first frames of {seq.path}; cannot --resume")

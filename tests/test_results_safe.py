@@ -82,6 +82,24 @@ def test_overwrite_replaces_the_result_and_what_was_made_from_it(fitted, seq, ca
     assert not list(fitted.glob(".*partial*"))
 
 
+def test_a_run_refused_before_its_first_frame_leaves_nothing_in_the_way(tmp_path, seq, capsys):
+    """--init truth without truth is refused before the folder is touched; and a folder that
+    holds only run.json (a run stopped before its first frame) is no result: a corrected
+    command goes ahead without --overwrite."""
+    (seq / "truth.jsonl").unlink()
+    out = tmp_path / "res"
+    code, err = run(capsys, "fit", seq, "--out", out, "--init", "truth", "--frames", "1", *FAST)
+    assert code == 2
+    one_error_line(err, "--init truth", "truth.jsonl")
+    assert not out.exists()
+    out.mkdir()
+    (out / "run.json").write_text("{}")
+    code, err = run(capsys, "fit", seq, "--out", out, "--init", "standing", "--frames", "1", *FAST)
+    assert code == 0, err
+    assert len((out / "poses.jsonl").read_text().splitlines()) == 1
+    assert json.loads((out / "run.json").read_text())["init"] == "standing"
+
+
 def test_out_naming_a_file_is_one_line(tmp_path, seq, capsys):
     target = tmp_path / "a_file"
     target.write_text("keep me")
