@@ -22,6 +22,9 @@ world, the one poses.jsonl and the calibration are in (for a z-up world the two 
 Every writer takes a ``FittedMotion``: frame numbers, frame rate, per-frame parameters and joint
 positions, and the body model (with the fitted actor's segment lengths) that turns one into the
 other.
+
+One module of about 510 lines: the eight writers share ``FittedMotion`` and the axis conversions,
+each of them one short section.
 """
 from __future__ import annotations
 
