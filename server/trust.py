@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ipaddress
 import os
+import re
 import shutil
 import tempfile
 from dataclasses import replace
@@ -25,29 +26,58 @@ LOOPBACK_NAMES = ("localhost",)
 SECRET_KEY_MODE = 0o600  # secret key files: their owner alone reads them
 
 
+CLIENT_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}")  # a file name on any system
+RESERVED_CLIENT_NAMES = ("server",)  # the server's own pair is made beside the clients' ones
+CLIENT_FOLDER = "for-{name}"  # one client's folder: its pair as client.key_secret, and server.key
+
+
+def check_client_names(names: tuple[str, ...]) -> None:
+    """UserError naming the first client name that is empty, repeated, reserved or not a plain
+    file name (letters, digits, '_', '.', '-')."""
+    seen = set()
+    for name in names:
+        if not name:
+            raise UserError("--clients: an empty name (two commas, or one at an end)")
+        if not CLIENT_NAME.fullmatch(name):
+            raise UserError(f"--clients: {name!r}: a client name is letters, digits, '_', '.' and '-' "
+                            "(up to 64, not starting with '.' or '-')")
+        if name in RESERVED_CLIENT_NAMES:
+            raise UserError(f"--clients: {name!r} is the server's own key's name; choose another")
+        if name in seen:
+            raise UserError(f"--clients: {name!r} given twice: each client needs a key of its own")
+        seen.add(name)
+
+
 def create_curve_keys(directory: Path, clients: tuple[str, ...] = ("client",)) -> Path:
-    """Make a key folder: server pair, ``clients/NAME.key`` (the allow-list) and, for the first
-    client name, ``client.key_secret``, the pair ``python -m client --curve-keys DIR`` loads.
+    """Make a key folder: the server's pair, ``clients/NAME.key`` (the allow-list) and, per
+    client, ``for-NAME/`` holding its pair as ``client.key_secret`` and the server's public
+    ``server.key``: the folder ``mocap client --curve-keys DIR`` loads, to copy to that client's
+    machine. The first client's pair is also ``client.key_secret`` at the top, so that the
+    folder itself serves a client on the server's machine.
     Secret key files are ``SECRET_KEY_MODE``: made in a private folder (mkdtemp's 0700), so
     no other user can open one between its creation and its chmod.
-
-    Deployments give clients a copy without ``server.key_secret``.
     """
+    check_client_names(clients)
     directory = Path(directory)
     allowed = directory / "clients"
     allowed.mkdir(parents=True, exist_ok=True)
     private = Path(tempfile.mkdtemp(prefix=".keys-", dir=directory))
     try:
-        pairs = [("server", *zmq.auth.create_certificates(private, "server"))]
-        pairs += [(name, *zmq.auth.create_certificates(private, name)) for name in clients]
-        for i, (name, public, secret) in enumerate(pairs):
+        public, secret = zmq.auth.create_certificates(private, "server")
+        os.chmod(secret, SECRET_KEY_MODE)
+        shutil.move(public, directory / "server.key")
+        shutil.move(secret, directory / "server.key_secret")
+        for i, name in enumerate(clients):
+            public, secret = zmq.auth.create_certificates(private, name)
             os.chmod(secret, SECRET_KEY_MODE)
-            if name == "server":
-                shutil.move(public, directory / "server.key")
-                shutil.move(secret, directory / "server.key_secret")
-                continue
+            own = directory / CLIENT_FOLDER.format(name=name)
+            own.mkdir()
+            shutil.copyfile(directory / "server.key", own / "server.key")
+            if i == 0:  # copied in the private folder, so that the copy too is never readable by others
+                shutil.copy2(secret, private / "first.key_secret")
+                shutil.move(private / "first.key_secret", directory / "client.key_secret")
             shutil.move(public, allowed / f"{name}.key")
-            shutil.move(secret, directory / ("client.key_secret" if i == 1 else f"{name}.key_secret"))
+            shutil.move(secret, own / "client.key_secret")
     finally:
         shutil.rmtree(private, ignore_errors=True)
     return directory

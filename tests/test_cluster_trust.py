@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zmq
+import zmq.auth
 
 from common.body import LIMB_CHAINS
 from common.errors import UserError
@@ -254,14 +255,41 @@ def test_mocap_client_refuses_bad_numbers(argv, capsys):
 
 
 def secret_modes(directory):
-    return {p.name: stat.S_IMODE(p.stat().st_mode) for p in directory.rglob("*.key_secret")}
+    return {str(p.relative_to(directory)): stat.S_IMODE(p.stat().st_mode) for p in directory.rglob("*.key_secret")}
 
 
 def test_secret_key_files_are_private(tmp_path):
     keys = create_curve_keys(tmp_path / "keys", ("a", "b"))
-    assert secret_modes(keys) == {"server.key_secret": 0o600, "client.key_secret": 0o600, "b.key_secret": 0o600}
+    assert secret_modes(keys) == {"server.key_secret": 0o600, "client.key_secret": 0o600,
+                                  "for-a/client.key_secret": 0o600, "for-b/client.key_secret": 0o600}
     assert sorted(p.name for p in (keys / "clients").iterdir()) == ["a.key", "b.key"]
     assert (keys / "server.key").exists() and [p.name for p in keys.iterdir() if p.name.startswith(".")] == []
+
+
+def test_each_client_gets_a_folder_of_its_own_key(tmp_path):
+    """``for-NAME/`` is what NAME's machine loads with --curve-keys: its own pair, whose public
+    half is NAME's entry in the allow-list, and the server's public key (a copy of the whole
+    folder would make every client the first one)."""
+    from client.worker import CurveKeys
+
+    keys = create_curve_keys(tmp_path / "keys", ("lab1", "lab2"))
+    for name in ("lab1", "lab2"):
+        loaded = CurveKeys.load(str(keys / f"for-{name}"))
+        allowed, _ = zmq.auth.load_certificate(keys / "clients" / f"{name}.key")
+        assert loaded.public == allowed
+        assert loaded.server == zmq.auth.load_certificate(keys / "server.key")[0]
+    assert CurveKeys.load(str(keys)).public == CurveKeys.load(str(keys / "for-lab1")).public
+
+
+@pytest.mark.parametrize("names, said", [("a,a", "twice"), ("server", "server's own"), ("a,,b", "empty name"),
+                                         ("../x", "letters, digits"), (",", "empty name")])
+def test_mocap_keys_refuses_bad_client_names_before_making_anything(tmp_path, capsys, names, said):
+    from server.cli import main
+
+    assert main(["keys", str(tmp_path / "k"), "--clients", names]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--clients" in err and said in err and "Traceback" not in err
+    assert not (tmp_path / "k").exists()
 
 
 def test_mocap_keys_writes_private_secret_keys(tmp_path):

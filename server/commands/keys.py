@@ -16,12 +16,16 @@ def register(sub) -> None:
 def run(args) -> int:
     from server.trust import create_curve_keys
 
-    names = tuple(n.strip() for n in args.clients.split(",") if n.strip())
-    if not names:
-        raise UserError("--clients: give at least one name")
+    from server.trust import CLIENT_FOLDER, check_client_names
+
+    names = tuple(n.strip() for n in args.clients.split(","))
+    check_client_names(names)  # before anything is made: a refused name leaves no half-made folder
+    if args.directory.exists() and not args.directory.is_dir():
+        raise UserError(f"{args.directory}: is a file; name a folder")
     if (args.directory / "server.key_secret").exists():
         raise UserError(f"{args.directory}: already holds keys; refusing to overwrite them")
     create_curve_keys(args.directory, names)
-    print(f"keys in {args.directory}: server.key_secret (server only), server.key, clients/*.key (allow-list), "
-          f"client.key_secret (give clients a copy of the folder without server.key_secret)")
+    folders = ", ".join(CLIENT_FOLDER.format(name=n) + "/" for n in names)
+    print(f"keys in {args.directory}: server.key_secret (the server's only), server.key, clients/*.key (the "
+          f"allow-list); copy each client its own folder ({folders}) and start it with --curve-keys FOLDER")
     return 0
