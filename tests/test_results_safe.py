@@ -294,3 +294,22 @@ def test_segment_refuses_existing_silhouettes(tmp_path, capsys):
     code, err = run(capsys, "segment", seq, "--overwrite")
     assert code == 0, err
     assert sorted(snapshot(seq / "silhouettes")) == sorted(before)
+
+
+def test_the_demo_makes_again_only_a_folder_it_made(tmp_path, capsys):
+    """``mocap demo --out DIR`` makes DIR's sequence/ and result/ again on every run: a folder
+    holding anything the demo did not make is refused before a file is touched."""
+    from server.demo import DEMO_MARK, claim_demo_folder
+
+    take = tmp_path / "take"
+    (take / "sequence").mkdir(parents=True)
+    (take / "sequence" / "notes.txt").write_text("mine")
+    before = snapshot(take)
+    code, err = run(capsys, "demo", "--out", take, "--frames", "1")
+    assert code == 2
+    one_error_line(err, str(take), "did not make")
+    assert snapshot(take) == before
+    claim_demo_folder(tmp_path / "new")  # a new folder, and again once it is the demo's
+    (tmp_path / "new" / "result").mkdir()
+    claim_demo_folder(tmp_path / "new")
+    assert (tmp_path / "new" / DEMO_MARK).is_file()
