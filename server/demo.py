@@ -25,7 +25,9 @@ DEMO_MARK = ".mocap-demo"  # in a folder the demo made, which it may make again
 
 
 def add_demo_arguments(ap) -> None:
-    ap.add_argument("--out", type=Path, default=Path("demo"), help="the demo's own folder, made again each run (a folder holding files the demo did not make is refused)")
+    ap.add_argument("--out", type=Path, default=Path("demo"),
+                    help="the demo's own folder, made again each run (one holding files the demo did not make "
+                         "is refused)")
     ap.add_argument("--clip", type=Path, default=DEFAULT_CLIP, help="BVH motion (default: the bundled CMU walk)")
     ap.add_argument("--frames", type=count(1), default=DEMO_FRAMES)
     ap.add_argument("--clients", type=count(0), default=0, help="local limb clients (default 0: one process)")
