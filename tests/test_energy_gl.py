@@ -207,3 +207,18 @@ def test_energies_release_their_gl_objects_and_leave_the_context_usable(ctx, mod
         gl.release()
         assert ctx.error == "GL_NO_ERROR"
     assert mesh_masks(model, studio, p).any() and ctx.error == "GL_NO_ERROR"
+
+
+def test_fit_warns_that_a_software_renderer_makes_gl_slow(monkeypatch, capsys):
+    """``--energy gl`` on Mesa llvmpipe ran a frame for many minutes without a word."""
+    import common.render_gl as render_gl
+    from server.commands.fit import warn_if_software_gl
+
+    monkeypatch.setattr(render_gl, "gl_renderer_name", lambda: "llvmpipe (LLVM 15.0.6, 256 bits)")
+    warn_if_software_gl("gl")
+    err = capsys.readouterr().err
+    assert err.startswith("warning: --energy gl:") and "llvmpipe" in err and "--energy cpu" in err
+    warn_if_software_gl("cpu")
+    monkeypatch.setattr(render_gl, "gl_renderer_name", lambda: "NVIDIA H200/PCIe/SSE2")
+    warn_if_software_gl("gl")
+    assert capsys.readouterr().err == ""
