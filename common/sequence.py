@@ -42,10 +42,10 @@ from common.body import JOINT_NAMES, PARAM_NAMES
 from common.calibration import EASYMOCAP_FILES, MAX_IMAGE_PIXELS, load_calibration, natural_key, with_image_sizes
 from common.camera import Studio
 from common.consistency import PROP_SAMPLES, StaticProps, static_props, supported_masks
-from common.errors import FieldChecks, InputFileError, UserError
+from common.errors import FieldChecks, InputFileError, UserError, print_warning
 from common.packing import pad_stack
 from common.voxels import silhouette_centre
-from common.world import WorldFrame, resolve_world
+from common.world import WorldFrame, below_floor_warning, resolve_world
 
 FRAME_NAME = "{frame:06d}.png"  # how we write frames
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".pbm", ".pgm", ".ppm", ".pnm", ".tif", ".tiff")
@@ -224,6 +224,8 @@ class Sequence:
             self.user_studio = with_image_sizes(self.user_studio, self._first_image_sizes(), str(self.path))
         # fitting runs in the z-up fit frame (common.world); results go back to the user's
         self.world: WorldFrame = resolve_world(self.user_studio, up)
+        if (warning := below_floor_warning(self.user_studio, self.world)) is not None:
+            print_warning(f"{self.path}: {warning}")
         self.studio: Studio = self.world.studio_to_fit(self.user_studio)
         self.clean_masks = clean_masks
         self._cleaned: OrderedDict = OrderedDict()  # frame -> (packed masks, width, pixels removed per camera)

@@ -108,3 +108,13 @@ def cameras_below_floor(studio: Studio, world: WorldFrame) -> list[str]:
     """Names of cameras whose centre is below the floor (height < -MIN_CAMERA_HEIGHT) for ``world``."""
     axis = AXIS_VECTORS[world.up]
     return [c.name for c in studio if float(c.center @ axis) < -MIN_CAMERA_HEIGHT]
+
+
+def below_floor_warning(studio: Studio, world: WorldFrame) -> str | None:
+    """The warning for cameras that ``world``'s up axis puts below the floor (a z-down board
+    calibration fitted with --up +z comes out upside down), or None."""
+    below = cameras_below_floor(studio, world)
+    if not below:
+        return None
+    return (f"with up {world.up} cameras {', '.join(below)} stand below the floor (z = 0); "
+            f"is the up axis right? (auto finds {detect_up(studio)})")

@@ -44,6 +44,18 @@ def test_cameras_below_the_floor_are_named_for_a_wrong_axis():
         world_frame("up")
 
 
+def test_a_sequence_loaded_with_a_wrong_up_axis_says_so(small_sequence, capsys):
+    """``mocap fit --up -z`` (or voxels, live, server) on a z-up rig: the cameras stand below the
+    floor, as ``calib show`` warns; the fit would come out upside down without a word."""
+    from common.sequence import load_sequence
+
+    load_sequence(small_sequence, up="auto")
+    assert capsys.readouterr().err == ""
+    load_sequence(small_sequence, up="-z")
+    err = capsys.readouterr().err
+    assert err.count("warning:") == 1 and "below the floor" in err and "auto finds +z" in err
+
+
 @pytest.mark.parametrize("name", sorted(POSTURES))
 def test_postures_stand_on_the_floor(name):
     model = load_body_model()

@@ -21,7 +21,7 @@ from common.calibration import (
 )
 from common.camera import Studio
 from common.errors import UserError, print_warning
-from common.world import UP_CHOICES, cameras_below_floor, detect_up, resolve_world
+from common.world import UP_CHOICES, below_floor_warning, resolve_world
 from server.output import add_overwrite_argument, check_file_target, check_folder_target, replace_file, staged_folder
 
 
@@ -103,10 +103,9 @@ def run_show(args) -> int:
 def world_line(studio: Studio, up: str) -> str:
     """'up axis: -z (found from the cameras)'; a warning on stderr naming cameras below the floor."""
     world = resolve_world(studio, up)
-    below = cameras_below_floor(studio, world)
-    if below:
-        print_warning(f"with up {world.up} cameras {', '.join(below)} stand below the floor (z = 0); "
-                      f"is the up axis right? (auto finds {detect_up(studio)})")
+    warning = below_floor_warning(studio, world)
+    if warning:
+        print_warning(warning)
     how = "found from the cameras" if up == "auto" else "as given"
     return f"up axis: {world.up} ({how}); fitting turns it to +z and writes results in this frame"
 
