@@ -144,12 +144,17 @@ class FittedMotion:
             raise UserError(f"{source}: no fitted frames to export")
         if not (np.isfinite(fps) and fps > 0):
             raise UserError(f"{source}: frame rate must be positive, got {fps!r}")
+        for n, r in enumerate(records, start=1):
+            missing = [k for k in ("frame", "params", "joints") if k not in r]
+            missing += [f"joints.{j}" for j in JOINT_NAMES if "joints" in r and j not in r["joints"]]
+            if missing:
+                raise UserError(f"{source}: record {n} (frame {r.get('frame', '?')}): no {', '.join(missing)}")
         try:
             frames = np.array([int(r["frame"]) for r in records])
             params = np.array([r["params"] for r in records], dtype=np.float64)
             joints = np.array([[r["joints"][n] for n in JOINT_NAMES] for r in records], dtype=np.float64)
-        except (KeyError, TypeError, ValueError) as exc:
-            raise UserError(f"{source}: not a poses record ({exc!r})") from None
+        except (TypeError, ValueError) as exc:
+            raise UserError(f"{source}: not a poses record ({exc})") from None
         if params.shape != (len(records), PARAM_COUNT) or joints.shape != (len(records), len(JOINT_NAMES), 3):
             raise UserError(f"{source}: expected {PARAM_COUNT} params and {len(JOINT_NAMES)} joints per frame")
         up = str(records[0].get("world_up", "+z"))

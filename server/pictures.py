@@ -38,7 +38,7 @@ from common.errors import InputFileError, UserError
 from common.export import FittedMotion
 from common.sequence import Sequence, load_sequence
 from server.progress import Progress
-from server.results import SUMMARY_FILE, frames_text, load_records
+from server.results import RUN_FILE, SUMMARY_FILE, frames_text, load_records, read_run_settings
 
 PICTURES_DIR = "pictures"
 GIF_NAME = "sequence.gif"
@@ -111,10 +111,21 @@ class ResultData:
         return np.linalg.norm(self.motion.fit_joints - self.truth, axis=-1) * 1000.0
 
 
+def _recorded_sequence(result_dir: Path, summary: dict) -> str | None:
+    """The sequence a result was fitted from: summary.json's, else run.json's (written before
+    the first frame, so an interrupted fit has it too)."""
+    if summary.get("sequence"):
+        return str(summary["sequence"])
+    try:
+        return str(read_run_settings(result_dir / RUN_FILE).get("sequence") or "") or None
+    except (OSError, UserError):
+        return None
+
+
 def _sequence_path(result_dir: Path, summary: dict, sequence_dir) -> Path | None:
     if sequence_dir is not None:
         return Path(sequence_dir)
-    recorded = summary.get("sequence")
+    recorded = _recorded_sequence(result_dir, summary)
     if recorded and Path(recorded).is_dir():
         return Path(recorded)
     return None
@@ -144,8 +155,9 @@ def load_result(result_dir, sequence_dir=None, fps: float | None = None) -> Resu
     sequence = load_sequence(seq_path, up=up, clean_masks=cleaned) if seq_path is not None else None
     if fps is None:
         if sequence is None:
-            raise UserError(f"{result_dir}: the sequence {summary.get('sequence', '(not recorded)')!r} is not "
-                            "there, so its frame rate is unknown; pass --sequence SEQ or --fps FPS")
+            recorded = _recorded_sequence(result_dir, summary) or "(not recorded)"
+            raise UserError(f"{result_dir}: the sequence {recorded!r} is not there, so its frame rate is unknown; "
+                            "pass --sequence SEQ or --fps FPS")
         fps = sequence.fps
     motion = FittedMotion.from_records(records, fps, str(result_dir / "poses.jsonl"))
     truth = None

@@ -3,11 +3,13 @@ and replacing the file whole."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 from pathlib import Path
 
-from common.errors import InputFileError, UserError
+from common.body import PARAM_COUNT
+from common.errors import InputFileError, UserError, print_warning
 from common.export import FORMATS, export_name, frame_step
 from server.output import check_folder_target, write_text
 
@@ -33,9 +35,11 @@ def frames_text(frames) -> str:
 def read_done_frames(path: Path) -> list[dict]:
     """The records of an existing poses.jsonl.
 
-    A torn last line (a crash while it was written: no newline at its end) is dropped; any
-    other line that is not a record is an InputFileError naming it, because the frames after
-    it would otherwise be lost or fitted again.
+    A torn last line (a crash while it was written: no newline at its end) is dropped with a
+    warning; any other line that is not a record, whose parameters are not PARAM_COUNT finite
+    numbers, or whose frame does not follow the line before (lines swapped or repeated by hand)
+    is an InputFileError naming it, because exports would play it backwards or twice and a
+    --resume would lose or refit the frames after it.
     """
     if not path.exists():
         return []
@@ -50,7 +54,17 @@ def read_done_frames(path: Path) -> list[dict]:
                 and isinstance(record.get("params"), list)):
             raise InputFileError(path, f"line {n}: not a pose record (corrupt?); repair or remove the file, "
                                        "or fit again with --overwrite")
+        params = record["params"]
+        if len(params) != PARAM_COUNT or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in params):
+            raise InputFileError(path, f"line {n}: params: expected {PARAM_COUNT} finite numbers (frame "
+                                       f"{record['frame']}); repair the line, or fit again with --overwrite")
+        if done and record["frame"] <= done[-1]["frame"]:
+            raise InputFileError(path, f"line {n}: frame {record['frame']} after frame {done[-1]['frame']}: the "
+                                       "records are out of order or repeated; repair the file, or fit again with "
+                                       "--overwrite")
         done.append(record)
+    if lines[-1].strip():
+        print_warning(f"{path}: line {len(lines)} is incomplete (a run stopped while writing it): left out")
     return done
 
 

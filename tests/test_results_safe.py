@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -313,3 +314,34 @@ def test_the_demo_makes_again_only_a_folder_it_made(tmp_path, capsys):
     (tmp_path / "new" / "result").mkdir()
     claim_demo_folder(tmp_path / "new")
     assert (tmp_path / "new" / DEMO_MARK).is_file()
+
+
+@pytest.mark.parametrize("edit, said", [
+    (lambda lines: [lines[1], lines[0], *lines[2:]], "out of order or repeated"),
+    (lambda lines: [lines[0], *lines], "out of order or repeated"),
+    (lambda lines: [re.sub(r'("params": \[)[^,]+', r"\1NaN", lines[0], count=1), *lines[1:]], "finite numbers"),
+])
+def test_export_refuses_poses_out_of_order_repeated_or_not_numbers(fitted, tmp_path, capsys, edit, said):
+    """Lines swapped or repeated by hand would play backwards or twice; NaN parameters would be
+    written as they are."""
+    poses = fitted / "poses.jsonl"
+    poses.write_text("\n".join(edit(poses.read_text().splitlines())) + "\n")
+    code, err = run(capsys, "export", fitted, "--format", "csv", "--out", tmp_path / "m.csv")
+    assert code == 2
+    one_error_line(err, "poses.jsonl", "line ", said)
+    assert not (tmp_path / "m.csv").exists()
+
+
+def test_export_of_a_torn_or_interrupted_result_says_what_it_left_out(fitted, seq, tmp_path, capsys):
+    poses = fitted / "poses.jsonl"
+    first, second = poses.read_text().splitlines()[:2]
+    poses.write_text(first + "\n" + second[:40])  # a run stopped while writing its second frame
+    (fitted / "summary.json").unlink()  # ... before its summary: run.json still names the sequence
+    code, err = run(capsys, "export", fitted, "--format", "csv", "--out", tmp_path / "m.csv")
+    assert code == 0, err
+    assert "warning:" in err and "line 2 is incomplete" in err
+    assert len((tmp_path / "m.csv").read_text().splitlines()) == 2  # the header and one frame
+    shutil.rmtree(seq)
+    code, err = run(capsys, "export", fitted, "--format", "csv", "--out", tmp_path / "m2.csv")
+    assert code == 2
+    one_error_line(err, str(seq.resolve()), "--fps")
