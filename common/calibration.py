@@ -1,6 +1,7 @@
 """Calibration files: read and write studios in the formats users already have.
 
-Our own JSON format (``calibration.json``; ``version`` other than ``JSON_VERSION`` is refused)::
+Our own JSON format (``calibration.json``; ``version`` other than ``JSON_VERSION`` is refused,
+and so is a key it does not have, with the closest known one suggested)::
 
     {"format": "silhouette-mocap-calibration", "version": 1, "units": "m",
      "cameras": [{"name": str, "K": 3x3, "dist": [k1, k2, p1, p2, k3], "R": 3x3,
@@ -31,6 +32,11 @@ Other formats (``FORMATS``; ``WRITE_FORMATS`` are also written), the way their t
   OpenCV's. ``viewrotation`` (0/90/180/270, taken as clockwise) turns the image: K, R, the
   tangential distortion and the size follow. Cameras whose ``model`` is marker-only are skipped.
 
+The other formats' files may hold other tools' fields (OpenCV's calibration sample, EasyVolcap,
+FreeMocap add theirs), which are passed over; but a name we do not read that is close to a field
+the camera lacks (``DistortionCoeffz``, ``dsit_01``, ``viewRotation``: difflib, case ignored,
+``MISSPELT_MATCH``) is refused as misspelt, since the camera would silently go without it.
+
 A folder of per-camera files (``opencv-xml`` and ``projection``) is either ``<cam>.xml`` /
 ``<cam>.txt`` files at the top, or ``<cam>/`` sub-folders each holding one file with a camera
 (K, R and t, or P). Files holding no camera (a board description, an intrinsics-only estimate
@@ -41,20 +47,25 @@ Image sizes are optional in every format (and at most ``MAX_IMAGE_PIXELS``, as e
 is): without one in the file or ``size``, a camera's size
 is twice its principal point, rounded (as Pose2Sim's converters do), one warning line names the
 cameras, and ``Camera.size_guessed`` is set (kept in our JSON as ``"size_guessed": true``) so
-that ``with_image_sizes`` can later put in the images' real size.
+that ``with_image_sizes`` can later put in the images' real size. EasyMocap and OpenCV XML are
+written without a guessed size; Pose2Sim and Anipose, whose files always hold one, are not
+written with a guess (``check_sizes_writable``).
 
 Camera sections in TOML files and files in folders are taken in natural order (``cam_2`` before
 ``cam_10``). Translations are metres inside; files other than our JSON and Qualisys (mm) do
-not say their units, so ``units`` scales them, and without ``units`` a rig whose cameras stand
-more than ``MAX_CAMERA_DISTANCE`` from the origin is refused as probably millimetres.
-Numbers are written with full double precision (EasyMocap itself writes 6 decimals), so every
-written format round-trips exactly.
+not say their units, so ``units`` scales them (a file that says its units is read in them, and
+a ``units`` that disagrees is named in a warning), and without ``units`` a rig whose cameras
+stand more than ``MAX_CAMERA_DISTANCE`` from the origin is refused as probably millimetres.
+Whoever gave the units, a rig whose farthest two cameras stand outside ``STUDIO_CAMERA_SPAN``
+gets a warning line. Numbers are written with full double precision (EasyMocap itself writes 6
+decimals), so every written format round-trips exactly.
 
-One module of about 1,100 lines: the seven formats share the field checks, units, image sizes
+One module of about 1,250 lines: the seven formats share the field checks, units, image sizes
 and camera building of its first half; each later section is one format's reader and writer.
 """
 from __future__ import annotations
 
+import difflib
 import json
 import re
 import xml.etree.ElementTree as ET
@@ -75,21 +86,44 @@ except ModuleNotFoundError:  # Python 3.10
 
 JSON_FORMAT_NAME = "silhouette-mocap-calibration"
 JSON_VERSION = 1  # the only version there is; a file of another was written by a newer release
+JSON_FIELDS = ("format", "version", "units", "cameras")
+JSON_CAMERA_FIELDS = ("name", "K", "dist", "R", "t", "width", "height", "size_guessed")
 UNIT_SCALE = {"m": 1.0, "cm": 0.01, "mm": 0.001}  # metres per unit
 WRITE_FORMATS = ("json", "easymocap", "pose2sim", "anipose", "opencv-xml")
 FORMATS = WRITE_FORMATS + ("projection", "qualisys")
 ROUNDING_TOLERANCE = 1e-5  # |R^T R - I| of a rotation matrix written with 6 decimals; snapped
 MAX_CAMERA_DISTANCE = 50.0  # metres; a camera centre farther from the origin means "not metres"
 # metres: the farthest two cameras of a capture room (or a stereo pair) stand at least and at
-# most this far apart; outside it with --units given, the units are likely wrong (a millimetre
-# file read as cm: tens of metres). Between cameras, not from the origin: a stereo file has one
-# camera there
+# most this far apart; outside it, the units the file was read in are likely wrong (a millimetre
+# file read as cm: tens of metres; metres in a file that says mm: millimetres apart). Between
+# cameras, not from the origin: a stereo file has one camera there
 STUDIO_CAMERA_SPAN = (0.02, 30.0)
+UNIT_ORIGINS = {  # where the units of a studio outside that span came from -> (how it was read, what to check)
+    "given": ("with --units {units}", "check --units"),
+    "declared": ("in {units}, as the file says,", "are the file's units right?"),
+    "assumed": ("in metres (the file does not say)", "pass --units if they are not metres"),
+}
 # Pixels (width x height) a camera's image, and so any image file read, may have: three times
 # 8K video (7680 x 4320, 33 Mpx), ten times a 10 Mpx machine-vision camera; 300 MB as RGB.
 MAX_IMAGE_PIXELS = 100_000_000
 EASYMOCAP_FILES = ("intri.yml", "extri.yml")
 TOML_NON_CAMERA_SECTIONS = ("metadata", "capture_volume", "charuco", "checkerboard")  # FreeMocap adds the last three
+TOML_CAMERA_FIELDS = ("name", "size", "matrix", "distortions", "rotation", "translation", "fisheye")
+# EasyMocap keys <prefix>_<camera> per file; a group's prefixes are spellings of one field
+EASYMOCAP_FIELDS = {"intri.yml": (("K",), ("dist", "D"), ("H",), ("W",)), "extri.yml": (("R", "Rot"), ("T",))}
+# what QTM writes on a <camera>, its children and its <intrinsic> (Pose2Sim's spelling "tangential" too)
+QUALISYS_CAMERA_ATTRIBUTES = ("active", "avg-residual", "model", "point-count", "serial", "viewrotation")
+QUALISYS_CAMERA_CHILDREN = ("fov_marker", "fov_marker_max", "fov_video", "fov_video_max", "transform", "intrinsic")
+QUALISYS_INTRINSIC_ATTRIBUTES = (
+    "focallength", "sensorMinU", "sensorMaxU", "sensorMinV", "sensorMaxV", "focalLengthU", "focalLengthV",
+    "pixelAspectRatio", "centerPointU", "centerPointV", "skew", "radialDistortion1", "radialDistortion2",
+    "radialDistortion3", "tangentalDistortion1", "tangentalDistortion2", "tangentialDistortion1",
+    "tangentialDistortion2")
+# difflib ratio from which a name we do not read is taken for a misspelling of a field the camera
+# lacks (DistortionCoeffz 0.94, dsit_01 0.86), not for another tool's node (image_points vs
+# image_size 0.6); and the lower one from which our JSON's error suggests a field
+MISSPELT_MATCH = 0.8
+SUGGEST_MATCH = 0.6
 YAML_KEY_NAME = re.compile(r"^[A-Za-z0-9_\-]+$")  # what OpenCV FileStorage accepts in K_<cam> keys
 FILE_NAME = re.compile(r"^(?!\.\.?$)[^/\\\x00-\x1f]+$")  # a camera name usable as <cam>.xml
 SKEW_WARNING = 0.01  # |K[0, 1]| / fx of a decomposed P above which a warning names the camera
@@ -141,9 +175,15 @@ def _checks(source) -> FieldChecks:
 
 
 def studio_from_json(doc, source: str, units: str | None = None) -> Studio:
+    """A studio from our JSON document; ``units`` scales files that do not say theirs.
+
+    The format is ours, so a key it does not have is refused (a misspelt "dist" would otherwise
+    leave the camera without distortion).
+    """
     checks = _checks(source)
     if not isinstance(doc, dict):
         raise CalibrationError(source, "<root>", "expected a JSON object")
+    _refuse_unknown_keys(doc, JSON_FIELDS, source, "")
     if doc.get("format", JSON_FORMAT_NAME) != JSON_FORMAT_NAME:
         raise CalibrationError(source, "format", f"expected {JSON_FORMAT_NAME!r}, got {doc.get('format')!r}")
     if doc.get("version", JSON_VERSION) != JSON_VERSION or isinstance(doc.get("version"), bool):
@@ -160,6 +200,8 @@ def studio_from_json(doc, source: str, units: str | None = None) -> Studio:
     for i, c in enumerate(cams):
         if not isinstance(c, dict):
             raise CalibrationError(source, f"cameras[{i}]", "expected an object")
+        named = isinstance(c.get("name"), str) and c["name"]
+        _refuse_unknown_keys(c, JSON_CAMERA_FIELDS, source, f"{c['name'] if named else f'cameras[{i}]'}.")
         for key in ("name", "K", "R", "t", "width", "height"):
             if key not in c:
                 raise CalibrationError(source, f"cameras[{i}].{key}", "missing")
@@ -170,49 +212,100 @@ def studio_from_json(doc, source: str, units: str | None = None) -> Studio:
         dist = None if c.get("dist") is None else _numbers(c["dist"], source, f"{name}.dist")
         cam = make_camera(name, K, dist, R, t * scale, width, height, source)
         out.append(replace(cam, size_guessed=guessed))
-    studio = Studio(tuple(out), source)
-    if "units" not in doc and units is None:
-        check_units(studio, source)
-    return studio
+    return Studio(tuple(out), source)
+
+
+def _refuse_unknown_keys(doc: dict, known: tuple, source: str, where: str) -> None:
+    """Refuse the first key of ``doc`` not in ``known``, suggesting the closest known one."""
+    for key in doc:
+        if key not in known:
+            close = _closest(key, known, SUGGEST_MATCH)
+            hint = f"did you mean {close}?" if close else "the fields are " + ", ".join(known)
+            raise CalibrationError(source, f"{where}{key}", f"not a field we know; {hint}")
+
+
+def _closest(name: str, spellings, cutoff: float, key: Callable[[str], str] = str.lower) -> str | None:
+    """The one of ``spellings`` closest to ``name`` when compared by ``key`` (difflib ratio >= cutoff), else None."""
+    by_key = {key(s): s for s in spellings}
+    match = difflib.get_close_matches(key(name), list(by_key), n=1, cutoff=cutoff)
+    return by_key[match[0]] if match else None
+
+
+def _refuse_misspelt(names, known, lacking, source: str, where: str = "",
+                     read_as: Callable[[str], str] = str) -> None:
+    """Refuse the first of ``names`` (keys, nodes, attributes of a file that may hold other tools'
+    too) that is not one of ``known`` but close to one of ``lacking``, the spellings of fields
+    the camera does not have: a misspelt field, which would otherwise be passed over.
+
+    read_as: how the reader matches a name (exactly, or XML tags without case and underscores);
+    closeness ignores case either way (viewRotation is a misspelt viewrotation).
+    """
+    known_keys = {read_as(k) for k in known}
+    for name in names:
+        if read_as(name) not in known_keys:
+            close = _closest(name, lacking, MISSPELT_MATCH, lambda n: read_as(n).lower())
+            if close:
+                raise CalibrationError(source, f"{where}{name}", f"not a field we know; did you mean {close}?")
 
 
 # ----------------------------------------------------------------------------- public API
 
 def load_calibration(path, units: str | None = None, fmt: str | None = None,
-                     size: tuple[int, int] | None = None, warn: Warn = print_warning) -> Studio:
+                     size: tuple[int, int] | None = None, warn: Warn = print_warning,
+                     image_sizes: dict[str, tuple[int, int]] | None = None, images: str = "images") -> Studio:
     """Read a studio from ``path`` in any of ``FORMATS`` (detected when ``fmt`` is None).
 
-    units: "m", "cm" or "mm" for files that do not say (None: metres, checked for plausibility).
+    units: "m", "cm" or "mm" for files that do not say (None: metres, checked for plausibility);
+    a file that says its units (our JSON, Qualisys) is read in them, and a ``units`` that
+    disagrees is named in a warning line.
     size: (width, height) pixels for cameras whose file gives no image size; without it their
     size is guessed (``Camera.size_guessed``) and one line passed to ``warn`` names them.
-    warn: receives each warning line (guessed sizes, skipped files, skewed projection matrices).
+    image_sizes: camera -> (width, height) of its images, named ``images`` in messages: put in
+    for guessed sizes, checked against the file's (``with_image_sizes``).
+    warn: receives each warning line (guessed sizes, skipped files, skewed projection matrices,
+    doubtful units).
     """
     path = Path(path)
+    source = str(path)
     if units is not None and units not in UNIT_SCALE:
-        raise CalibrationError(str(path), "units", f"expected one of {sorted(UNIT_SCALE)}, got {units!r}")
+        raise CalibrationError(source, "units", f"expected one of {sorted(UNIT_SCALE)}, got {units!r}")
     if not path.exists():
-        raise CalibrationError(str(path), "", "does not exist")
+        raise CalibrationError(source, "", "does not exist")
     fmt = fmt or detect_format(path)
+    lines: list[str] = []  # warnings wait for success: a failed read says one thing, its error
     if fmt == "json":
         if path.is_dir():
-            raise CalibrationError(str(path), "", "is a folder, expected a calibration JSON file")
-        studio = studio_from_json(_read_json(path), str(path), units)
-        _check_image_sizes(studio, str(path))
-        return studio
-    lines: list[str] = []  # warnings wait for success: a failed read says one thing, its error
-    studio = _read_format(path, fmt, units, size, lines.append)
-    _check_image_sizes(studio, str(path))
+            raise CalibrationError(source, "", "is a folder, expected a calibration JSON file")
+        doc = _read_json(path)
+        studio = studio_from_json(doc, source, units)
+        declared = doc.get("units")
+    else:
+        studio = _read_format(path, fmt, units, size, lines.append)
+        declared = "mm" if fmt == "qualisys" else None
+    _check_image_sizes(studio, source)
+    if image_sizes:
+        studio = with_image_sizes(studio, image_sizes, images)
     guessed = [c.name for c in studio if c.size_guessed]
-    if guessed:
+    if guessed and fmt != "json":  # our JSON marks its guesses, and says so when shown
         lines.append(f"{path}: no image size for {', '.join(guessed)}; guessed as twice the principal point "
                      "(pass --size WxH, or take the size from the images)")
-    if units is None:
-        check_units(studio, str(path))
-    else:
-        lines += units_doubt(studio, units, str(path))
+    lines += _units_lines(studio, source, units, declared)
     for line in lines:
         warn(line)
     return studio
+
+
+def _units_lines(studio: Studio, source: str, units: str | None, declared: str | None) -> list[str]:
+    """Warning lines on the units a studio was read in (the file's ``declared`` ones, else ``units``,
+    else metres); refuses, as ``check_units``, a studio that cannot be in metres."""
+    if declared is not None:
+        ignored = [] if units in (None, declared) else [
+            f"{source}: units: the file says {declared}; --units {units} is for files that do not say, and is not used"]
+        return ignored + units_doubt(studio, declared, source, "declared")
+    if units is None:
+        check_units(studio, source)
+        return units_doubt(studio, "m", source, "assumed")
+    return units_doubt(studio, units, source)
 
 
 def _check_image_sizes(studio: Studio, source: str) -> None:
@@ -233,8 +326,6 @@ def _read_format(path: Path, fmt: str, units: str | None, size, warn: Warn) -> S
     if fmt in ("opencv-xml", "projection"):
         return _read_camera_files(path, scale, size, warn)
     if fmt == "qualisys":
-        if units not in (None, "mm"):
-            raise CalibrationError(str(path), "units", f"Qualisys files are in millimetres; drop --units {units}")
         return _read_qualisys(_qualisys_file(path), size, warn)
     raise CalibrationError(str(path), "format", f"unknown format {fmt!r}; expected one of {', '.join(FORMATS)}")
 
@@ -243,7 +334,9 @@ def with_image_sizes(studio: Studio, sizes: dict[str, tuple[int, int]], source: 
     """``studio`` with each camera named in ``sizes`` at its images' (width, height) pixels.
 
     A guessed size (``Camera.size_guessed``) is replaced; a size from the calibration file that
-    differs from the images' raises CalibrationError. ``source`` names the images (for messages).
+    differs from the images' raises CalibrationError (saying so when it is twice the principal
+    point: maybe a guess that a file unable to mark one passed on). ``source`` names the images
+    (for messages).
     """
     unknown = [name for name in sizes if name not in studio.names]
     if unknown:
@@ -260,8 +353,11 @@ def with_image_sizes(studio: Studio, sizes: dict[str, tuple[int, int]], source: 
         if cam.size_guessed:
             cam = replace(cam, width=width, height=height, size_guessed=False)
         elif (cam.width, cam.height) != (width, height):
+            hint = ("" if (cam.width, cam.height) != _twice_principal_point(cam.K) else
+                    f"; {cam.width}x{cam.height} is twice the principal point, the size a converter guesses for a "
+                    "camera without one: if it was guessed, put the images' size in the calibration")
             raise CalibrationError(studio.source, f"{cam.name}.size", f"the calibration says {cam.width}x{cam.height} "
-                                   f"but the images ({source}) are {width}x{height}")
+                                   f"but the images ({source}) are {width}x{height}{hint}")
         cams.append(cam)
     return Studio(tuple(cams), studio.source)
 
@@ -272,12 +368,13 @@ def save_calibration(studio: Studio, path, fmt: str | None = None) -> None:
 
     easymocap and opencv-xml write into a folder ``path`` (opencv-xml writes one file when
     ``path`` ends in .xml and the studio has one camera); they leave out guessed sizes, as the
-    files they read came without.
+    files they read came without. pose2sim and anipose refuse guessed sizes (``check_sizes_writable``).
     """
     path = Path(path)
     fmt = output_format(path, fmt)
     if fmt in ("json", "pose2sim", "anipose") and path.is_dir():
         raise CalibrationError(str(path), "", f"is a folder; {fmt} calibration is a single file")
+    check_sizes_writable(studio, path, fmt)
     if fmt == "json":
         text = json.dumps(studio_to_json(studio), indent=1)
         _write(path, text)
@@ -300,6 +397,19 @@ def save_calibration(studio: Studio, path, fmt: str | None = None) -> None:
         else:
             for cam in studio:
                 _write(path / f"{cam.name}.xml", _xml_text(cam))
+
+
+def check_sizes_writable(studio: Studio, path, fmt: str) -> None:
+    """Refuse to write guessed image sizes to ``path`` in ``fmt`` when the format cannot mark them.
+
+    pose2sim and anipose files always hold a size, which their readers (ours too) take for the
+    images': a guess written there would pass for a measured size.
+    """
+    guessed = [c.name for c in studio if c.size_guessed]
+    if fmt in ("pose2sim", "anipose") and guessed:
+        raise CalibrationError(str(path), "size", f"no image size for {', '.join(guessed)} (guessed as twice the "
+                               f"principal point), and a {fmt} file cannot mark a size as guessed: give the images' "
+                               "size (--size WxH, --size-from CAMERA=VIDEO), or write .json, which keeps it marked")
 
 
 def detect_format(path) -> str:
@@ -368,16 +478,19 @@ def check_units(studio: Studio, source: str) -> None:
             "centimetres: pass --units mm (or cm; --units m if the studio really is that large)")
 
 
-def units_doubt(studio: Studio, units: str, source: str) -> list[str]:
-    """A warning line where the farthest two cameras read with the ``units`` a user gave stand
-    nearer or farther apart than a capture room's (``STUDIO_CAMERA_SPAN``); else none."""
+def units_doubt(studio: Studio, units: str, source: str, origin: str = "given") -> list[str]:
+    """A warning line where the farthest two cameras read in ``units`` stand nearer or farther
+    apart than a capture room's (``STUDIO_CAMERA_SPAN``); else none. ``origin`` says where the
+    units came from (``UNIT_ORIGINS``: given by the user, declared by the file, assumed)."""
     centres = np.array([c.center for c in studio])
     span = float(np.linalg.norm(centres[:, None] - centres[None], axis=-1).max())
     low, high = STUDIO_CAMERA_SPAN
     if len(studio) < 2 or low <= span <= high:
         return []
-    return [f"{source}: with --units {units} the farthest two cameras stand {span:.2f} m apart, where a capture "
-            f"room's stand {low:g}-{high:g} m: check --units"]
+    read, advice = UNIT_ORIGINS[origin]
+    apart = f"{span * 1000:.0f} mm" if span < 1.0 else f"{span:.1f} m"
+    return [f"{source}: {read.format(units=units)} the farthest two cameras stand {apart} apart, where a capture "
+            f"room's stand {low:g}-{high:g} m: {advice}"]
 
 
 def natural_key(text: str) -> tuple:
@@ -534,11 +647,17 @@ def _build(name: str, K, dist, R, t, width, height, scale: float, fields: dict, 
     return replace(cam, size_guessed=True) if guessed else cam
 
 
+def _twice_principal_point(K: np.ndarray) -> tuple[int, int]:
+    """(width, height) guessed from a (3, 3) K: twice the principal point, rounded (as Pose2Sim's converters)."""
+    width, height = (int(np.floor(2.0 * c + 0.5)) for c in K.reshape(3, 3)[:2, 2])
+    return width, height
+
+
 def _guessed_size(K: np.ndarray, source: str, field: str) -> tuple:
     """(width, height) as twice the principal point, rounded; (None, None) for a K make_camera refuses."""
     if K.size != 9:
         return None, None
-    width, height = (int(np.floor(2.0 * c + 0.5)) for c in K.reshape(3, 3)[:2, 2])
+    width, height = _twice_principal_point(K)
     if width <= 0 or height <= 0:
         raise CalibrationError(source, field, f"missing, and the principal point ({K.reshape(3, 3)[0, 2]:g}, "
                                f"{K.reshape(3, 3)[1, 2]:g}) gives no size to guess; pass --size WxH")
@@ -598,11 +717,14 @@ def _read_easymocap(folder: Path, scale: float, size) -> Studio:
     names = intri.get("names")
     if not isinstance(names, list) or not names:
         raise CalibrationError(si, "names", "missing or empty list of camera names")
-    cams = []
     for i, raw in enumerate(names):
         if isinstance(raw, bool) or not isinstance(raw, (str, int)) or raw == "":
             raise CalibrationError(si, f"names[{i}]", f"expected a camera name, got {raw!r}")
-        name = str(raw)
+    names = [str(raw) for raw in names]
+    for doc, file_path in ((intri, intri_path), (extri, extri_path)):
+        _refuse_easymocap_misspelt(doc, names, file_path)
+    cams = []
+    for name in names:
         K, k_key = _yaml_node(intri, si, f"K_{name}")
         dist, d_key = _yaml_node(intri, si, f"dist_{name}", f"D_{name}")
         R, r_key = _yaml_node(extri, se, f"R_{name}", f"Rot_{name}")  # EasyMocap itself uses the Rodrigues R_
@@ -612,6 +734,16 @@ def _read_easymocap(folder: Path, scale: float, size) -> Studio:
                   "size": (si, f"H_{name}/W_{name}")}
         cams.append(_build(name, K, dist, R, t, width, height, scale, fields, size))
     return Studio(tuple(cams), str(folder))
+
+
+def _refuse_easymocap_misspelt(doc: dict, names: list[str], path: Path) -> None:
+    """Refuse a key close to one a camera lacks (dsit_01, dist_1 for camera 01): other tools
+    (EasyVolcap) add keys of their own, so keys we do not read are otherwise passed over."""
+    groups = EASYMOCAP_FIELDS[path.name]
+    known = ["names"] + [f"{prefix}_{name}" for name in names for group in groups for prefix in group]
+    lacking = [f"{prefix}_{name}" for name in names for group in groups
+               if all(doc.get(f"{p}_{name}") is None for p in group) for prefix in group]
+    _refuse_misspelt([str(key) for key in doc], known, lacking, str(path))
 
 
 def _yaml_node(doc: dict, source: str, *keys):
@@ -666,6 +798,8 @@ def _read_toml(path: Path, scale: float, size) -> Studio:
         c = doc[sec]
         if not isinstance(c, dict):
             raise CalibrationError(source, sec, "expected a [section] describing a camera")
+        # Pose2Sim and aniposelib write these keys, FreeMocap more: only a misspelling is refused
+        _refuse_misspelt(list(c), TOML_CAMERA_FIELDS, [k for k in TOML_CAMERA_FIELDS if k not in c], source, f"{sec}.")
         for key in ("matrix", "distortions", "rotation", "translation"):
             if key not in c:
                 raise CalibrationError(source, f"{sec}.{key}", "missing")
@@ -826,6 +960,8 @@ def _read_camera_file(name: str, path: Path, scale: float, size) -> tuple[Camera
         P = _projection_matrix(_projection_text(path), source, "P")
         return _projection_camera(name, P, None, None, scale, (source, "P"), (source, "<size>"), size), True
     nodes = _xml_nodes(path, _parse_xml(path))
+    _refuse_misspelt([elem.tag for elem in nodes.values()], [tag for tags in XML_TAGS.values() for tag in tags],
+                     _xml_lacking(nodes), source, read_as=_tag_key)
     width, height, size_field = _xml_size(nodes, source)
     p_tag, P = _xml_find(nodes, "P")
     if P is not None and any(_xml_find(nodes, field)[0] is None for field in CAMERA_FIELDS):
@@ -869,6 +1005,17 @@ def _xml_find(nodes: dict, field: str):
         if elem is not None:
             return elem.tag, _xml_value(elem)
     return None, None
+
+
+def _xml_lacking(nodes: dict) -> list[str]:
+    """The spellings (``XML_TAGS``) of the fields a camera file lacks: the image size unless it has
+    one (width and height, or size), P unless it has K, R and t, and K, R, t unless it has either."""
+    have = {field for field in XML_TAGS if _xml_find(nodes, field)[0] is not None}
+    if {"width", "height"} <= have or "size" in have:
+        have |= {"width", "height", "size"}
+    if set(CAMERA_FIELDS) <= have or "P" in have:
+        have |= {*CAMERA_FIELDS, "P"}
+    return [tag for field, tags in XML_TAGS.items() if field not in have for tag in tags]
 
 
 def _xml_required(nodes: dict, field: str, source: str):
@@ -1015,6 +1162,7 @@ def _qualisys_video(elem: ET.Element) -> bool:
 
 def _qualisys_camera(elem: ET.Element, source: str, size) -> Camera:
     name = elem.get("serial")
+    _refuse_qualisys_misspelt(elem, name, source)
     fov = elem.find("fov_video")
     sides = ("left", "top", "right", "bottom")
     box = None if fov is None else [_attr_number(fov, f"{name}.fov_video", source, side) for side in sides]
@@ -1027,6 +1175,20 @@ def _qualisys_camera(elem: ET.Element, source: str, size) -> Camera:
     where_k, where_rt = (source, f"{name}.intrinsic"), (source, f"{name}.transform")
     fields = {"K": where_k, "dist": where_k, "R": where_rt, "t": where_rt, "size": (source, f"{name}.fov_video")}
     return _build(name, K, dist, R, t, width, height, UNIT_SCALE["mm"], fields, size)
+
+
+def _refuse_qualisys_misspelt(elem: ET.Element, name: str, source: str) -> None:
+    """Refuse an attribute or child of a <camera> (or attribute of its <intrinsic>) close to one
+    it lacks: the optional ones (viewrotation, fov_video, skew, radialDistortion3) would
+    otherwise silently take their defaults."""
+    def check(names, known, where):
+        _refuse_misspelt(names, known, [k for k in known if k not in names], source, where)
+
+    check(list(elem.attrib), QUALISYS_CAMERA_ATTRIBUTES, f"{name}.")
+    check([child.tag for child in elem], QUALISYS_CAMERA_CHILDREN, f"{name}.")
+    intrinsic = elem.find("intrinsic")
+    if intrinsic is not None:
+        check(list(intrinsic.attrib), QUALISYS_INTRINSIC_ATTRIBUTES, f"{name}.intrinsic.")
 
 
 def _qualisys_intrinsics(intr: ET.Element, name: str, source: str, corner) -> tuple[np.ndarray, np.ndarray]:

@@ -5,10 +5,12 @@ import json
 import re
 import shutil
 import xml.etree.ElementTree as ET
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from common.calibration import (
     FORMATS, WRITE_FORMATS, decompose_projection, detect_format, load_calibration, matrix_to_rodrigues, natural_key,
@@ -296,6 +298,43 @@ def test_json_units(tmp_path):
     assert_same(load_calibration(tmp_path / "nounits.json", units="mm"), base, tol=1e-12)
 
 
+def test_declared_units_are_the_files(tmp_path, capsys):
+    """A file that says its units is read in them; a --units that disagrees is named in one
+    warning line, not refused: --units is for files that do not say, and a project passes its
+    setting to every step, the fit of an imported sequence (calibration.json, metres) too."""
+    path = DATA / "json" / "calibration.json"
+    warned = []
+    assert_same(load_calibration(path, units="mm", warn=warned.append), load_calibration(path), tol=0)
+    assert warned == [f"{path}: units: the file says m; --units mm is for files that do not say, and is not used"]
+    warned.clear()
+    load_calibration(path, units="m", warn=warned.append)
+    assert warned == []
+    rc, _, err = cli(capsys, "calib", "convert", path, tmp_path / "out.json", "--units", "cm")
+    assert rc == 0 and err == (f"warning: {path}: units: the file says m; --units cm is for files that do not "
+                               "say, and is not used\n")
+    assert_same(load_calibration(tmp_path / "out.json"), load_calibration(path), tol=0)
+
+
+def test_a_rig_out_of_a_room_is_doubted_whoever_gave_the_units(tmp_path, capsys):
+    """Metres in a file that says mm put the cameras millimetres apart: calib show and convert
+    name it as they do units given with --units; so does a file without units read as metres."""
+    doc = json.loads((DATA / "json" / "calibration.json").read_text())
+    doc["units"] = "mm"
+    path = tmp_path / "says_mm.json"
+    path.write_text(json.dumps(doc))
+    expected = (f"warning: {path}: in mm, as the file says, the farthest two cameras stand 5 mm apart, where a "
+                "capture room's stand 0.02-30 m: are the file's units right?\n")
+    for argv in (("show", path), ("convert", path, tmp_path / "out.json")):
+        rc, _, err = cli(capsys, "calib", *argv)
+        assert rc == 0 and err == expected
+    save_calibration(circle_studio(4, radius=20.0), tmp_path / "em", "easymocap")  # 40 m across
+    warned = []
+    load_calibration(tmp_path / "em", warn=warned.append)
+    assert warned == [f"{tmp_path / 'em'}: in metres (the file does not say) the farthest two cameras stand "
+                      "40.0 m apart, where a capture room's stand 0.02-30 m: pass --units if they are not metres"]
+    assert load_calibration(DATA / "json" / "calibration.json", warn=warned.append) and len(warned) == 1
+
+
 # ----------------------------------------------------------------------------- CLI
 
 @pytest.mark.parametrize("name, fmt, options, names", FIXTURES, ids=[f[0] for f in FIXTURES])
@@ -391,11 +430,11 @@ BAD = [
     ("json/calibration.json", "", '"width": 320', '"size_guessed": "yes", "width": 320',
      ["calibration.json: cameras[0].size_guessed: expected true or false"]),
     ("../calibration/qualisys/Calib.qca.txt", "", "<intrinsic ", "<intrinsics ",
-     ["Calib.qca.txt: 21876.intrinsic: missing"]),
+     ["Calib.qca.txt: 21876.intrinsics: not a field we know; did you mean intrinsic?"]),
     ("../calibration/qualisys/Calib.qca.txt", "", 'focalLengthU="1', 'focalLengthU="f1',
      ["Calib.qca.txt: 21876.intrinsic.focalLengthU: not numeric"]),
     ("../calibration/qualisys/Calib.qca.txt", "", 'centerPointV="', 'centerPointW="',
-     ["Calib.qca.txt: 21876.intrinsic.centerPointV: missing"]),
+     ["Calib.qca.txt: 21876.intrinsic.centerPointW: not a field we know; did you mean centerPointV?"]),
     ("../calibration/qualisys/Calib.qca.txt", "", 'viewrotation="90"', 'viewrotation="45"',
      ["Calib.qca.txt: 21878.viewrotation: expected one of (0, 90, 180, 270), got '45'"]),
     ("../calibration/qualisys/Calib.qca.txt", "", ' r23="', ' r23x="',
@@ -412,6 +451,34 @@ BAD = [
      ["cam2/config.xml: Translation: missing"]),
     ("../calibration/uu_layout", "cam1/config.xml", "<data>\n    4.", "<data>\n    -4.",
      ["cam1/config.xml: CameraMatrix: expected [[fx"]),
+    # a misspelt field that the reader would pass over (the camera losing its distortion, its
+    # size, its image's turn): our JSON knows every key, other files may hold other tools'
+    ("json/calibration.json", "", '"dist"', '"dsit"',
+     ["calibration.json: cam1.dsit: not a field we know; did you mean dist?"]),
+    ("json/calibration.json", "", '"format"', '"fromat"', ["calibration.json: fromat: not a field we know; "
+                                                          "did you mean format?"]),
+    ("json/calibration.json", "", '"width": 320', '"foo": 1, "width": 320',
+     ["calibration.json: cam1.foo: not a field we know; the fields are name, K, dist, R, t, width, height, "
+      "size_guessed"]),
+    ("../calibration/uu_layout", "cam2/config.xml", "DistortionCoeffs", "DistortionCoeffz",
+     ["cam2/config.xml: DistortionCoeffz: not a field we know; did you mean DistortionCoeffs?"]),
+    ("opencv_xml", "cam1.xml", "image_height>", "Image_Heigth>",
+     ["cam1.xml: Image_Heigth: not a field we know; did you mean image_height?"]),
+    ("opencv_xml", "cam1.xml", "Translation", "Translaton",
+     ["cam1.xml: Translaton: not a field we know; did you mean Translation?"]),
+    ("easymocap", "intri.yml", "dist_02:", "dsit_02:", ["intri.yml: dsit_02: not a field we know; "
+                                                        "did you mean dist_02?"]),
+    ("easymocap", "intri.yml", "H_03:", "H_3:", ["intri.yml: H_3: not a field we know; did you mean H_03?"]),
+    ("pose2sim/Calib.toml", "", "distortions = [ -0.3200", "distortion = [ -0.3200",
+     ["Calib.toml: cam_02.distortion: not a field we know; did you mean distortions?"]),
+    ("anipose/calibration.toml", "", "size = [", "Size = [",
+     ["calibration.toml: cam_0.Size: not a field we know; did you mean size?"]),
+    ("../calibration/qualisys/Calib.qca.txt", "", 'viewrotation="90"', 'viewRotation="90"',
+     ["Calib.qca.txt: 21878.viewRotation: not a field we know; did you mean viewrotation?"]),
+    ("../calibration/qualisys/Calib.qca.txt", "", "<fov_video ", "<fov_vidoe ",
+     ["Calib.qca.txt: 21876.fov_vidoe: not a field we know; did you mean fov_video?"]),
+    ("../calibration/qualisys/Calib.qca.txt", "", 'radialDistortion3="-0.009895"', 'radialDistortoin3="-0.009895"',
+     ["Calib.qca.txt: 21876.intrinsic.radialDistortoin3: not a field we know; did you mean radialDistortion3?"]),
 ]
 
 
@@ -430,6 +497,27 @@ def test_bad_input(tmp_path, capsys, fixture, inner, old, new, expected):
     assert err.startswith("mocap calib show: error: " + str(path))
     for part in expected:
         assert part in err
+
+
+def test_other_tools_fields_are_read_past(tmp_path):
+    """Files that other tools wrote with fields of their own load as without them: OpenCV's
+    calibration sample, EasyVolcap's EasyMocap files, FreeMocap's TOML."""
+    folder = copy_fixture(tmp_path, "../calibration/uu_layout")
+    edit(folder / "cam1" / "config.xml", "</opencv_storage>",
+         "<calibration_time>Mon Mar 18</calibration_time>\n<nframes>25</nframes>\n<board_width>8</board_width>\n"
+         "<square_size>115.</square_size>\n<avg_reprojection_error>0.31</avg_reprojection_error>\n"
+         "<image_points>1 2</image_points>\n<P1>1 0 0</P1>\n<Q>1</Q>\n<distortion_model>plumb_bob"
+         "</distortion_model>\n</opencv_storage>")
+    assert_same(load_calibration(folder, units="mm", warn=lambda line: None),
+                load_calibration(NEW / "uu_layout", units="mm", warn=lambda line: None), tol=0)
+    folder = copy_fixture(tmp_path, "easymocap")
+    edit(folder / "intri.yml", "H_01:", "ccm_01: 1\r\nH_01:")
+    edit(folder / "extri.yml", "T_01:", "t_01: 0.5\r\nn_01: 0.1\r\nf_01: 9.0\r\nbounds_01: 2\r\nT_01:")
+    assert_same(load_calibration(folder), load_calibration(DATA / "easymocap"), tol=0)
+    path = copy_fixture(tmp_path, "anipose/calibration.toml")
+    edit(path, "translation = [", "world_position = [ 1.0, 2.0, 3.0,]\nworld_orientation = [ 0.0,]\ntranslation = [")
+    assert_same(load_calibration(path, units="mm"), load_calibration(DATA / "anipose" / "calibration.toml",
+                                                                     units="mm"), tol=0)
 
 
 def test_missing_and_empty_inputs(tmp_path, capsys):
@@ -577,6 +665,68 @@ def test_with_image_sizes():
         with_image_sizes(known, {"cam7": (640, 360)}, "videos")
 
 
+def test_guessed_sizes_are_not_written_as_measured(tmp_path, capsys):
+    """Pose2Sim and Anipose files always hold a size, which every reader takes for the images':
+    a guess is refused there (one line naming OUT and the cameras), written once given."""
+    folder = NEW / "uu_layout"  # config.xml files without image sizes
+    for name, fmt in (("c.toml", "pose2sim"), ("a.toml", "anipose")):
+        out = tmp_path / name
+        rc, stdout, err = cli(capsys, "calib", "convert", folder, out, "--units", "mm", "--format", fmt)
+        assert rc == 2 and stdout == "" and err.count("\n") == 1 and not out.exists()
+        assert err.startswith(f"mocap calib convert: error: {out}: size: no image size for cam1, cam2, cam3 (guessed "
+                              f"as twice the principal point), and a {fmt} file cannot mark a size as guessed")
+        assert "--size WxH" in err and "--size-from CAMERA=VIDEO" in err and ".json" in err
+    with pytest.raises(CalibrationError, match=r"lib\.toml: size: no image size for cam1, cam2, cam3"):
+        save_calibration(load_calibration(folder, units="mm", warn=lambda line: None), tmp_path / "lib.toml")
+    rc, _, err = cli(capsys, "calib", "convert", folder, tmp_path / "c.toml", "--units", "mm", "--size", "644x486")
+    assert rc == 0, err
+    written = load_calibration(tmp_path / "c.toml")
+    assert [(c.width, c.height, c.size_guessed) for c in written] == [(644, 486, False)] * 3
+
+
+def test_size_from_the_images(tmp_path, capsys):
+    """--size-from CAMERA=PATH (an image, a folder of frames, a video) puts in the images' size
+    for a guessed one and must agree with a size the file gives."""
+    for cam, size in (("cam1", (644, 486)), ("cam2", (640, 480))):
+        Image.new("RGB", size).save(tmp_path / f"{cam}.png")
+    (tmp_path / "cam3").mkdir()
+    Image.new("RGB", (320, 240)).save(tmp_path / "cam3" / "000007.png")
+    sources = [f"cam1={tmp_path / 'cam1.png'}", f"cam2={tmp_path / 'cam2.png'}", f"cam3={tmp_path / 'cam3'}"]
+    out = tmp_path / "c.toml"
+    rc, _, err = cli(capsys, "calib", "convert", NEW / "uu_layout", out, "--units", "mm", "--size-from", *sources)
+    assert rc == 0, err
+    assert err.count("\n") == 1 and "skipped (no camera fields)" in err  # no guessed size left to name
+    assert [(c.width, c.height) for c in load_calibration(out)] == [(644, 486), (640, 480), (320, 240)]
+    rc, stdout, err = cli(capsys, "calib", "show", NEW / "uu_layout", "--units", "mm", "--size-from", sources[0])
+    assert rc == 0 and "no image size for cam2, cam3;" in err
+    assert [line.split()[:2] for line in stdout.splitlines()[2:4]] == [["cam1", "644x486"], ["cam2", "657x453*"]]
+    rc, _, err = cli(capsys, "calib", "show", DATA / "opencv_xml", "--size-from", sources[1])
+    assert rc == 2 and err.count("\n") == 1
+    assert "opencv_xml: cam2.size: the calibration says 1280x720 but the images (--size-from) are 640x480" in err
+    for args, message in ((["cam1"], "--size-from: expected CAMERA=PATH, got 'cam1'"),
+                          ([sources[0].replace("cam1=", "cam7=")], "cameras: no camera 'cam7' for the images of "
+                                                                  "--size-from"),
+                          ([f"cam1={tmp_path / 'none.png'}"], "none.png: --size-from cam1: does not exist"),
+                          ([sources[0], sources[0]], "--size-from cam1: given twice")):
+        rc, stdout, err = cli(capsys, "calib", "show", NEW / "uu_layout", "--units", "mm", "--size-from", *args)
+        assert rc == 2 and stdout == "" and err.count("\n") == 1 and message in err, err
+
+
+def test_a_guess_passed_off_as_measured_is_named_when_the_images_disagree(tmp_path, capsys):
+    """A Calib.toml whose sizes are twice the principal point (what Pose2Sim's converters write
+    without one): import-video's refusal says the size may have been a guess."""
+    studio = load_calibration(NEW / "uu_layout", units="mm", warn=lambda line: None)
+    calib = tmp_path / "Calib.toml"
+    save_calibration(Studio(tuple(replace(c, size_guessed=False) for c in studio)), calib)
+    Image.new("RGB", (644, 486)).save(tmp_path / "frame.png")
+    rc, _, err = cli(capsys, "import-video", "--calibration", calib, "--out", tmp_path / "seq",
+                     "--video", *(f"{name}={tmp_path / 'frame.png'}" for name in studio.names))
+    assert rc == 2 and err.count("\n") == 1 and not (tmp_path / "seq").exists()
+    assert err.endswith(f"{calib}: cam1.size: the calibration says 663x449 but the images (--video) are 644x486; "
+                        "663x449 is twice the principal point, the size a converter guesses for a camera without "
+                        "one: if it was guessed, put the images' size in the calibration\n")
+
+
 # ----------------------------------------------------------------------------- folders with other files
 
 def test_folder_skips_files_without_camera_fields(tmp_path, capsys):
@@ -638,6 +788,11 @@ def test_real_uu_folder(tmp_path, capsys):
         assert cam.dist[0] < -0.3  # strong barrel distortion
     real = with_image_sizes(studio, {name: (644, 486) for name in studio.names}, str(REAL_UU / "*/video.avi"))
     assert all((c.width, c.height) == (644, 486) and not c.size_guessed for c in real)
+    toml = tmp_path / "Calib.toml"  # Pose2Sim's file holds the videos' size, never a guess
+    sources = [f"{name}={REAL_UU / name / 'video.avi'}" for name in studio.names]
+    rc, _, err = cli(capsys, "calib", "convert", REAL_UU, toml, "--units", "mm", "--size-from", *sources)
+    assert rc == 0 and err.count("\n") == 1 and "skipped (no camera fields)" in err
+    assert_same(load_calibration(toml), real)
 
 
 # ----------------------------------------------------------------------------- Qualisys
@@ -695,8 +850,9 @@ def test_qualisys_projects_as_the_raw_numbers(capsys):
     assert studio.camera("21876").dist[2] == pytest.approx(0.000642 / 64, abs=1e-15)  # "tangental", 1/64
     rc, stdout, err = cli(capsys, "calib", "show", path)
     assert rc == 0 and err.count("\n") == 1 and "3 cameras (qualisys;" in stdout
-    rc, _, err = cli(capsys, "calib", "show", path, "--units", "m")
-    assert rc == 2 and "units: Qualisys files are in millimetres" in err
+    rc, stdout, err = cli(capsys, "calib", "show", path, "--units", "m")  # the file's mm are used
+    assert rc == 0 and f"{path}: units: the file says mm; --units m is for files that do not say" in err
+    assert stdout.splitlines()[2].split()[4:7] == ["3.100", "-2.000", "1.900"]
 
 
 @pytest.mark.parametrize("degrees", [90, 180, 270])

@@ -1,13 +1,16 @@
 """``mocap calib``: convert calibrations between formats, show a calibration's cameras.
 
     mocap calib convert IN OUT [--format FMT] [--from FMT] [--units m|cm|mm] [--size WxH]
-    mocap calib show FILE [--from FMT] [--units m|cm|mm] [--size WxH]
+                               [--size-from CAMERA=PATH ...]
+    mocap calib show FILE [--from FMT] [--units m|cm|mm] [--size WxH] [--size-from CAMERA=PATH ...]
 
 The input format is detected (see ``common.calibration.detect_format``); projection (3x4 P
 files) and qualisys (.qca.txt) are read only. The output format is ``--format``, else from OUT's
 name: .json -> json, .toml -> pose2sim (``--format anipose`` for aniposelib), .xml -> opencv-xml
 (one camera); easymocap and opencv-xml write a folder OUT. Cameras without an image size in the
-file or ``--size`` get twice their principal point; ``show`` marks them with ``*``.
+file, ``--size`` or ``--size-from`` (a camera's video, image folder or image, as import-video
+reads them) get twice their principal point; ``show`` marks them with ``*``, and pose2sim and
+anipose, which cannot mark a guess, are not written with one.
 """
 from __future__ import annotations
 
@@ -17,11 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from common.calibration import (
-    FORMATS, UNIT_SCALE, WRITE_FORMATS, detect_format, load_calibration, output_format, save_calibration,
+    FORMATS, UNIT_SCALE, WRITE_FORMATS, check_sizes_writable, detect_format, load_calibration, output_format,
+    save_calibration,
 )
 from common.camera import Studio
 from common.errors import UserError, print_warning
 from common.world import UP_CHOICES, below_floor_warning, resolve_world
+from server.commands.import_video import FrameSource
 from server.output import add_overwrite_argument, check_file_target, check_folder_target, replace_file, staged_folder
 
 
@@ -51,6 +56,9 @@ def _input_options(parser) -> None:
     parser.add_argument("--units", choices=sorted(UNIT_SCALE),
                         help="units of translations in files that do not say (default: metres, checked)")
     parser.add_argument("--size", metavar="WxH", help="image size for cameras whose file gives none")
+    parser.add_argument("--size-from", nargs="+", action="extend", default=[], metavar="CAMERA=PATH",
+                        help="a camera's video, image folder or image: its size replaces a guessed one and "
+                             "must agree with the file's")
     parser.add_argument("--up", choices=UP_CHOICES, default="auto",
                         help="the world's up axis (default auto: found from the cameras); printed, and a warning "
                              "when cameras would stand below the floor; files keep their own frame")
@@ -65,8 +73,23 @@ def _parse_size(text: str | None) -> tuple[int, int] | None:
     return int(m.group(1)), int(m.group(2))
 
 
-def _load(args) -> Studio:
-    return load_calibration(args.input, units=args.units, fmt=args.input_format, size=_parse_size(args.size))
+def _image_sizes(values: list[str]) -> dict[str, tuple[int, int]]:
+    """Camera -> (width, height) of the first frame of each --size-from CAMERA=PATH."""
+    sizes = {}
+    for value in values:
+        camera, sep, path = value.partition("=")
+        if not sep or not camera or not path:
+            raise UserError(f"--size-from: expected CAMERA=PATH, got {value!r}")
+        if camera in sizes:
+            raise UserError(f"--size-from {camera}: given twice")
+        height, width = FrameSource(camera, Path(path), "--size-from").first().shape[:2]
+        sizes[camera] = (width, height)
+    return sizes
+
+
+def _load(args, warn=print_warning) -> Studio:
+    return load_calibration(args.input, units=args.units, fmt=args.input_format, size=_parse_size(args.size),
+                            warn=warn, image_sizes=_image_sizes(args.size_from), images="--size-from")
 
 
 def run_convert(args) -> int:
@@ -77,12 +100,16 @@ def run_convert(args) -> int:
         check_file_target(out, args.overwrite, option="OUT")
     else:
         check_folder_target(out, ("*",), option="OUT", overwrite=args.overwrite, what="calibration")
-    studio = _load(args)
+    warnings: list[str] = []  # shown once written: a refused write says one thing, its error
+    studio = _load(args, warnings.append)
+    check_sizes_writable(studio, out, fmt)
     if single_file:
         replace_file(out, lambda tmp: save_calibration(studio, tmp, fmt))
     else:  # a folder of per-camera files, swapped in whole
         with staged_folder(out, merge=True) as staged:
             save_calibration(studio, staged, fmt)
+    for line in warnings:
+        print_warning(line)
     print(f"wrote {len(studio)} cameras to {args.output} ({fmt})")
     print(world_line(studio, args.up))
     return 0
@@ -95,7 +122,8 @@ def run_show(args) -> int:
     print(studio_table(studio))
     guessed = [c.name for c in studio if c.size_guessed]
     if guessed:
-        print(f"* size guessed as twice the principal point: {', '.join(guessed)} (pass --size WxH)")
+        print(f"* size guessed as twice the principal point: {', '.join(guessed)} "
+              "(pass --size WxH or --size-from CAMERA=PATH)")
     print(world_line(studio, args.up))
     return 0
 
