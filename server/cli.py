@@ -81,7 +81,9 @@ def main(argv: list[str] | None = None) -> int:
         # SystemError ("returned a result with an exception set") whose context is the interrupt
         if not _interrupted(exc):
             raise
-        print(f"mocap {name}: interrupted", file=sys.stderr)
+        kept = (f"; the frames fitted are kept in {args.out}, and the same command with --resume continues"
+                if args.command in ("fit", "server") else "")
+        print(f"mocap {name}: interrupted{kept}", file=sys.stderr)
         return 130
 
 

@@ -1420,7 +1420,8 @@ def test_ctrl_c_inside_a_compiled_loop_says_interrupted(small_sequence, tmp_path
 
     monkeypatch.setattr(fit_command, "run", stopped)
     assert fit(small_sequence, tmp_path / "r") == 130
-    assert capsys.readouterr().err.strip() == "mocap fit: interrupted"
+    assert capsys.readouterr().err.strip() == (f"mocap fit: interrupted; the frames fitted are kept in {tmp_path / 'r'}, "
+                                               "and the same command with --resume continues")
 
     def broken(args):
         raise SystemError("something else")

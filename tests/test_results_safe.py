@@ -345,3 +345,11 @@ def test_export_of_a_torn_or_interrupted_result_says_what_it_left_out(fitted, se
     code, err = run(capsys, "export", fitted, "--format", "csv", "--out", tmp_path / "m2.csv")
     assert code == 2
     one_error_line(err, str(seq.resolve()), "--fps")
+
+
+def test_resume_and_overwrite_together_are_refused(fitted, seq, capsys):
+    before = snapshot(fitted)
+    code, err = run(capsys, "fit", seq, "--out", fitted, "--resume", "--overwrite", *FAST)
+    assert code == 2
+    one_error_line(err, "--resume", "--overwrite", "one of them")
+    assert snapshot(fitted) == before

@@ -193,8 +193,9 @@ def add_world_arguments(p) -> None:
     p.add_argument("--up", choices=UP_CHOICES, default="auto",
                    help="the calibration world's up axis (default auto: from the cameras, which stand above "
                         "the floor); fitting runs z up, results are written in the calibration's frame")
-    p.add_argument("--mask-threshold", type=count(0, MAX_MASK_THRESHOLD - 1), default=None, metavar="0-255",
-                   help="accept grey or colour images as silhouettes: pixels brighter than this are foreground")
+    p.add_argument("--mask-threshold", type=count(0, MAX_MASK_THRESHOLD - 1), default=None, metavar="N",
+                   help="accept grey or colour images as silhouettes: pixels brighter than N are foreground "
+                        "(8-bit images: 0-254; 16-bit: up to 65534; 1-bit masks need none)")
     p.add_argument("--no-clean-masks", dest="clean_masks", action="store_false",
                    help="fit the masks as they are (default: blobs the other cameras do not support are dropped)")
 
@@ -239,7 +240,13 @@ def warn_if_software_gl(energy: str) -> None:
                       "path), so each frame takes many minutes")
 
 
+def check_resume_or_overwrite(args) -> None:
+    if args.resume and args.overwrite:
+        raise UserError("--resume continues the result there and --overwrite replaces it: give one of them")
+
+
 def run(args) -> int:
+    check_resume_or_overwrite(args)
     # the folder first: a result in the way is refused before the slow actor-size search
     check_folder_target(args.out, RESULT_FILES, resume=args.resume, overwrite=args.overwrite)
     warn_if_software_gl(args.energy)

@@ -15,7 +15,8 @@ from common.sequence import load_sequence
 from server.cluster import ClusterSolver
 from server.local_cluster import Terminated, add_cluster_arguments, terminate_on_sigterm
 from server.trust import check_bind
-from server.commands.fit import add_fit_arguments, finish, options_from_args, warn_if_software_gl
+from server.commands.fit import (add_fit_arguments, check_resume_or_overwrite, finish, options_from_args,
+                                 warn_if_software_gl)
 from server.progress import Progress
 from server.session import run_fit
 
@@ -31,6 +32,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="mocap server: %(message)s")
+    check_resume_or_overwrite(args)
     check_bind(args.bind, args.curve_keys, args.insecure)  # before the slow loading
     warn_if_software_gl(args.energy)
     model = load_body_model()
