@@ -52,7 +52,9 @@ def main(argv: list[str] | None = None) -> int:
         return _client_entry(argv[1:])
     parser = build_parser()
     try:
-        args = parser.parse_args(argv)
+        args, unknown = parser.parse_known_args(argv)
+        if unknown:  # said by the command's own parser: "mocap fit: error: ...", its --help named
+            _command_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown)}")
     except SystemExit as exc:  # --help, or a bad option (already said in one line)
         return int(exc.code or EXIT_OK)
     from common.errors import UserError
@@ -85,6 +87,16 @@ def main(argv: list[str] | None = None) -> int:
                 if args.command in ("fit", "server") else "")
         print(f"mocap {name}: interrupted{kept}", file=sys.stderr)
         return 130
+
+
+def _command_parser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser:
+    """The parser of the (sub)command ``args`` were parsed for: "calib convert"'s, "fit"'s."""
+    for dest in ("command", *ACTION_DESTS):
+        chosen = getattr(args, dest, None)
+        for action in parser._actions:  # argparse keeps the subcommands' parsers there only
+            if isinstance(action, argparse._SubParsersAction) and action.dest == dest and chosen in action.choices:
+                parser = action.choices[chosen]
+    return parser
 
 
 def _interrupted(exc: BaseException) -> bool:

@@ -353,3 +353,14 @@ def test_resume_and_overwrite_together_are_refused(fitted, seq, capsys):
     assert code == 2
     one_error_line(err, "--resume", "--overwrite", "one of them")
     assert snapshot(fitted) == before
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["fit", "SEQ", "--out", "R", "--bogus", "1"], "mocap fit: error: unrecognized arguments: --bogus 1 "
+                                                     "(see mocap fit --help)"),
+    (["calib", "convert", "a", "b", "--nope"], "mocap calib convert: error: unrecognized arguments: --nope "
+                                               "(see mocap calib convert --help)"),
+])
+def test_an_unknown_option_is_named_by_its_command(capsys, argv, said):
+    code, err = run(capsys, *argv)
+    assert code == 2 and err.strip() == said
