@@ -37,6 +37,7 @@ from common.body import (FORWARD, LATERAL, P, SEGMENT_NAMES, BodyModel, forward_
                          rigid_vertices, rot_z, skinned_vertices)
 from common.calibration import save_calibration
 from common.camera import Studio, circle_studio
+from common.errors import UserError, print_warning
 from common.motion_import import import_bvh
 from common.postures import POSTURES, posture_params, varied_posture
 from common.sequence import FRAME_NAME, write_mask_png, write_sequence_meta
@@ -183,6 +184,11 @@ def clip_motion(model: BodyModel, clip_path, opts: SynthOptions, joint_map=None)
 
     total = read_bvh(clip_path).num_frames
     src = clip_frames(total, opts)
+    if len(src) == 0:
+        raise UserError(f"{clip_path}: --start {opts.start} is past the clip's last frame ({total - 1})")
+    if len(src) < opts.frames:
+        print_warning(f"{clip_path}: its {total} frames hold {len(src)} from frame {opts.start} every {opts.step}: "
+                      f"synthesising {len(src)} frames, not {opts.frames}")
     motion = import_bvh(model, clip_path, src, joint_map)
     params = motion.params.copy()
     # centre the performance in the studio (the cameras look at the origin)

@@ -364,3 +364,15 @@ def test_resume_and_overwrite_together_are_refused(fitted, seq, capsys):
 def test_an_unknown_option_is_named_by_its_command(capsys, argv, said):
     code, err = run(capsys, *argv)
     assert code == 2 and err.strip() == said
+
+
+def test_synth_says_when_the_clip_holds_fewer_frames_than_asked(tmp_path, capsys):
+    code, err = run(capsys, "synth", "--out", tmp_path / "s", "--frames", "100000", "--step", "100",
+                    "--size", "80x60", "--cameras", "3", "--quiet")
+    assert code == 0, err
+    assert "warning:" in err and "synthesising 6 frames, not 100000" in err
+    assert json.loads((tmp_path / "s" / "sequence.json").read_text())["frames"] == [0, 1, 2, 3, 4, 5]
+    code, err = run(capsys, "synth", "--out", tmp_path / "s2", "--start", "99999", "--quiet")
+    assert code == 2
+    one_error_line(err, "--start 99999", "last frame")
+    assert not (tmp_path / "s2").exists()
