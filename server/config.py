@@ -21,6 +21,7 @@ from common.export import FORMATS
 from common.fitting import ENERGY_BACKENDS, FitOptions
 from common.segmentation import METHODS
 from common.world import UP_CHOICES
+from server.commands.import_video import MISSING_FRAMES
 
 CONFIG_FILE = "Config.toml"
 DEFAULT = "default"
@@ -80,6 +81,8 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("import", "fps", 0.0, float, "frame rate of image folders (0: the video's, else 30)", _at_least(0.0),
             "a number >= 0"),
     Setting("import", "offsets", {}, dict, "per camera: its frame i + N is the others' frame i"),
+    Setting("import", "missing_frames", "error", str, "a frame number some cameras have and others lack: error, "
+            "or skip: leave it out of every camera", _one_of(MISSING_FRAMES), "one of " + ", ".join(MISSING_FRAMES)),
     Setting("segmentation", "method", "cheung", str, "background subtraction method", _one_of(tuple(METHODS)),
             "one of " + ", ".join(sorted(METHODS))),
     Setting("fit", "frames", 0, int, "fit only the first N frames (0: all)", _at_least(0), "an integer >= 0"),

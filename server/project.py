@@ -165,6 +165,10 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
             command += ["--fps", str(imp["fps"])]
         if imp["offsets"]:
             command += ["--offset", *[f"{cam}={n}" for cam, n in imp["offsets"].items()]]
+        if imp["missing_frames"] != "error":
+            command += ["--missing-frames", imp["missing_frames"]]
+        if calib_settings["units"]:
+            command += ["--units", calib_settings["units"]]
         steps.append(Step("import", (tuple(command),), (calibration, *videos.values(), *backgrounds.values()),
                           # not sequence.json: the segment step adds its record there
                           (sequence / "images", sequence / "calibration.json"),

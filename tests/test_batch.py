@@ -11,6 +11,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from common.errors import UserError
@@ -151,6 +152,37 @@ def test_an_interrupted_fit_is_continued(project):
     assert poses(take) == whole
     summary = json.loads((take / "result" / "summary.json").read_text())
     assert summary["frames_fitted_this_run"] == len(whole) - 1 and done["status"] == "done"
+
+
+def test_a_take_whose_calibration_needs_units_runs_from_its_images(tmp_path, model, small_studio):
+    """[calibration] units reaches the import step too: a calibration in millimetres that does
+    not say so is imported, segmented and fitted under mocap run."""
+    from common.calibration import load_calibration, studio_to_json
+    from common.synth import SynthOptions, synthesize
+
+    from tests.conftest import WALK_CLIP
+
+    synthesize(model, small_studio, WALK_CLIP, tmp_path / "synth", SynthOptions(frames=2, images=True))
+    take = tmp_path / "project" / "take"
+    for name in ("images", "background"):
+        shutil.copytree(tmp_path / "synth" / name, take / name)
+    doc = studio_to_json(small_studio)
+    del doc["units"]
+    for cam in doc["cameras"]:
+        cam["t"] = [1000 * v for v in cam["t"]]
+    (take / "calibration.json").write_text(json.dumps(doc))
+    (take.parent / "Config.toml").write_text(PROJECT_CONFIG.replace("[report]", "[report]\nenabled = false")
+                                             + '\n[calibration]\nunits = "mm"\n')
+    (imported,) = plan_take(take).steps[0].commands
+    assert imported[0] == "import-video" and imported[imported.index("--units") + 1] == "mm"
+    assert "--missing-frames" not in imported
+    done = run_take(take)
+    assert [s["step"] for s in done["steps"]] == ["import", "segment", "fit", "export"] and done["frames"] == 2
+    studio = load_calibration(take / "sequence" / "calibration.json")
+    assert np.allclose([c.t for c in studio], [c.t for c in small_studio])
+    (take / "Config.toml").write_text('[import]\nmissing_frames = "skip"\n')
+    (imported,) = plan_take(take).steps[0].commands
+    assert imported[imported.index("--missing-frames") + 1] == "skip"
 
 
 def test_run_on_a_broken_take_is_one_line(project, capsys):

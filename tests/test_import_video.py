@@ -1,6 +1,7 @@
 """``mocap import-video`` with videos as users have them: lengths that differ by a frame or two,
-cameras that started late, unreadable and truncated files. Frames are matched by content: each
-synthetic frame is one grey level that encodes its frame number."""
+cameras that started late, unreadable, truncated and damaged files, image folders that lack a
+frame. Frames are matched by content: each synthetic frame is one grey level that encodes its
+frame number."""
 from __future__ import annotations
 
 import json
@@ -10,8 +11,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 
-from common.calibration import load_calibration, save_calibration
+from common.calibration import load_calibration, save_calibration, studio_to_json
 from common.camera import Studio, circle_studio
 from common.sequence import load_sequence
 from server.cli import main
@@ -20,17 +22,40 @@ from server.commands import import_video
 imageio = pytest.importorskip("imageio.v2")
 pytest.importorskip("imageio_ffmpeg")
 
+pytestmark = pytest.mark.timeout(120)
+
 W, H = 64, 48
 LEVEL0, LEVEL_STEP = 20, 10  # grey level of frame i: LEVEL0 + LEVEL_STEP * i
 BEFORE = 250  # grey level of frames before the synchronous start
 REAL_TAKE = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "uu_seated_4cam"
 
 
-def _write_video(path: Path, numbers, codec="mpeg4") -> Path:
-    """A video whose frame j shows frame number numbers[j] (None: a frame from before the start)."""
+def _write_video(path: Path, numbers, codec="mpeg4", noise_rows: int = 0) -> Path:
+    """A video whose frame j shows frame number numbers[j] (None: a frame from before the start);
+    ``noise_rows`` rows of noise at the top make its packets large enough to damage one by one."""
+    rng = np.random.default_rng(0)
     with imageio.get_writer(path, "ffmpeg", fps=25, codec=codec, quality=8, macro_block_size=16) as w:
         for n in numbers:
-            w.append_data(np.full((H, W, 3), BEFORE if n is None else LEVEL0 + LEVEL_STEP * n, np.uint8))
+            frame = np.full((H, W, 3), BEFORE if n is None else LEVEL0 + LEVEL_STEP * n, np.uint8)
+            frame[:noise_rows] = rng.integers(0, 256, (noise_rows, W, 3))
+            w.append_data(frame)
+    return path
+
+
+def _write_folder(folder: Path, frames, shift: int = 0) -> Path:
+    """A folder of images named by number: ``img<n + shift>.png`` shows frame n."""
+    folder.mkdir(parents=True)
+    for n in frames:
+        Image.fromarray(np.full((H, W, 3), LEVEL0 + LEVEL_STEP * n, np.uint8)).save(folder / f"img{n + shift:04d}.png")
+    return folder
+
+
+def _damage(path: Path, at: float, size: int) -> Path:
+    """The file with ``size`` bytes from the fraction ``at`` of its length overwritten by 0xFF."""
+    data = bytearray(path.read_bytes())
+    start = int(len(data) * at)
+    data[start:start + size] = b"\xff" * size
+    path.write_bytes(bytes(data))
     return path
 
 
@@ -149,7 +174,7 @@ def test_unreadable_and_truncated_videos(tmp_path, calib, capsys):
         assert rc == 2 and f"{bad}: --video cam2: not a readable video" in line, line
     rc, _, err = _run(capsys, calib, {**good, "cam2": cut}, "--out", out)
     line = _one_line(err)
-    assert rc == 2 and "frame counts differ" in line and "truncated" in line
+    assert rc == 2 and f"{cut}: --video cam2: only" in line and "truncated" in line, line
     # An unreadable background is found before anything is written too.
     rc, _, err = _run(capsys, calib, good, "--out", out, "--background",
                       *(f"{c}={garbage if c == 'cam3' else p}" for c, p in good.items()))
@@ -177,18 +202,149 @@ def test_a_guessed_calibration_size_takes_the_videos(tmp_path, capsys):
     assert all((c.width, c.height, c.size_guessed) == (W, H, False) for c in studio)
 
 
-@pytest.mark.skipif(not REAL_TAKE.is_dir(), reason="the real 4-camera take is not in ../shared")
-def test_real_take_counts_frames_by_decoding(tmp_path, capsys):
-    """imageio's count_frames() says 426 for these AVIs; decoding gives 214 (cam4: 215)."""
+def test_folders_are_matched_by_the_numbers_in_their_names(tmp_path, calib, capsys):
+    """A folder that lacks a frame inside the range is an error naming the file, not a camera whose
+    later frames shift by one; --missing-frames skip leaves that frame out of every camera."""
+    folders = {c: _write_folder(tmp_path / c, [f for f in range(12) if c != "cam3" or f != 5])
+               for c in ("cam1", "cam2", "cam3")}
+    out = tmp_path / "seq"
+    rc, _, err = _run(capsys, calib, folders, "--out", out)
+    line = _one_line(err)
+    assert rc == 2 and f"{folders['cam3'] / 'img0005.png'}: --video cam3: frame 5 is missing" in line, line
+    assert "cam1, cam2" in line and "--missing-frames skip" in line and not out.exists()
+    rc, stdout, err = _run(capsys, calib, folders, "--out", out, "--missing-frames", "skip")
+    line = _one_line(err)
+    assert rc == 0 and "warning" in line and "frame numbers 5 (cam3 lacks 5)" in line, line
+    seq = load_sequence(out)
+    assert seq.frames == [f for f in range(12) if f != 5] and "imported 11 frames" in stdout
+    for f in seq.frames:
+        assert [_number(im) for im in seq.images(f)] == [f, f, f]
+    rc, _, err = _run(capsys, calib, folders, "--out", out, "--missing-frames", "sometimes")
+    assert rc == 2 and "--missing-frames: invalid choice" in _one_line(err)
+
+
+def test_a_folder_that_starts_late_is_trimmed(tmp_path, calib, capsys):
+    # cam2's first image is frame 1 (within 5 %): the others' frame 0 is cut, with a warning.
+    folders = {"cam1": _write_folder(tmp_path / "cam1", range(24)),
+               "cam2": _write_folder(tmp_path / "cam2", range(1, 24)),
+               "cam3": _write_folder(tmp_path / "cam3", range(24))}
+    out = tmp_path / "seq"
+    rc, _, err = _run(capsys, calib, folders, "--out", out, "--step", "2")
+    line = _one_line(err)
+    assert rc == 0 and "cam2 23 numbered 1..23" in line and "using the frames 1..23" in line, line
+    seq = load_sequence(out)
+    assert seq.frames == list(range(2, 24, 2))  # on the --start 0 + k --step 2 grid
+    for f in seq.frames:
+        assert [_number(im) for im in seq.images(f)] == [f, f, f]
+    # Folders numbered in steps of 3 (all alike) lack no frame.
+    stepped = {c: _write_folder(tmp_path / "stepped" / c, range(0, 12, 3)) for c in ("cam1", "cam2", "cam3")}
+    rc, _, err = _run(capsys, calib, stepped, "--out", tmp_path / "stepped_seq")
+    assert rc == 0 and err == "", err
+    assert load_sequence(tmp_path / "stepped_seq").frames == [0, 3, 6, 9]
+
+
+def test_offsets_shift_a_folders_numbers(tmp_path, calib, capsys):
+    # cam3's counter ran 100 ahead: its img0105.png is the others' frame 5.
+    folders = {"cam1": _write_folder(tmp_path / "cam1", range(12)),
+               "cam2": _write_folder(tmp_path / "cam2", range(12)),
+               "cam3": _write_folder(tmp_path / "cam3", [f for f in range(12) if f != 7], shift=100)}
+    rc, _, err = _run(capsys, calib, folders, "--out", tmp_path / "plain")
+    assert rc == 2 and "no frames in common" in _one_line(err) and "cam3 11 numbered 100..111" in err
+    out = tmp_path / "seq"
+    rc, _, err = _run(capsys, calib, folders, "--out", out, "--offset", "cam3=100")
+    line = _one_line(err)
+    assert rc == 2 and f"{folders['cam3'] / 'img0107.png'}: --video cam3: frame 7 is missing" in line, line
+    rc, _, err = _run(capsys, calib, folders, "--out", out, "--offset", "cam3=100", "--missing-frames", "skip",
+                      "--step", "2")
+    assert rc == 0 and err == "", err  # frame 7 is not on the --step 2 grid: nothing is missing
+    seq = load_sequence(out)
+    assert seq.frames == [0, 2, 4, 6, 8, 10] and seq.meta["offsets"]["cam3"] == 100
+    for f in seq.frames:
+        assert [_number(im) for im in seq.images(f)] == [f, f, f]
+
+
+def test_a_video_that_loses_frames_in_the_middle_is_refused(tmp_path, calib, capsys):
+    """A damaged stretch of an AVI drops its frames without a gap in their count: the camera's
+    later frames would stand in for earlier ones, at a place that cannot be told."""
+    videos = {c: _write_video(tmp_path / f"{c}.avi", range(20), noise_rows=8) for c in ("cam1", "cam2", "cam3")}
+    decoded = sum(1 for _ in imageio.get_reader(_damage(videos["cam2"], 0.5, 3000), "ffmpeg"))
+    assert 10 <= decoded < 20  # the premise: frames are lost
+    out = tmp_path / "seq"
+    for extra in ((), ("--missing-frames", "skip")):
+        rc, _, err = _run(capsys, calib, videos, "--out", out, *extra)
+        line = _one_line(err)
+        assert rc == 2 and f"{videos['cam2']}: --video cam2: only" in line and "frames are lost" in line, line
+        assert not out.exists()
+
+
+def test_one_file_for_two_cameras_is_refused(tmp_path, calib, capsys):
+    videos = {c: _write_video(tmp_path / f"{c}.avi", range(6)) for c in ("cam1", "cam2", "cam3")}
+    out = tmp_path / "seq"
+    rc, _, err = _run(capsys, calib, {**videos, "cam3": videos["cam1"]}, "--out", out)
+    line = _one_line(err)
+    assert rc == 2 and f"{videos['cam1']}: given for both --video cam1 and --video cam3" in line, line
+    link = tmp_path / "link.avi"
+    link.symlink_to(videos["cam2"])
+    rc, _, err = _run(capsys, calib, {**videos, "cam3": link}, "--out", out)
+    assert rc == 2 and "given for both --video cam2 and --video cam3" in _one_line(err)
+    folders = {c: _write_folder(tmp_path / c, range(6)) for c in ("cam1", "cam2")}
+    rc, _, err = _run(capsys, calib, {**folders, "cam3": folders["cam2"]}, "--out", out)
+    assert rc == 2 and "two cameras cannot record the same folder" in _one_line(err)
+    rc, _, err = _run(capsys, calib, videos, "--out", out, "--background", f"cam1={videos['cam1']}",
+                      f"cam2={videos['cam1']}", f"cam3={videos['cam3']}")
+    assert rc == 2 and "given for both --video cam1 and --background cam2" in _one_line(err)
+    assert not out.exists()
+
+
+def test_units_of_a_calibration_that_does_not_say(tmp_path, capsys):
+    studio = circle_studio(3, W, H, overhead=False)
+    doc = studio_to_json(studio)
+    del doc["units"]
+    for cam in doc["cameras"]:
+        cam["t"] = [1000 * v for v in cam["t"]]
+    calib = tmp_path / "calib_mm.json"
+    calib.write_text(json.dumps(doc))
+    videos = {c: _write_video(tmp_path / f"{c}.avi", range(4)) for c in ("cam1", "cam2", "cam3")}
+    out = tmp_path / "seq"
+    rc, _, err = _run(capsys, calib, videos, "--out", out)
+    assert rc == 2 and "--units mm" in _one_line(err) and not out.exists()
+    rc, _, err = _run(capsys, calib, videos, "--out", out, "--units", "mm")
+    assert rc == 0, err
+    imported = load_calibration(out / "calibration.json")
+    assert np.allclose([c.t for c in imported], [c.t for c in studio])
+
+
+@pytest.fixture
+def real_calib(tmp_path) -> Path:
     xml = tmp_path / "xml"
     xml.mkdir()
     for k in range(1, 5):
         shutil.copy(REAL_TAKE / f"cam{k}" / "config.xml", xml / f"cam{k}.xml")
     calib = tmp_path / "calibration.json"
     save_calibration(load_calibration(xml, units="mm", size=(644, 486)), calib)
+    return calib
+
+
+@pytest.mark.skipif(not REAL_TAKE.is_dir(), reason="the real 4-camera take is not in ../shared")
+def test_real_take_with_a_damaged_stretch_is_refused(tmp_path, real_calib, capsys):
+    damaged = tmp_path / "cam3.avi"
+    shutil.copy(REAL_TAKE / "cam3" / "video.avi", damaged)
+    damaged.chmod(0o644)
+    data = bytearray(damaged.read_bytes())
+    data[300_000:320_000] = b"\xff" * 20_000  # the decoder drops about 9 frames here
+    damaged.write_bytes(bytes(data))
+    videos = {f"cam{k}": REAL_TAKE / f"cam{k}" / "video.avi" for k in range(1, 5)}
+    rc, _, err = _run(capsys, real_calib, {**videos, "cam3": damaged}, "--out", tmp_path / "seq", "--step", "10")
+    line = _one_line(err)
+    assert rc == 2 and f"{damaged}: --video cam3: only 8.18 s of the 8.56 s" in line, line
+
+
+@pytest.mark.skipif(not REAL_TAKE.is_dir(), reason="the real 4-camera take is not in ../shared")
+def test_real_take_counts_frames_by_decoding(tmp_path, real_calib, capsys):
+    """imageio's count_frames() says 426 for these AVIs; decoding gives 214 (cam4: 215)."""
     videos = {f"cam{k}": REAL_TAKE / f"cam{k}" / "video.avi" for k in range(1, 5)}
     out = tmp_path / "seq"
-    rc, stdout, err = _run(capsys, calib, videos, "--out", out, "--step", "10")
+    rc, stdout, err = _run(capsys, real_calib, videos, "--out", out, "--step", "10")
     assert rc == 0, err
     assert "cam4 215" in _one_line(err)
     meta = json.loads((out / "sequence.json").read_text())

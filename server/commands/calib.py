@@ -51,10 +51,15 @@ def register(subparsers) -> None:
     show.set_defaults(func=run_show)
 
 
-def _input_options(parser) -> None:
-    parser.add_argument("--from", dest="input_format", choices=FORMATS, help="input format (default: detected)")
+def add_units_argument(parser) -> None:
+    """--units: the units of a calibration file that does not say (calib, import-video)."""
     parser.add_argument("--units", choices=sorted(UNIT_SCALE),
                         help="units of translations in files that do not say (default: metres, checked)")
+
+
+def _input_options(parser) -> None:
+    parser.add_argument("--from", dest="input_format", choices=FORMATS, help="input format (default: detected)")
+    add_units_argument(parser)
     parser.add_argument("--size", metavar="WxH", help="image size for cameras whose file gives none")
     parser.add_argument("--size-from", nargs="+", action="extend", default=[], metavar="CAMERA=PATH",
                         help="a camera's video, image folder or image: its size replaces a guessed one and "

@@ -2,26 +2,36 @@
 
     mocap import-video --calibration calib.json --video cam1=a.mp4 cam2=b.mp4 \\
         --background cam1=a_empty.mp4 cam2=b_empty.mp4 --out SEQUENCE \\
-        [--start N --stop N --step N] [--offset cam2=3]
+        [--start N --stop N --step N] [--offset cam2=3] [--units mm] [--missing-frames skip]
 
 Writes ``calibration.json``, ``sequence.json``, ``images/<camera>/<frame:06d>.png`` and
 ``background/<camera>/<n:06d>.png``. A source is a video file (read with imageio +
 imageio-ffmpeg when installed), a folder of images (ordered by the frame number in their
 names, see ``common.sequence.frame_files``) or a single image.
 
-Frame numbers are source frame indices of the cameras without an offset; ``--offset cam2=3``
-says cam2's frame i + 3 was taken at the same time as the others' frame i. Videos are
-decoded in order, never by seeking (seeking gives grey, half-decoded frames in AVI and MP4),
-and their frames are counted by decoding them (container headers can be wrong: imageio's
-``count_frames`` says 426 for 214-frame AVIs). Recordings that differ in length by at most
-``MAX_TRIM_FRAMES`` frames and ``MAX_TRIM_FRACTION`` of the longest are cut to their common
-range with one warning; larger differences are an error. Every source is opened, sized and
-counted before the output folder is made.
+Frame numbers are the sources' own: a video frame's position, the number in an image's file
+name (0 for a single image); ``--offset cam2=3`` says cam2's frame i + 3 was taken at the same
+time as the others' frame i. Cameras are matched by frame number, so a frame one folder lacks
+cannot shift the frames after it: a frame number inside the cameras' common range that some
+have and others lack is an error naming the file, or with ``--missing-frames skip`` is left
+out of every camera with a warning. Videos are decoded in order, never by seeking (seeking
+gives grey, half-decoded frames in AVI and MP4), and their frames are counted by decoding them
+(container headers can be wrong: imageio's ``count_frames`` says 426 for 214-frame AVIs). A
+damaged stretch of a video loses its frames without a gap in their count, so a video whose
+packets span less than the duration its container declares is refused. Recordings that differ
+in length by at most ``MAX_TRIM_FRAMES`` frames and ``MAX_TRIM_FRACTION`` of the longest are cut
+to their common range with one warning; larger differences are an error. One file given for
+two cameras is refused. Every source is opened, sized and counted before the output folder is
+made.
 """
 from __future__ import annotations
 
 import math
+import re
 import shutil
+import subprocess
+from bisect import bisect_left
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -29,9 +39,10 @@ from PIL import Image
 
 from common.calibration import MAX_IMAGE_PIXELS, load_calibration, save_calibration, with_image_sizes
 from common.errors import InputFileError, UserError, print_warning
-from common.sequence import (DEFAULT_FPS, FRAME_NAME, IMAGE_SUFFIXES, check_size, frame_files, image_size,
-                             read_image, write_sequence_meta)
+from common.sequence import (DEFAULT_FPS, FRAME_NAME, IMAGE_SUFFIXES, check_size, expected_path, frame_files,
+                             image_size, read_image, write_sequence_meta)
 from common.argtypes import count, real
+from server.commands.calib import add_units_argument
 from server.output import add_overwrite_argument, check_folder_target, staged_folder
 
 # what an earlier import (or segment) left in a sequence folder; a calibration.json there may be
@@ -41,6 +52,9 @@ PNG_COMPRESS_LEVEL = 1  # fast; frames are large and many
 MAX_TRIM_FRAMES = 10  # recordings may differ in length by at most this many frames ...
 MAX_TRIM_FRACTION = 0.05  # ... and this fraction of the longest, and are then cut to the common range
 HOLD_BYTES = 1 << 30  # decoded frames kept in memory from counting to writing; beyond, a video is decoded twice
+MISSING_FRAMES = ("error", "skip")  # --missing-frames: what a frame number some cameras lack is
+SHOWN_FRAMES = 5  # frame numbers a message lists before "and N more"
+DURATION_RESOLUTION = 0.01  # seconds: ffmpeg prints a container's duration to 10 ms
 
 
 def register(subparsers) -> None:
@@ -50,7 +64,8 @@ def register(subparsers) -> None:
                     "sequence.json, images/<camera>/ and background/<camera>/. Each PATH is a video "
                     "file, a folder of images or one image; cameras are matched to calibration names. "
                     f"Recordings that differ in length by up to {MAX_TRIM_FRAMES} frames and "
-                    f"{MAX_TRIM_FRACTION:.0%} are cut to the common range.")
+                    f"{MAX_TRIM_FRACTION:.0%} are cut to the common range; cameras are matched by frame "
+                    "number (an image's file name, a video frame's position).")
     parser.add_argument("--calibration", required=True, metavar="FILE", help="studio calibration")
     parser.add_argument("--video", required=True, nargs="+", action="extend", metavar="CAMERA=PATH",
                         help="recording of the actor, one per calibrated camera")
@@ -65,6 +80,10 @@ def register(subparsers) -> None:
                              "(FRAMES may be negative; default 0)")
     parser.add_argument("--fps", type=real(0.0, exclusive_minimum=True), default=None,
                         help="frame rate of the sources (default: from the video, else 30)")
+    parser.add_argument("--missing-frames", choices=MISSING_FRAMES, default="error",
+                        help="a frame number that some cameras have and others lack: error (default), or skip: "
+                             "leave it out of every camera, with a warning")
+    add_units_argument(parser)
     add_overwrite_argument(parser)
     parser.set_defaults(func=run)
 
@@ -78,10 +97,43 @@ def _short(exc: Exception) -> str:
     return lines[0] if len(lines) == 1 else f"{lines[0]}: {lines[-1]}"
 
 
-class FrameSource:
-    """Frames of one camera: a folder of images, one image, or a video file.
+def _declared_and_read_seconds(path: Path) -> tuple[float, float] | None:
+    """(seconds a video's container declares, seconds its video and audio packets span), from
+    its packets as read without decoding them; None where the container declares no duration or
+    only estimates it from the bit rate. The audio counts because a container's duration is its
+    longest stream's."""
+    import imageio_ffmpeg
 
-    ``count`` is known at once for images and after ``scan`` for a video.
+    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-i", str(path),
+               "-map", "0:v:0", "-map", "0:a?", "-c", "copy", "-f", "framecrc", "-"]
+    try:
+        done = subprocess.run(command, capture_output=True)
+    except OSError:
+        return None
+    log = done.stderr.decode(errors="replace")
+    declared = re.search(r"Duration: (\d+):(\d\d):(\d\d(?:\.\d+)?)", log)
+    if done.returncode or declared is None or "Estimating duration from bitrate" in log:
+        return None
+    time_bases, first, end = {}, {}, {}
+    for line in done.stdout.decode(errors="replace").splitlines():
+        if line.startswith("#tb "):  # "#tb 0: 1/50"
+            stream, base = line[4:].split(":")
+            time_bases[int(stream)] = Fraction(base.strip())
+        elif line and not line.startswith("#"):  # "stream, dts, pts, duration, size, crc"
+            stream, dts, _, duration = (int(v) for v in line.split(",")[:4])
+            first[stream] = min(first.get(stream, dts), dts)
+            end[stream] = max(end.get(stream, dts + duration), dts + duration)
+    if not end:
+        return None
+    read = max(float((end[s] - first[s]) * time_bases[s]) for s in end)
+    return int(declared[1]) * 3600 + int(declared[2]) * 60 + float(declared[3]), read
+
+
+class FrameSource:
+    """Frames of one camera by source number: a folder of images (the numbers in their file
+    names), one image (number 0), or a video file (a frame's position).
+
+    ``numbers`` (increasing) are known at once for images and after ``scan`` for a video.
     """
 
     def __init__(self, camera: str, path: Path, option: str):
@@ -89,19 +141,19 @@ class FrameSource:
         self.path = path
         self.what = f"{option} {camera}"
         self.fps = None
-        self.held: dict[int, np.ndarray] = {}  # source index -> frame, from scan() until written
+        self.held: dict[int, np.ndarray] = {}  # source number -> frame, from scan() until written
         if path.is_dir():
-            self.files = list(frame_files(path).values())
+            self.files = frame_files(path)
             if not self.files:
                 raise InputFileError(path, f"{self.what}: no numbered images ({', '.join(IMAGE_SUFFIXES)}) "
                                            "in this folder")
-            self.count = len(self.files)
+            self.numbers = list(self.files)
         elif path.is_file() and path.suffix.lower() in IMAGE_SUFFIXES:
-            self.files = [path]
-            self.count = 1
+            self.files = {0: path}
+            self.numbers = [0]
         elif path.is_file():
             self.files = None
-            self.count = None
+            self.numbers = None
             try:
                 import imageio.v2  # noqa: F401
             except ImportError:
@@ -111,13 +163,17 @@ class FrameSource:
         else:
             raise InputFileError(path, f"{self.what}: does not exist")
 
-    def where(self, index: int) -> Path:
-        """The file holding frame ``index`` (the video itself for a video)."""
-        return self.files[index] if self.files is not None else self.path
+    def where(self, number: int | None = None) -> Path:
+        """The file holding frame ``number`` (None: the first frame; the video itself for a video);
+        for a number a folder lacks, the file it would have."""
+        if self.files is None:
+            return self.path
+        number = self.numbers[0] if number is None else number
+        return self.files.get(number) or expected_path(self.path, self.files, number)
 
-    def _read_file(self, index: int) -> np.ndarray:
+    def _read_file(self, number: int) -> np.ndarray:
         try:
-            return read_image(self.files[index], "RGB")
+            return read_image(self.files[number], "RGB")
         except InputFileError as exc:
             raise InputFileError(exc.path, f"{self.what}: {exc.problem}") from None
 
@@ -157,7 +213,7 @@ class FrameSource:
     def first(self) -> np.ndarray:
         """(H, W, 3) uint8: the first frame."""
         if self.files is not None:
-            return self._read_file(0)
+            return self._read_file(self.numbers[0])
         decoded = self._decode()
         try:
             return next(decoded)
@@ -165,12 +221,12 @@ class FrameSource:
             decoded.close()
 
     def scan(self, keep, hold_bytes: int, camera) -> int:
-        """Count the frames (decoding a video to its end), check their size against ``camera``
-        and hold those with ``keep(index)`` in memory while they fit in ``hold_bytes``; the
+        """Number the frames (decoding a video to its end), check their size against ``camera``
+        and hold those with ``keep(number)`` in memory while they fit in ``hold_bytes``; the
         rest are read again by ``frames``. Returns the bytes held."""
         used = 0
         if self.files is not None:
-            for i in range(self.count):
+            for i in self.numbers:
                 if not keep(i):
                     continue
                 if used < hold_bytes:
@@ -190,18 +246,38 @@ class FrameSource:
                 self.held[i] = frame
                 used += frame.nbytes
             count = i + 1
-        self.count = count
+        self.numbers = range(count)
         return used
 
-    def frames(self, indices):
-        """Yield (index, (H, W, 3) uint8) for the increasing source indices ``indices``; frames
+    def check_whole(self) -> None:
+        """Refuse a scanned video whose packets span less than its container declares. A damaged
+        stretch of an AVI loses its frames without a gap in their count (packets are numbered as
+        they are read), so every later frame would stand in for an earlier one, and where they
+        were lost cannot be told. A gap in a container's timestamps needs no check: ffmpeg's
+        constant-rate output repeats the frame before it, and the cameras stay in step."""
+        if self.files is not None:
+            return
+        seconds = _declared_and_read_seconds(self.path)
+        if seconds is None or seconds[1] <= 0:
+            return
+        declared, read = seconds
+        rate = len(self.numbers) / read  # frames per second as decoded
+        if declared - read > 1 / rate + DURATION_RESOLUTION:
+            lost = max(1, round((declared - read) * rate))
+            raise InputFileError(self.path, f"{self.what}: only {read:.2f} s of the {declared:.2f} s the file declares "
+                                            f"can be read: about {lost} frames are lost (a damaged or truncated file) "
+                                            "at a place that cannot be told, so this camera would fall out of step "
+                                            "with the others; repair or export the video again")
+
+    def frames(self, numbers):
+        """Yield (number, (H, W, 3) uint8) for the increasing source numbers ``numbers``; frames
         held by ``scan`` are handed over (and forgotten), others read in order."""
-        indices = list(indices)
-        rest = set(indices) - self.held.keys()
+        numbers = list(numbers)
+        rest = set(numbers) - self.held.keys()
         decoded = None
         if rest and self.files is None:
             decoded = ((i, f) for i, f in enumerate(self._decode()) if i in rest)
-        for i in indices:
+        for i in numbers:
             if i in self.held:
                 yield i, self.held.pop(i)
             elif decoded is None:
@@ -212,6 +288,19 @@ class FrameSource:
                     raise InputFileError(self.path, f"{self.what}: frame {i} is missing when decoded again "
                                                     "(did the file change?)")
                 yield i, frame
+
+
+def _one_camera_per_file(sources: list[FrameSource]) -> None:
+    """Refuse a file or folder given for two cameras (a link to it is the same file): two cameras
+    cannot record the same file."""
+    seen: dict[tuple[int, int], FrameSource] = {}
+    for src in sources:
+        status = src.path.stat()
+        earlier = seen.setdefault((status.st_dev, status.st_ino), src)
+        if earlier.camera != src.camera:
+            kind = "folder" if src.path.is_dir() else "file"
+            raise InputFileError(src.path, f"given for both {earlier.what} and {src.what}: two cameras cannot "
+                                           f"record the same {kind}")
 
 
 # --------------------------------------------------------------------------- options
@@ -242,32 +331,65 @@ def _offsets(values: list[str], names: list[str], calibration: Path) -> dict[str
 
 
 def _first_frame(offsets: dict[str, int]) -> int:
-    """The first frame number every camera has (camera c's frame number i is its source frame i + offset_c)."""
+    """The first frame number every camera has were each source numbered from 0 (camera c's frame
+    number i is its source number i + offset_c)."""
     return max(0, *(-o for o in offsets.values()))
 
 
-def _common_range(counts: dict[str, int], offsets: dict[str, int]) -> tuple[int, int, str | None]:
-    """[lo, hi) frame numbers every camera has, and the warning when lengths were cut."""
-    lo = _first_frame(offsets)
-    lengths = {n: counts[n] - offsets[n] - lo for n in counts}
-    shortest, longest = min(lengths.values()), max(lengths.values())
+def _common_range(frames: dict[str, list[int]], offsets: dict[str, int]) -> tuple[int, int, str | None]:
+    """[lo, hi) frame numbers every camera spans, and the warning when frames were cut.
+
+    frames: each camera's frame numbers (its source numbers less its offset), increasing. The
+    frames that the offsets put before the first synchronous one are not counted as cut; those
+    of a folder that starts before the others, or of a recording that goes on after them, are.
+    """
+    base = _first_frame(offsets)
+    lo = max(base, *(f[0] for f in frames.values()))
+    hi = min(f[-1] for f in frames.values()) + 1
 
     def listing():
-        return ", ".join(f"{n} {counts[n]}" + (f" (offset {offsets[n]:+d})" if offsets[n] else "") for n in counts)
+        def numbered(n, f):  # a folder's own numbers where they do not run 0..count-1
+            first, last = f[0] + offsets[n], f[-1] + offsets[n]
+            return f" numbered {first}..{last}" if (first, last) != (0, len(f) - 1) else ""
+        return ", ".join(f"{n} {len(f)}" + numbered(n, f) + (f" (offset {offsets[n]:+d})" if offsets[n] else "")
+                         for n, f in frames.items())
 
-    if shortest <= 0:
+    if hi <= lo:
         raise UserError(f"--offset: the recordings have no frames in common ({listing()} frames)")
-    difference = longest - shortest
-    if difference > MAX_TRIM_FRAMES or difference > MAX_TRIM_FRACTION * longest:
+    cut = max(bisect_left(f, lo) - bisect_left(f, base) + len(f) - bisect_left(f, hi) for f in frames.values())
+    longest = max(len(f) - bisect_left(f, base) for f in frames.values())
+    if cut > MAX_TRIM_FRAMES or cut > MAX_TRIM_FRACTION * longest:
         raise UserError(f"--video: frame counts differ between cameras: {listing()} (more than "
                         f"{MAX_TRIM_FRAMES} frames or {MAX_TRIM_FRACTION:.0%} apart; a truncated file? "
                         "a late start is --offset)")
-    hi = lo + shortest
     warning = None
-    if difference:
-        warning = (f"recordings differ in length ({listing()} frames); using the {shortest} frames "
-                   f"{lo}..{hi - 1} all cameras have")
+    if cut:
+        warning = f"recordings differ in length ({listing()} frames); using the frames {lo}..{hi - 1} all cameras have"
     return lo, hi, warning
+
+
+def _on_grid(first: int, start: int, step: int) -> int:
+    """The first frame number from ``first`` on, and from ``start`` on, on the --start + k --step grid."""
+    begin = max(first, start)
+    return begin + -(begin - start) % step
+
+
+def _lacking(numbered: dict[str, list[int]], wanted: range) -> dict[int, list[str]]:
+    """The frame numbers in ``wanted`` that some camera has, each with the cameras that lack it
+    (an empty list where all have it). A number no camera has is no frame (folders numbered in
+    steps)."""
+    have = {n: set(f) for n, f in numbered.items()}
+    out = {}
+    for i in wanted:
+        lack = [n for n, h in have.items() if i not in h]
+        if len(lack) < len(have):
+            out[i] = lack
+    return out
+
+
+def _listed(numbers: list[int]) -> str:
+    shown = ", ".join(str(n) for n in numbers[:SHOWN_FRAMES])
+    return shown + (f" and {len(numbers) - SHOWN_FRAMES} more" if len(numbers) > SHOWN_FRAMES else "")
 
 
 def _write_rgb(path: Path, image: np.ndarray) -> None:
@@ -277,7 +399,7 @@ def _write_rgb(path: Path, image: np.ndarray) -> None:
 # --------------------------------------------------------------------------- command
 def run(args) -> int:
     calibration = Path(args.calibration)
-    studio = load_calibration(calibration)
+    studio = load_calibration(calibration, units=args.units)
     names = studio.names
     videos = {n: Path(p) for n, p in _pairs(args.video, "--video", names, calibration).items()}
     missing = [n for n in names if n not in videos]
@@ -294,14 +416,14 @@ def run(args) -> int:
     # Every source is opened, sized and counted before anything is written.
     sources = {n: FrameSource(n, videos[n], "--video") for n in names}
     bg_sources = {n: FrameSource(n, p, "--background") for n, p in backgrounds.items()}
+    _one_camera_per_file([*sources.values(), *bg_sources.values()])
     firsts = {n: s.first() for n, s in sources.items()}
     # A calibration without image sizes gets the videos'; one with sizes must agree with them.
     studio = with_image_sizes(studio, {n: (f.shape[1], f.shape[0]) for n, f in firsts.items()}, "--video")
     for n, src in bg_sources.items():
-        check_size(src.first().shape, src.where(0), studio.camera(n))
+        check_size(src.first().shape, src.where(), studio.camera(n))
 
-    begin = max(args.start, _first_frame(offsets))
-    begin += -(begin - args.start) % args.step  # stay on the --start + k --step grid
+    begin = _on_grid(_first_frame(offsets), args.start, args.step)
 
     def keeper(offset):
         return lambda j: j - offset >= begin and (j - offset - begin) % args.step == 0 and (
@@ -310,17 +432,32 @@ def run(args) -> int:
     hold = HOLD_BYTES
     for n in names:
         hold -= sources[n].scan(keeper(offsets[n]), hold, studio.camera(n))
+        sources[n].check_whole()
     for n, src in bg_sources.items():
         hold -= src.scan(lambda j: True, hold, studio.camera(n))
-    counts = {n: sources[n].count for n in names}
-    lo, hi, warning = _common_range(counts, offsets)
-    frames = range(begin, hi if args.stop is None else min(hi, args.stop), args.step)
-    if len(frames) == 0:
+    numbered = {n: [j - offsets[n] for j in sources[n].numbers] for n in names}
+    lo, hi, warning = _common_range(numbered, offsets)
+    wanted = range(_on_grid(lo, args.start, args.step), hi if args.stop is None else min(hi, args.stop), args.step)
+    lacking = _lacking(numbered, wanted)
+    missing = {i: cams for i, cams in lacking.items() if cams}
+    if missing and args.missing_frames == "error":
+        i, cams = next(iter(missing.items()))
+        others = ", ".join(n for n in names if n not in cams)
+        more = f"; {len(missing) - 1} more frame numbers lack some camera's image" if len(missing) > 1 else ""
+        raise InputFileError(sources[cams[0]].where(i + offsets[cams[0]]),
+                             f"--video {cams[0]}: frame {i} is missing here but not in {others}{more} "
+                             "(--missing-frames skip leaves such frames out of every camera)")
+    frames = [i for i, cams in lacking.items() if not cams]
+    if not frames:
         stop = "" if args.stop is None else f" --stop {args.stop}"
         raise UserError(f"--start {args.start}{stop} --step {args.step}: no frames selected "
                         f"(the recordings have frames {lo}..{hi - 1} in common)")
     if warning:
         print_warning(warning)
+    if missing:
+        each = {n: [i for i, cams in missing.items() if n in cams] for n in names}
+        print_warning(f"--missing-frames skip: left out of every camera: frame numbers {_listed(list(missing))} ("
+                      + "; ".join(f"{n} lacks {_listed(lack)}" for n, lack in each.items() if lack) + ")")
 
     fps = args.fps or sources[names[0]].fps or DEFAULT_FPS
     # the whole sequence is built beside OUT and moved in at the end: a failed import leaves OUT as it was
@@ -336,14 +473,14 @@ def run(args) -> int:
             if n in bg_sources:
                 folder = staged / "background" / n
                 folder.mkdir(parents=True)
-                for j, image in bg_sources[n].frames(range(bg_sources[n].count)):
+                for j, image in bg_sources[n].frames(bg_sources[n].numbers):
                     check_size(image.shape, bg_sources[n].where(j), cam)
                     _write_rgb(folder / FRAME_NAME.format(frame=j), image)
         save_calibration(studio, staged / "calibration.json")
         extra = {"source": {n: str(p) for n, p in videos.items()}}
         if any(offsets.values()):
             extra["offsets"] = offsets
-        write_sequence_meta(staged, list(frames), float(fps), names, **extra)
+        write_sequence_meta(staged, frames, float(fps), names, **extra)
     if args.overwrite:  # silhouettes of the images just replaced
         shutil.rmtree(out / "silhouettes", ignore_errors=True)
     print(f"imported {len(frames)} frames ({frames[0]}..{frames[-1]}) x {len(names)} cameras"
