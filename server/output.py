@@ -28,6 +28,15 @@ def add_overwrite_argument(p) -> None:
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
 
+def add_units_argument(p) -> None:
+    """--units: the units of a calibration file that does not say (calib, import-video, fit,
+    server, voxels, live)."""
+    from common.calibration import UNIT_SCALE
+
+    p.add_argument("--units", choices=sorted(UNIT_SCALE), default=None,
+                   help="units of translations in calibration files that do not say (default: metres, checked)")
+
+
 def _writable_folder(folder: Path, option: str) -> None:
     """The folder, or the nearest folder above it that exists, can be written to."""
     probe = folder

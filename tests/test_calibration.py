@@ -718,9 +718,10 @@ def test_a_guess_passed_off_as_measured_is_named_when_the_images_disagree(tmp_pa
     studio = load_calibration(NEW / "uu_layout", units="mm", warn=lambda line: None)
     calib = tmp_path / "Calib.toml"
     save_calibration(Studio(tuple(replace(c, size_guessed=False) for c in studio)), calib)
-    Image.new("RGB", (644, 486)).save(tmp_path / "frame.png")
+    for name in studio.names:  # a file each: two cameras given one file is refused first
+        Image.new("RGB", (644, 486)).save(tmp_path / f"{name}.png")
     rc, _, err = cli(capsys, "import-video", "--calibration", calib, "--out", tmp_path / "seq",
-                     "--video", *(f"{name}={tmp_path / 'frame.png'}" for name in studio.names))
+                     "--video", *(f"{name}={tmp_path / f'{name}.png'}" for name in studio.names))
     assert rc == 2 and err.count("\n") == 1 and not (tmp_path / "seq").exists()
     assert err.endswith(f"{calib}: cam1.size: the calibration says 663x449 but the images (--video) are 644x486; "
                         "663x449 is twice the principal point, the size a converter guesses for a camera without "

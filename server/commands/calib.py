@@ -20,14 +20,15 @@ from pathlib import Path
 import numpy as np
 
 from common.calibration import (
-    FORMATS, UNIT_SCALE, WRITE_FORMATS, check_sizes_writable, detect_format, load_calibration, output_format,
+    FORMATS, WRITE_FORMATS, check_sizes_writable, detect_format, load_calibration, output_format,
     save_calibration,
 )
 from common.camera import Studio
 from common.errors import UserError, print_warning
 from common.world import UP_CHOICES, below_floor_warning, resolve_world
 from server.commands.import_video import FrameSource
-from server.output import add_overwrite_argument, check_file_target, check_folder_target, replace_file, staged_folder
+from server.output import (add_overwrite_argument, add_units_argument, check_file_target, check_folder_target,
+                           replace_file, staged_folder)
 
 
 def register(subparsers) -> None:
@@ -49,12 +50,6 @@ def register(subparsers) -> None:
     show.add_argument("input", metavar="FILE", help="calibration file or folder")
     _input_options(show)
     show.set_defaults(func=run_show)
-
-
-def add_units_argument(parser) -> None:
-    """--units: the units of a calibration file that does not say (calib, import-video)."""
-    parser.add_argument("--units", choices=sorted(UNIT_SCALE),
-                        help="units of translations in files that do not say (default: metres, checked)")
 
 
 def _input_options(parser) -> None:

@@ -17,7 +17,7 @@ from common.argtypes import count, non_negative, real
 from server.local_cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.config import PRESETS
 from server.progress import Progress
-from server.output import add_overwrite_argument, check_folder_target, replace_file
+from server.output import add_overwrite_argument, add_units_argument, check_folder_target, replace_file
 from server.results import MOTION_FILE, RESULT_FILES, earlier_actor_scale, load_records
 from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, resolve_threads, run_fit,
                             tracking_error_note, xor_sides)
@@ -78,7 +78,7 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--init", choices=INIT_CHOICES, default=None,
                    help="first-frame start: auto (from the voxels; the truth then only scores), truth, or "
                         "standing (default: the truth's first pose if the sequence has one, else auto)")
-    p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
+    add_units_argument(p)
     add_world_arguments(p)
     p.add_argument("--actor-height", default="auto", metavar="M|auto",
                    help="the actor's height in the calibration's units (metres): the body model is scaled to it; "

@@ -42,8 +42,7 @@ from common.errors import InputFileError, UserError, print_warning
 from common.sequence import (DEFAULT_FPS, FRAME_NAME, IMAGE_SUFFIXES, check_size, expected_path, frame_files,
                              image_size, read_image, write_sequence_meta)
 from common.argtypes import count, real
-from server.commands.calib import add_units_argument
-from server.output import add_overwrite_argument, check_folder_target, staged_folder
+from server.output import add_overwrite_argument, add_units_argument, check_folder_target, staged_folder
 
 # what an earlier import (or segment) left in a sequence folder; a calibration.json there may be
 # the --calibration being imported, and is replaced by its checked copy

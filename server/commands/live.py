@@ -28,6 +28,7 @@ from common.errors import InputFileError
 from common.sequence import load_sequence, read_image
 from common.argtypes import count, non_negative
 from server.commands.fit import add_world_arguments
+from server.output import add_units_argument
 from common.voxels import SpotGrid, surface_voxels
 
 QUEUE_DEPTH = 2  # frames waiting between two stages (bounded: a slow stage back-pressures)
@@ -64,7 +65,7 @@ def register(subparsers) -> None:
     p.add_argument("--rate", type=non_negative, default=0.0,
                    help="feed frames at this many per second, like live cameras (default 0: as fast as possible)")
     p.add_argument("--method", default="cheung", help="background subtraction method when segmenting images")
-    p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
+    add_units_argument(p)
     add_world_arguments(p)
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)

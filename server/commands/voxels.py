@@ -20,7 +20,7 @@ from common.errors import InputFileError, UserError
 from common.sequence import FRAME_NAME, load_sequence
 from common.argtypes import count, real
 from server.commands.fit import add_world_arguments
-from server.output import add_overwrite_argument, check_folder_target, staged_folder, write_text
+from server.output import add_overwrite_argument, add_units_argument, check_folder_target, staged_folder, write_text
 from common.voxels import SpotGrid, bounds_around, save_voxels, silhouette_centre
 
 SUMMARY = "voxels.json"
@@ -55,7 +55,7 @@ def register(subparsers) -> None:
     p.add_argument("--frames", type=count(1), default=None, help="only the first N frames")
     p.add_argument("--pictures", type=count(0), default=1, metavar="EVERY",
                    help="a picture every EVERY frames (0: none; default 1)")
-    p.add_argument("--units", choices=("m", "cm", "mm"), default=None, help="units of a calibration that does not say")
+    add_units_argument(p)
     add_world_arguments(p)
     add_overwrite_argument(p)
     p.add_argument("--quiet", action="store_true", help="print nothing")
