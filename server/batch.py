@@ -33,14 +33,14 @@ WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THRE
               THREADS_ENV: "1"}  # one take per core: each fit runs one thread
 
 
-def run_take_task(take: str) -> dict:
+def run_take_task(take: str, overwrite: bool = False) -> dict:
     """A take on a worker: what ``run_take`` returns, or ``status: failed`` with the one-line error.
 
     Bad input is the take's own failure (reported, the batch goes on); anything else is said in
     one line too, so that one broken take never stops the others.
     """
     try:
-        return run_take(Path(take))
+        return run_take(Path(take), overwrite=overwrite)
     except UserError as exc:
         return {"name": Path(take).name, "path": take, "status": "failed", "error": str(exc)}
     except Exception as exc:  # a bug must not hide the other takes' results
@@ -63,10 +63,11 @@ def start_client(workers: int | None, scheduler: str | None):
 
 
 def run_batch(project: Path, workers: int | None = None, scheduler: str | None = None, quiet: bool = False,
-              started=None) -> dict:
+              started=None, overwrite: bool = False) -> dict:
     """Run every take of ``project``; writes and returns the batch record (``batch.json``).
 
     ``started``: called with the Dask client once the takes are submitted (tests kill a worker).
+    ``overwrite``: as ``mocap run --overwrite`` for every take.
     """
     project = Path(project).resolve()
     takes = find_takes(project)
@@ -78,7 +79,7 @@ def run_batch(project: Path, workers: int | None = None, scheduler: str | None =
         from distributed import wait
 
         n_workers = len(client.scheduler_info().get("workers", {}))
-        futures = {client.submit(run_take_task, str(t), key=f"take-{i}-{t.name}", pure=False): t
+        futures = {client.submit(run_take_task, str(t), overwrite, key=f"take-{i}-{t.name}", pure=False): t
                    for i, t in enumerate(takes)}
         if started:
             started(client)

@@ -25,6 +25,7 @@ from server.commands.import_video import MISSING_FRAMES
 
 CONFIG_FILE = "Config.toml"
 DEFAULT = "default"
+MIN_ACTOR_HEIGHT, MAX_ACTOR_HEIGHT = 0.5, 3.0  # metres: [fit] actor_height and mocap fit --actor-height
 
 
 @dataclass(frozen=True)
@@ -32,7 +33,7 @@ class Setting:
     section: str
     key: str
     default: Any
-    kind: type  # int, float, str, bool, list (of str) or dict (str -> int)
+    kind: type | tuple[type, ...]  # int, float, str, bool, list (of str), dict (str -> int), or a tuple of these
     help: str
     check: Callable[[Any], bool] | None = None  # a further condition on the value
     wanted: str = ""  # what the check wants, for the error line
@@ -41,9 +42,9 @@ class Setting:
         """The value if it has this setting's type and passes its check, else InputFileError."""
         kind = self.kind
         ok = isinstance(value, kind) and not (kind is int and isinstance(value, bool))
-        if kind is float and isinstance(value, int) and not isinstance(value, bool):
+        if float in _kinds(kind) and isinstance(value, int) and not isinstance(value, bool):
             value, ok = float(value), True
-        if ok and kind is float:
+        if ok and isinstance(value, float):
             ok = math.isfinite(value)
         if ok and kind is list:
             ok = all(isinstance(v, str) for v in value)
@@ -58,12 +59,26 @@ class Setting:
         return value
 
 
+def _kinds(kind) -> tuple[type, ...]:
+    return kind if isinstance(kind, tuple) else (kind,)
+
+
 def _at_least(n):
     return lambda v: v >= n
 
 
 def _one_of(choices):
     return lambda v: v in choices
+
+
+def _height_or_auto(value) -> bool:
+    """Metres within mocap fit --actor-height's range (a number, or a number as text), or "auto"."""
+    if value == "auto":
+        return True
+    try:
+        return MIN_ACTOR_HEIGHT <= float(value) <= MAX_ACTOR_HEIGHT
+    except ValueError:
+        return False
 
 
 SETTINGS: tuple[Setting, ...] = (
@@ -103,7 +118,8 @@ SETTINGS: tuple[Setting, ...] = (
             _at_least(0), "an integer >= 0"),
     Setting("fit", "init", "", str, "first-frame start: auto, truth or standing (default: truth where there is one)",
             _one_of(("", "auto", "truth", "standing")), "one of auto, truth, standing"),
-    Setting("fit", "actor_height", "auto", str, "the actor's height in metres, or auto"),
+    Setting("fit", "actor_height", "auto", (float, str), "the actor's height in metres, or auto", _height_or_auto,
+            f"metres ({MIN_ACTOR_HEIGHT:g} to {MAX_ACTOR_HEIGHT:g}) or \"auto\""),
     Setting("fit", "clean_masks", True, bool, "drop silhouette blobs the other cameras do not support"),
     Setting("fit", "threads", 0, int, "single process: starts and limbs fitted at once (0: every core); "
             "the poses are the same for any number", _at_least(0), "an integer >= 0"),

@@ -12,9 +12,12 @@ take and then in the project).
 Steps (import, segment, fit, export, report) run the ``mocap`` commands themselves, so every
 check and message is theirs. Each step leaves a record (``TAKE/.mocap/<step>.json``) of its
 settings and of the sizes and times of its inputs and outputs; a step whose record matches is
-skipped, so a run after a change redoes only what the change affects. A fit that was
-interrupted is continued (``--resume``); one whose settings changed is replaced. A lock file
-keeps two runs off one take.
+skipped, so a run after a change redoes only what the change affects. A run replaces only
+outputs that a run made and that are as it left them (``made.json``): any other output in the
+way (made by hand, or changed since) refuses the take before anything is written, unless
+``overwrite``. A step being run leaves ``<step>.pending.json`` until it is done, so what it
+was replacing when stopped is still its own. A fit that was interrupted is continued
+(``--resume``); one whose settings changed is replaced. A lock file keeps two runs off one take.
 """
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ import fcntl
 import hashlib
 import io
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,8 +35,10 @@ from common.errors import UserError
 from common.export import export_name
 from server.config import CONFIG_FILE, Config, load_config
 from server.output import write_text
+from server.results import DERIVED_FILES, MOTION_FILE, RUN_FILE
 
 STATE_DIR = ".mocap"  # per take: step records, the lock, the log of the last run
+MADE_FILE = "made.json"  # in STATE_DIR: every output a run made, as it left it
 CALIBRATION_NAMES = ("calibration.json", "calibration.toml", "Calib.toml", "calibration")
 EASYMOCAP_FILES = ("intri.yml", "extri.yml")
 SEQUENCE_MARKERS = ("sequence.json", "silhouettes")
@@ -103,27 +109,59 @@ def _sources(folder: Path) -> dict[str, Path]:
     return {(p.stem if p.is_file() else p.name): p for p in sorted(folder.iterdir()) if not p.name.startswith(".")}
 
 
+def _files(root: Path) -> list[Path]:
+    return [root] if root.is_file() else sorted(p for p in root.rglob("*") if p.is_file()) if root.exists() else []
+
+
+def _hash_files(h, root: Path, files: list[Path]) -> None:
+    for p in files:
+        st = p.stat()
+        h.update(f"{p.relative_to(root) if p != root else ''}:{st.st_size}:{st.st_mtime_ns}\n".encode())
+
+
 def fingerprint(paths: list[Path]) -> str:
     """A hash of the names, sizes and modification times of every file under ``paths``."""
     h = hashlib.sha1()
     for root in paths:
-        files = [root] if root.is_file() else sorted(p for p in root.rglob("*") if p.is_file()) if root.exists() else []
+        files = _files(root)
         h.update(f"{root}:{len(files)}\n".encode())
-        for p in files:
-            st = p.stat()
-            h.update(f"{p.relative_to(root) if p != root else ''}:{st.st_size}:{st.st_mtime_ns}\n".encode())
+        _hash_files(h, root, files)
     return h.hexdigest()
+
+
+def _as_left(path: Path) -> str:
+    """A hash of the sizes and modification times of the files under one output, by their names
+    below it: the same after the take is moved."""
+    h = hashlib.sha1()
+    _hash_files(h, path, _files(path))
+    return h.hexdigest()
+
+
+def _relative(take: Path, path: Path) -> str:
+    return os.path.relpath(path, take)
 
 
 @dataclass(frozen=True)
 class Step:
-    """One step of a take: the mocap command lines, what it reads and writes, what decides it."""
+    """One step of a take: the mocap command lines, what it reads and writes, what decides it.
+
+    ``also_writes``: what the commands write besides the outputs (noted in made.json like them,
+    but not deciding whether the step is up to date); ``clears``: what the commands remove, which
+    later steps make. All three are replaced only where a run made them.
+    """
 
     name: str
     commands: tuple[tuple[str, ...], ...]
     inputs: tuple[Path, ...]
     outputs: tuple[Path, ...]
     settings: dict = field(default_factory=dict)
+    also_writes: tuple[Path, ...] = ()
+    clears: tuple[Path, ...] = ()
+
+    @property
+    def replaced(self) -> tuple[Path, ...]:
+        """Everything the commands write or remove."""
+        return self.outputs + self.also_writes + self.clears
 
 
 @dataclass(frozen=True)
@@ -172,18 +210,21 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
         steps.append(Step("import", (tuple(command),), (calibration, *videos.values(), *backgrounds.values()),
                           # not sequence.json: the segment step adds its record there
                           (sequence / "images", sequence / "calibration.json"),
-                          {"import": imp, "calibration": calib_settings}))
+                          {"import": imp, "calibration": calib_settings},
+                          also_writes=(sequence / "background", sequence / "sequence.json"),
+                          clears=(sequence / "silhouettes",)))  # import-video --overwrite drops the old ones
         method = config.get("segmentation", "method")
         steps.append(Step("segment", (("segment", str(sequence), "--method", method, "--overwrite"),),
                           (sequence / "images", sequence / "background"), (sequence / "silhouettes",),
-                          {"segmentation": config.section("segmentation")}))
+                          {"segmentation": config.section("segmentation")},
+                          also_writes=(sequence / "sequence.json",)))  # its record of the segmentation
     fit = config.section("fit")
     command = ["fit", str(sequence), "--out", str(result), "--quiet", "--up", calib_settings["up"],
                "--iterations", str(fit["iterations"]), "--turn-hypotheses", str(fit["turn_hypotheses"]),
                "--polish-iterations", str(fit["polish_iterations"]), "--refine-passes", str(fit["refine_passes"]),
                "--refine-hops", str(fit["refine_hops"]), "--refine-chunk-frames", str(fit["refine_chunk_frames"]),
                "--energy", fit["energy"],
-               "--actor-height", fit["actor_height"], "--threads", str(fit["threads"])]
+               "--actor-height", str(fit["actor_height"]), "--threads", str(fit["threads"])]
     command += ["--frames", str(fit["frames"])] if fit["frames"] else []
     command += ["--units", calib_settings["units"]] if calib_settings["units"] else []
     command += ["--init", fit["init"]] if fit["init"] else []
@@ -192,7 +233,10 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     command += ["--track-moved-on"] if fit["track_moved_on"] else []
     calibration_file = sequence / "calibration.json"
     steps.append(Step("fit", (tuple(command),), (calibration_file, sequence / "silhouettes", sequence / "sequence.json"),
-                      (result / "poses.jsonl", result / "summary.json"), {"fit": fit, "calibration": calib_settings}))
+                      (result / "poses.jsonl", result / "summary.json"), {"fit": fit, "calibration": calib_settings},
+                      also_writes=(result / RUN_FILE, result / MOTION_FILE),
+                      # mocap fit --overwrite drops what was made from the result it replaces
+                      clears=tuple(result / name for name in DERIVED_FILES)))
     formats = config.get("export", "formats")
     steps.append(Step("export", tuple(("export", str(result), "--format", f, "--overwrite", "--quiet") for f in formats),
                       (result / "poses.jsonl",), tuple(result / export_name(f) for f in formats),
@@ -201,7 +245,7 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     if report["enabled"]:
         command = ["report", str(result), "--overwrite", "--quiet"] + ([] if report["gif"] else ["--no-gif"])
         steps.append(Step("report", (tuple(command),), (result / "poses.jsonl", result / "summary.json"),
-                          (result / "report.html",), {"report": report}))
+                          (result / "report.html",), {"report": report}, also_writes=(result / "pictures",)))
     return TakePlan(take, sequence, result, tuple(steps))
 
 
@@ -209,22 +253,72 @@ def _record_path(take: Path, step: str) -> Path:
     return take / STATE_DIR / f"{step}.json"
 
 
+def _pending_path(take: Path, step: str) -> Path:
+    return take / STATE_DIR / f"{step}.pending.json"
+
+
 def _record(step: Step) -> dict:
     return {"settings": step.settings, "commands": [list(c) for c in step.commands],
             "inputs": fingerprint(list(step.inputs)), "outputs": fingerprint(list(step.outputs))}
 
 
+def _pending(step: Step) -> dict:
+    return {"settings": step.settings, "inputs": fingerprint(list(step.inputs))}
+
+
+def _read_record(take: Path, step: str) -> dict | None:
+    done = _read_json(_record_path(take, step))
+    return done if isinstance(done, dict) else None
+
+
 def up_to_date(take: Path, step: Step) -> bool:
     """Whether the step's record says its outputs were made from these inputs and settings and
     are as it left them."""
-    path = _record_path(take, step.name)
-    if not path.is_file() or not all(p.exists() for p in step.outputs):
-        return False
-    try:
-        done = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return False
-    return done == _record(step)
+    done = _read_record(take, step.name)
+    return done is not None and all(p.exists() for p in step.outputs) and done == _record(step)
+
+
+def _made_by_runs(take: Path, plan: TakePlan) -> dict[str, str]:
+    """{output relative to the take: its state as a run left it} (``made.json``, kept across steps
+    and runs, so that a file one step wrote and another left alone, such as the fit's motion.bvh,
+    stays vouched for). A take last run before made.json was kept: each step's record vouches
+    for what it writes, whole."""
+    made = _read_json(take / STATE_DIR / MADE_FILE)
+    if isinstance(made, dict):
+        return made
+    return {_relative(take, p): _as_left(p) for step in plan.steps
+            if (_read_record(take, step.name) or {}).get("outputs") == fingerprint(list(step.outputs))
+            for p in step.outputs + step.also_writes if p.exists()}
+
+
+def _note_made(take: Path, plan: TakePlan, step: Step) -> None:
+    made = _made_by_runs(take, plan) | {_relative(take, p): _as_left(p) for p in step.outputs + step.also_writes
+                                        if p.exists()}
+    write_text(take / STATE_DIR / MADE_FILE, json.dumps(made, indent=1))
+
+
+def _vouched_for(take: Path, plan: TakePlan) -> set[str]:
+    """The outputs (relative to the take) that a run made and that are as it left them, or that a
+    step it was running when it stopped was replacing."""
+    vouched = {name for name, left in _made_by_runs(take, plan).items() if _as_left(take / name) == left}
+    for step in plan.steps:
+        if _pending_path(take, step.name).is_file():  # checked (or overwrite given) when it started
+            vouched.update(_relative(take, p) for p in step.replaced)
+    return vouched
+
+
+def check_replaceable(take: Path, plan: TakePlan) -> None:
+    """Raise UserError if a step that would run would replace or remove an output that a run did
+    not make, or one changed since (a result made by hand, silhouettes touched up)."""
+    vouched = _vouched_for(take, plan)
+    for step in plan.steps:
+        if up_to_date(take, step):
+            continue
+        for path in step.replaced:
+            name = _relative(take, path)
+            if path.exists() and name not in vouched:
+                raise UserError(f"{take}: {step.name}: {name} holds a result mocap run did not make (or one changed "
+                                "since); move it away or pass --overwrite")
 
 
 @contextlib.contextmanager
@@ -258,54 +352,59 @@ def run_mocap(argv: tuple[str, ...], log) -> None:
         raise UserError((errors or text.strip().splitlines() or ["failed"])[-1].strip())
 
 
-def run_take(take: Path, progress=None) -> dict:
+def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
     """Run the take's steps that are not up to date; returns what was done (``mocap run``,
-    ``mocap batch``). Raises UserError with the failing step's message."""
+    ``mocap batch``). Raises UserError with the failing step's message, or before anything is
+    written where a step would replace an output no run made (``overwrite`` allows it)."""
     take = Path(take).resolve()
     plan = plan_take(take)
     t0 = time.perf_counter()
     steps = []
-    with take_lock(take), open(take / STATE_DIR / "run.log", "a") as log:
-        for step in plan.steps:
-            if up_to_date(take, step):
-                steps.append({"step": step.name, "status": "up to date", "seconds": 0.0})
-                if progress:
-                    progress(step.name, "up to date")
-                continue
-            record = _record_path(take, step.name)
-            record.unlink(missing_ok=True)  # outputs being replaced: no longer vouched for
-            s0 = time.perf_counter()
-            if progress:
-                progress(step.name, "running")
-            for command in step.commands:
-                command = _resume_if_interrupted(take, step, command)
-                try:
-                    run_mocap(command, log)
-                except UserError as exc:
-                    raise UserError(f"{step.name}: {exc}") from None
-            write_text(record, json.dumps(_record(step), indent=1))
-            (take / STATE_DIR / f"{step.name}.pending.json").unlink(missing_ok=True)
-            steps.append({"step": step.name, "status": "done", "seconds": time.perf_counter() - s0})
+    with take_lock(take):
+        if not overwrite:
+            check_replaceable(take, plan)
+        with open(take / STATE_DIR / "run.log", "a") as log:
+            for step in plan.steps:
+                if up_to_date(take, step):
+                    steps.append({"step": step.name, "status": "up to date", "seconds": 0.0})
+                    if progress:
+                        progress(step.name, "up to date")
+                    continue
+                steps.append(_run_step(take, plan, step, log, progress))
     ran = [s for s in steps if s["status"] == "done"]
     return {"name": take.name, "path": str(take), "status": "done" if ran else "skipped", "steps": steps,
             "result": str(plan.result), "seconds": time.perf_counter() - t0, **result_figures(plan.result)}
 
 
-def _resume_if_interrupted(take: Path, step: Step, command: tuple[str, ...]) -> tuple[str, ...]:
-    """A fit that an earlier run started with the same settings and inputs is continued; any other
-    fit replaces what is there (the pending record says which)."""
-    if step.name != "fit":
-        return command
-    pending = take / STATE_DIR / "fit.pending.json"
-    now = {"settings": step.settings, "inputs": fingerprint(list(step.inputs))}
+def _run_step(take: Path, plan: TakePlan, step: Step, log, progress) -> dict:
+    """Run one step's commands and leave its record; a fit that an earlier run started with the
+    same settings and inputs is continued, any other fit replaces what is there."""
+    pending = _pending_path(take, step.name)
+    resume = step.name == "fit" and (plan.result / "poses.jsonl").exists() and _read_json(pending) == _pending(step)
+    write_text(pending, json.dumps(_pending(step), indent=1))  # before the record goes: the outputs stay the run's
+    record = _record_path(take, step.name)
+    record.unlink(missing_ok=True)  # outputs being replaced: no longer up to date
+    s0 = time.perf_counter()
+    if progress:
+        progress(step.name, "running")
+    for command in step.commands:
+        if step.name == "fit":
+            command += ("--resume",) if resume else ("--overwrite",)
+        try:
+            run_mocap(command, log)
+        except UserError as exc:
+            raise UserError(f"{step.name}: {exc}") from None
+    _note_made(take, plan, step)
+    write_text(record, json.dumps(_record(step), indent=1))
+    pending.unlink()
+    return {"step": step.name, "status": "done", "seconds": time.perf_counter() - s0}
+
+
+def _read_json(path: Path):
     try:
-        same = json.loads(pending.read_text()) == now
+        return json.loads(path.read_text())
     except (OSError, ValueError):
-        same = False
-    write_text(pending, json.dumps(now, indent=1))
-    result = Path(command[command.index("--out") + 1])
-    resume = same and (result / "poses.jsonl").exists()
-    return command + (("--resume",) if resume else ("--overwrite",))
+        return None
 
 
 def result_figures(result: Path) -> dict:

@@ -42,6 +42,34 @@ def make_take(folder: Path, model, studio, frames: int = 3, start: int = 1) -> P
     return folder
 
 
+def make_image_take(folder: Path, model, studio, frames: int = 2) -> Path:
+    """A take of colour image folders and empty-studio backgrounds (imported, then segmented)."""
+    from common.synth import SynthOptions, synthesize
+
+    from tests.conftest import WALK_CLIP
+
+    rendered = folder.parent / f".{folder.name}.rendered"
+    synthesize(model, studio, WALK_CLIP, rendered, SynthOptions(frames=frames, images=True, seed=0))
+    folder.mkdir(parents=True)
+    for name in ("images", "background", "calibration.json"):
+        shutil.move(rendered / name, folder / name)
+    shutil.rmtree(rendered)
+    return folder
+
+
+def hand_fit(take: Path, frames: int = 1) -> int:
+    """mocap fit by hand into the take's result folder, as a user would."""
+    return main(["fit", str(take), "--out", str(take / "result"), "--frames", str(frames), "--iterations", "1",
+                 "--refine-passes", "0", "--turn-hypotheses", "0", "--polish-iterations", "0", "--quiet"])
+
+
+def refusal(capsys) -> str:
+    """The one error line of a refused mocap command."""
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
 @pytest.fixture
 def project(tmp_path, model, small_studio) -> Path:
     """3 takes: two good ones (walk from two starts), one with a silhouette file missing."""
@@ -78,6 +106,8 @@ def test_config_cascade_and_sources(tmp_path):
     ("[fit]\niterations = 0\n", ["[fit] iterations", ">= 1"]),
     ("[export]\nformats = ['gif']\n", ["[export] formats"]),
     ("[fit\n", ["not valid TOML"]),
+    ("[fit]\nactor_height = 3.5\n", ["[fit] actor_height", "0.5 to 3", "3.5"]),
+    ("[fit]\nactor_height = 'tall'\n", ["[fit] actor_height", "metres", "auto"]),
 ])
 def test_bad_config_is_one_line_naming_file_and_key(tmp_path, capsys, text, names):
     take = tmp_path / "take"
@@ -97,6 +127,14 @@ def test_config_show_says_where_each_value_came_from(project, capsys):
     assert f"[fit] frames = 2   # {project / 'walk_a' / 'Config.toml'}" in out
     assert f"[fit] iterations = 1   # {project / 'Config.toml'}" in out
     assert "[fit] energy = 'cpu'   # default" in out
+
+
+@pytest.mark.timeout(30)
+@pytest.mark.parametrize("given, why", [("missing", "no such folder"), ("Config.toml", "not a folder")])
+def test_config_show_refuses_what_is_not_a_folder(tmp_path, capsys, given, why):
+    (tmp_path / "Config.toml").write_text("[fit]\niterations = 2\n")
+    assert main(["config", "show", str(tmp_path / given)]) == 2
+    assert refusal(capsys).endswith(f"{tmp_path / given}: {why}")
 
 
 def test_run_redoes_only_what_changed(project, capsys):
@@ -133,6 +171,11 @@ def test_a_takes_fit_settings_reach_its_fit_command(project):
     (take / "Config.toml").write_text("[fit]\ntrack_moved_on = true\nturn_hypotheses = 1\n")
     (fit,) = plan_take(take).steps[0].commands
     assert "--track-moved-on" in fit and fit[fit.index("--turn-hypotheses") + 1] == "1"
+    assert fit[fit.index("--actor-height") + 1] == "auto"
+    for height in ("1.8", "'1.8'"):  # metres as a number, as mocap fit --actor-height takes them, or as text
+        (take / "Config.toml").write_text(f"[fit]\nactor_height = {height}\n")
+        (fit,) = plan_take(take).steps[0].commands
+        assert fit[fit.index("--actor-height") + 1] == "1.8"
 
 
 def test_an_interrupted_fit_is_continued(project):
@@ -152,6 +195,108 @@ def test_an_interrupted_fit_is_continued(project):
     assert poses(take) == whole
     summary = json.loads((take / "result" / "summary.json").read_text())
     assert summary["frames_fitted_this_run"] == len(whole) - 1 and done["status"] == "done"
+    # an export stopped half way: the files it was replacing are the run's own, not refused
+    (take / ".mocap" / "export.json").unlink()
+    (take / ".mocap" / "export.pending.json").write_text("{}")
+    (take / "result" / "motion.csv").write_text("half written")
+    assert [s["status"] for s in run_take(take)["steps"]] == ["up to date", "done", "up to date"]
+    assert (take / "result" / "motion.csv").read_text() != "half written"
+
+
+def test_run_refuses_a_result_it_did_not_make(project, capsys):
+    take = project / "walk_a"
+    assert hand_fit(take) == 0
+    (take / "result" / "notes.txt").write_text("a user's own file")
+    by_hand = {p.name: p.read_bytes() for p in (take / "result").iterdir()}
+    capsys.readouterr()
+    assert main(["run", str(take)]) == 2
+    err = refusal(capsys)
+    assert f"{take}: fit: result/poses.jsonl holds a result mocap run did not make" in err and "--overwrite" in err
+    assert {p.name: p.read_bytes() for p in (take / "result").iterdir()} == by_hand
+    assert not any((take / ".mocap").glob("fit*.json"))
+    with pytest.raises(UserError, match="fit: result/poses.jsonl"):  # mocap batch reports the take as failed
+        run_take(take)
+    assert main(["run", str(take), "--overwrite"]) == 0
+    assert len(poses(take)) == 3 and (take / "result" / "report.html").is_file()
+    assert (take / "result" / "notes.txt").read_text() == "a user's own file"
+    assert {s["status"] for s in run_take(take)["steps"]} == {"up to date"}
+    # an export of its own in a format the take's config does not ask for: a refit would drop it
+    assert main(["export", str(take / "result"), "--format", "json", "--quiet"]) == 0
+    exported = (take / "result" / "motion.jsonl").read_bytes()
+    (take / "Config.toml").write_text("[fit]\nframes = 2\n")
+    capsys.readouterr()
+    assert main(["run", str(take)]) == 2
+    assert "fit: result/motion.jsonl holds a result" in refusal(capsys)
+    assert (take / "result" / "motion.jsonl").read_bytes() == exported and len(poses(take)) == 3
+
+
+def test_run_refuses_outputs_changed_since_it_made_them(project, capsys):
+    take = project / "walk_a"
+    run_take(take)
+    csv = take / "result" / "motion.csv"
+    csv.write_text(csv.read_text() + "# checked by hand\n")
+    edited = csv.read_bytes()
+    (take / "Config.toml").write_text("[fit]\nframes = 2\n")  # the fit runs again, and would drop motion.csv
+    capsys.readouterr()
+    assert main(["run", str(take)]) == 2
+    assert "fit: result/motion.csv holds a result mocap run did not make (or one changed since)" in refusal(capsys)
+    assert csv.read_bytes() == edited and len(poses(take)) == 3
+    (take / "Config.toml").unlink()
+    assert main(["run", str(take)]) == 2  # the export alone would replace it
+    assert "export: result/motion.csv holds" in refusal(capsys) and csv.read_bytes() == edited
+    csv.unlink()
+    assert [s["status"] for s in run_take(take)["steps"]] == ["up to date", "done", "up to date"]
+    # a take last run before made.json was kept: the step records vouch for their outputs, then and later
+    (take / ".mocap" / "made.json").unlink()
+    (take / "Config.toml").write_text("[report]\ngif = true\n")
+    assert [s["status"] for s in run_take(take)["steps"]] == ["up to date", "up to date", "done"]
+    (take / "Config.toml").write_text("[fit]\nframes = 2\n")
+    assert [s["status"] for s in run_take(take)["steps"]] == ["done"] * 3 and len(poses(take)) == 2
+
+
+def test_run_replaces_its_own_segmentation_not_touched_up_silhouettes(tmp_path, model, small_studio, capsys):
+    from PIL import Image
+
+    root = tmp_path / "project"
+    root.mkdir()
+    # a number for the actor's height, as mocap fit --actor-height takes it (and no size search)
+    (root / "Config.toml").write_text(PROJECT_CONFIG.replace("[fit]", "[fit]\nactor_height = 1.66")
+                                      + "[export]\nformats = ['csv']\n")
+    take = make_image_take(root / "take", model, small_studio)
+    assert [s["status"] for s in run_take(take)["steps"]] == ["done"] * 5
+    masks = take / "sequence" / "silhouettes"
+    (take / "Config.toml").write_text("[segmentation]\nmethod = 'bottino'\n")  # outputs as the run left them
+    assert [s["status"] for s in run_take(take)["steps"]] == ["up to date"] + ["done"] * 4
+    mask = sorted((masks / "cam1").iterdir())[0]
+    with Image.open(mask) as im:
+        touched_up = im.copy()
+    touched_up.putpixel((0, 0), 255)  # by hand
+    touched_up.save(mask)
+    touched = {p: p.read_bytes() for p in masks.rglob("*.png")}
+    fitted = (take / "result" / "poses.jsonl").read_bytes()
+    capsys.readouterr()
+    assert main(["run", str(take)]) == 2
+    assert f"{take}: segment: sequence/silhouettes holds a result" in refusal(capsys)
+    (take / "Config.toml").write_text("[segmentation]\nmethod = 'bottino'\n[import]\nfps = 25.0\n")
+    # the import would run again too, and drop the silhouettes
+    assert main(["run", str(take)]) == 2
+    assert "import: sequence/silhouettes holds a result" in refusal(capsys)
+    assert {p: p.read_bytes() for p in masks.rglob("*.png")} == touched
+    assert (take / "result" / "poses.jsonl").read_bytes() == fitted
+    shutil.rmtree(take / ".mocap")  # a sequence no run made (imported and segmented by hand)
+    assert main(["run", str(take)]) == 2
+    assert "import: sequence/images holds a result" in refusal(capsys)
+
+
+def test_batch_reports_a_refused_take_and_overwrite_replaces_it(project):
+    from server.batch import run_take_task
+
+    take = project / "walk_a"
+    assert hand_fit(take) == 0
+    refused = run_take_task(str(take))
+    assert refused["status"] == "failed" and "fit: result/poses.jsonl holds a result" in refused["error"]
+    assert len(poses(take)) == 1
+    assert run_take_task(str(take), overwrite=True)["status"] == "done" and len(poses(take)) == 3
 
 
 def test_a_take_whose_calibration_needs_units_runs_from_its_images(tmp_path, model, small_studio):

@@ -21,13 +21,17 @@ def register(sub) -> None:
                        help="local worker processes (default: one per core)")
     where.add_argument("--scheduler", default=None, metavar="tcp://HOST:8786",
                        help="run on this existing Dask cluster (workers started with `dask worker`)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace outputs that mocap run did not make, or that changed since it made them "
+                        "(default: such a take is refused and reported)")
     p.add_argument("--quiet", action="store_true", help="no progress, no table")
     p.add_argument("--json", action="store_true", help="print batch.json")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    record = run_batch(args.project, workers=args.workers, scheduler=args.scheduler, quiet=args.quiet or args.json)
+    record = run_batch(args.project, workers=args.workers, scheduler=args.scheduler, quiet=args.quiet or args.json,
+                       overwrite=args.overwrite)
     if args.json:
         print(json.dumps(record, indent=1))
     elif not args.quiet:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from common.errors import UserError
 from server.config import SETTINGS
 from server.project import config_files, take_config
 
@@ -19,6 +20,8 @@ def register(sub) -> None:
 
 
 def run_show(args) -> int:
+    if not args.take.is_dir():  # else a typo would show the defaults as if they were the take's
+        raise UserError(f"{args.take}: {'not a folder' if args.take.exists() else 'no such folder'}")
     files = [str(p) for p in config_files(args.take) if p.is_file()]
     print(f"{args.take}: {', '.join(files) if files else 'no Config.toml; all defaults'}")
     print("\n".join(take_config(args.take).lines()))

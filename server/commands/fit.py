@@ -15,7 +15,7 @@ from common.sequence import MAX_MASK_THRESHOLD, load_sequence
 from common.world import UP_CHOICES
 from common.argtypes import count, non_negative, real
 from server.local_cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
-from server.config import PRESETS
+from server.config import MAX_ACTOR_HEIGHT, MIN_ACTOR_HEIGHT, PRESETS
 from server.progress import Progress
 from server.output import add_overwrite_argument, add_units_argument, check_folder_target, replace_file
 from server.results import MOTION_FILE, RESULT_FILES, earlier_actor_scale, load_records
@@ -219,8 +219,9 @@ def actor_model(model, seq, options, args, init: str):
             height = float(args.actor_height)
         except ValueError:
             raise UserError(f"--actor-height: expected metres or auto, got {args.actor_height!r}") from None
-        if not 0.5 <= height <= 3.0:
-            raise UserError(f"--actor-height: expected 0.5 to 3 metres, got {height}")
+        if not MIN_ACTOR_HEIGHT <= height <= MAX_ACTOR_HEIGHT:
+            raise UserError(f"--actor-height: expected {MIN_ACTOR_HEIGHT:g} to {MAX_ACTOR_HEIGHT:g} metres, "
+                            f"got {height}")
         return model.scaled(height / model.height), None
     scale = earlier_actor_scale(args.out) if args.resume else None
     if scale is not None:  # the size the run being continued chose

@@ -1,7 +1,9 @@
 """``mocap run TAKE``: every step of a take, from its raw files to exports and report.html.
 
 Steps that are up to date (their outputs made from the same inputs and settings) are skipped;
-see ``server.project``. Settings come from the project's and the take's Config.toml.
+an output in a step's way that no run made, or one changed since, is refused unless
+``--overwrite``; see ``server.project``. Settings come from the project's and the take's
+Config.toml.
 """
 from __future__ import annotations
 
@@ -16,6 +18,9 @@ def register(sub) -> None:
     p = sub.add_parser("run", help="every step of a take (import, segment, fit, export, report) as its "
                                    "Config.toml says; steps already up to date are skipped")
     p.add_argument("take", type=Path, help="take folder (videos/, images/ or a sequence, in a project)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace outputs that mocap run did not make, or that changed since it made them "
+                        "(default: refuse the take, so that nothing is lost)")
     p.add_argument("--json", action="store_true", help="print what was done as JSON")
     p.set_defaults(func=run)
 
@@ -25,7 +30,7 @@ def run(args) -> int:
         if not args.json:
             print(f"  {step}: {state}", file=sys.stderr, flush=True)
 
-    done = run_take(args.take, progress)
+    done = run_take(args.take, progress, overwrite=args.overwrite)
     if args.json:
         print(json.dumps(done, indent=1))
     else:
