@@ -226,7 +226,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
                "--energy", fit["energy"],
                "--actor-height", str(fit["actor_height"]), "--threads", str(fit["threads"])]
     command += ["--frames", str(fit["frames"])] if fit["frames"] else []
-    command += ["--units", calib_settings["units"]] if calib_settings["units"] else []
+    # an imported sequence's calibration.json is in metres and says so: the units are the import's
+    command += ["--units", calib_settings["units"]] if calib_settings["units"] and sequence == take else []
     command += ["--init", fit["init"]] if fit["init"] else []
     command += [] if fit["clean_masks"] else ["--no-clean-masks"]
     command += ["--refine-search"] if fit["refine_search"] else []

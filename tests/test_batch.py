@@ -321,6 +321,8 @@ def test_a_take_whose_calibration_needs_units_runs_from_its_images(tmp_path, mod
     (imported,) = plan_take(take).steps[0].commands
     assert imported[0] == "import-video" and imported[imported.index("--units") + 1] == "mm"
     assert "--missing-frames" not in imported
+    fit_command = next(s for s in plan_take(take).steps if s.name == "fit").commands[0]
+    assert "--units" not in fit_command  # the imported calibration.json is in metres and says so
     done = run_take(take)
     assert [s["step"] for s in done["steps"]] == ["import", "segment", "fit", "export"] and done["frames"] == 2
     studio = load_calibration(take / "sequence" / "calibration.json")
