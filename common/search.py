@@ -226,10 +226,13 @@ REFINE = Schedule((Stage(("start", "start_turns", "tilt_ahead")), *POLISHED, Sta
                    *POLISHED, Stage(("pelvis_twists",)), Stage(("twists",), ("deep",)), Stage(("hops",))))
 REFINE_SEARCH = Schedule((*REFINE.stages[:-2], Stage(("basins", "twists"), ("deep",)), REFINE.stages[-1]))
 # A frame with hops (a pass's first frame; every frame with --refine-hops): the hops' best
-# turned and its pelvis turned alone, as the fits before them were. 05_17's last frame kept a
-# hop's fit 40.9 mm off (the right hip), its pelvis turned 0.2 rad from the truth's with the
-# hips turned back; its pelvis turned 0.15 rad and fitted again: 3% lower, 33 mm off
-AFTER_HOPS = Stage(("pelvis_twists", "turns"))
+# turned, its pelvis turned alone and its arms' other twists tried, as the fits before them
+# were. 05_17's last frame kept a hop's fit 40.9 mm off (the right hip), its pelvis turned 0.2
+# rad from the truth's with the hips turned back; its pelvis turned 0.15 rad and fitted again:
+# 3% lower, 33 mm off. With other noise (`--seed 1`) the same frame kept a hop's fit with the
+# right forearm folded up the wrong way (464 mm off): the tracked fit's twists, tried before
+# the hops, had its torso off too; the hops' best, twisted, comes to 5% less energy, 30 mm off
+AFTER_HOPS = (Stage(("pelvis_twists", "turns")), Stage(("twists",), ("deep",)))
 
 
 @dataclass(frozen=True)
@@ -529,7 +532,8 @@ def _basins(ctx, source, spent, own):
 
 
 def _twists(ctx, source, spent, own):
-    """Each nearly straight arm at its lower twist (towards the neighbour's, in a refinement).
+    """Each nearly straight or fully folded arm at its lower twist (towards the neighbour's, in a
+    refinement).
     The arms' solves are jobs, both arms' k-th twist in one round (then, for the arms with a
     twist that counts, the arm solved as it is), so they run side by side."""
     if source is None:
@@ -609,8 +613,8 @@ def refine_frame(model: BodyModel, frame: FrameData, fit: FrameResult, options: 
                  hops: int = 0, search: bool = False, frame_number: int = 0, side_by_side: int = 1) -> FrameResult:
     """A tracked frame (``fit``) fitted again by REFINE (REFINE_SEARCH with ``search``) from its
     ``neighbour``'s refined fit (``beyond``: the one beyond it; ``other``: the not yet refined
-    neighbour on the other side) and with ``hops`` hops, whose best is then turned
-    (``AFTER_HOPS``); ``fit`` where nothing is lower.
+    neighbour on the other side) and with ``hops`` hops, whose best is then turned and its arms
+    twisted (``AFTER_HOPS``); ``fit`` where nothing is lower.
 
     Tracking leaves frames in basins that a later frame escaped (an arm whose twist showed once
     it bent; a first frame found by search). Halfway between the neighbours' fits (``midway``):
@@ -621,7 +625,7 @@ def refine_frame(model: BodyModel, frame: FrameData, fit: FrameResult, options: 
                   hops=hops, side_by_side=side_by_side)
     schedule = REFINE_SEARCH if search else REFINE
     if hops:
-        schedule = Schedule((*schedule.stages, AFTER_HOPS), schedule.budget)
+        schedule = Schedule((*schedule.stages, *AFTER_HOPS), schedule.budget)
     return run_schedule(ctx, schedule, initial=fit)
 
 

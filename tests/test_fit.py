@@ -938,6 +938,26 @@ def test_a_straight_arm_twisted_half_a_turn_is_turned_back(model, five_frames):
     assert arm_twist_tried("left_arm", twisted.params) and not arm_twist_tried("left_arm", bent)
 
 
+def test_a_folded_arm_is_turned_and_half_unfolded(model):
+    """A forearm folded onto its upper arm hides its twist as a straight one does: an elbow
+    within ARM_TWIST_FOLDED_RAD of its limit is tried, and its turned starts are bent
+    ARM_TWIST_UNFOLDED_RAD, so that Powell can unfold them either way; an arm bent halfway is not
+    tried (its twist shows)."""
+    from common.body import rest_params
+    from common.proposals import (ARM_TWIST_FOLDED_RAD, ARM_TWIST_UNFOLDED_RAD, ARM_TWISTS, arm_twist_tried,
+                                  arm_twists)
+
+    params = rest_params(model)
+    limit = PARAM_LIMITS[P["r_elbow"], 1]
+    for bend, tried in ((limit, True), (limit - ARM_TWIST_FOLDED_RAD + 0.01, True),
+                        (limit - ARM_TWIST_FOLDED_RAD - 0.01, False), (1.5, False), (0.2, True)):
+        params[P["r_elbow"]] = bend
+        assert arm_twist_tried("right_arm", params) == tried, bend
+    params[P["r_elbow"]] = limit
+    turned = arm_twists(model, "right_arm", params)
+    assert turned.shape == (ARM_TWISTS, PARAM_COUNT) and np.all(turned[:, P["r_elbow"]] == ARM_TWIST_UNFOLDED_RAD)
+
+
 # radians from the truth: the pelvis tilted and the spine bent back while the left leg swings
 # forward, a valley the hierarchy alone does not leave (the two hop tests below)
 TORSO_AND_LEG_OFF = {"l_hip_x": -0.6, "l_hip_y": 0.4, "root_tilt_x": 0.2, "spine_x": -0.3}
@@ -1383,7 +1403,8 @@ def test_a_hops_best_has_its_pelvis_turned_back(model, frames, monkeypatch):
     monkeypatch.setattr(search, "run_schedule", lambda ctx, schedule, initial: schedules.append(schedule) or initial)
     for hops in (0, 1):
         search.refine_frame(model, data[2], hop, FitOptions(), None, None, None, None, hops)
-    assert search.AFTER_HOPS not in schedules[0].stages and schedules[1].stages[-1] == search.AFTER_HOPS
+    after = len(search.AFTER_HOPS)
+    assert schedules[0].stages == search.REFINE.stages and schedules[1].stages[-after:] == search.AFTER_HOPS
 
 
 @pytest.mark.timeout(300)
