@@ -212,7 +212,7 @@ def test_folders_are_matched_by_the_numbers_in_their_names(tmp_path, calib, caps
     line = _one_line(err)
     assert rc == 2 and f"{folders['cam3'] / 'img0005.png'}: --video cam3: frame 5 is missing" in line, line
     assert "cam1, cam2" in line and "--missing-frames skip" in line and not out.exists()
-    rc, stdout, err = _run(capsys, calib, folders, "--out", out, "--missing-frames", "skip")
+    rc, stdout, err = _run(capsys, calib, folders, "--out", out, "--missing-frames", "skip", "--fps", "30")
     line = _one_line(err)
     assert rc == 0 and "warning" in line and "frame numbers 5 (cam3 lacks 5)" in line, line
     seq = load_sequence(out)
@@ -229,7 +229,7 @@ def test_a_folder_that_starts_late_is_trimmed(tmp_path, calib, capsys):
                "cam2": _write_folder(tmp_path / "cam2", range(1, 24)),
                "cam3": _write_folder(tmp_path / "cam3", range(24))}
     out = tmp_path / "seq"
-    rc, _, err = _run(capsys, calib, folders, "--out", out, "--step", "2")
+    rc, _, err = _run(capsys, calib, folders, "--out", out, "--step", "2", "--fps", "30")
     line = _one_line(err)
     assert rc == 0 and "cam2 23 numbered 1..23" in line and "using the frames 1..23" in line, line
     seq = load_sequence(out)
@@ -238,7 +238,7 @@ def test_a_folder_that_starts_late_is_trimmed(tmp_path, calib, capsys):
         assert [_number(im) for im in seq.images(f)] == [f, f, f]
     # Folders numbered in steps of 3 (all alike) lack no frame.
     stepped = {c: _write_folder(tmp_path / "stepped" / c, range(0, 12, 3)) for c in ("cam1", "cam2", "cam3")}
-    rc, _, err = _run(capsys, calib, stepped, "--out", tmp_path / "stepped_seq")
+    rc, _, err = _run(capsys, calib, stepped, "--out", tmp_path / "stepped_seq", "--fps", "30")
     assert rc == 0 and err == "", err
     assert load_sequence(tmp_path / "stepped_seq").frames == [0, 3, 6, 9]
 
@@ -255,7 +255,7 @@ def test_offsets_shift_a_folders_numbers(tmp_path, calib, capsys):
     line = _one_line(err)
     assert rc == 2 and f"{folders['cam3'] / 'img0107.png'}: --video cam3: frame 7 is missing" in line, line
     rc, _, err = _run(capsys, calib, folders, "--out", out, "--offset", "cam3=100", "--missing-frames", "skip",
-                      "--step", "2")
+                      "--step", "2", "--fps", "30")
     assert rc == 0 and err == "", err  # frame 7 is not on the --step 2 grid: nothing is missing
     seq = load_sequence(out)
     assert seq.frames == [0, 2, 4, 6, 8, 10] and seq.meta["offsets"]["cam3"] == 100
@@ -353,3 +353,18 @@ def test_real_take_counts_frames_by_decoding(tmp_path, real_calib, capsys):
     # Sequential decoding: no grey, half-decoded frames (a seek gives a flat grey picture).
     images = load_sequence(out).images(210)
     assert images.shape == (4, 486, 644, 3) and all(im.std() > 10 for im in images)
+
+
+def test_folders_say_the_frame_rate_they_take_and_out_stays_outside_them(tmp_path, calib, capsys):
+    """Image folders carry no frame rate: the one taken is said (exports play at it), and --fps
+    sets it; an --out inside a source folder is refused (--overwrite would replace its frames)."""
+    folders = {c: _write_folder(tmp_path / c, range(4)) for c in ("cam1", "cam2", "cam3")}
+    rc, _, err = _run(capsys, calib, folders, "--out", tmp_path / "seq")
+    assert rc == 0 and "30 fps taken (--fps sets it" in _one_line(err)
+    assert load_sequence(tmp_path / "seq").fps == pytest.approx(30.0)
+    rc, _, err = _run(capsys, calib, folders, "--out", tmp_path / "seq2", "--fps", "50")
+    assert rc == 0 and err == "" and load_sequence(tmp_path / "seq2").fps == pytest.approx(50.0)
+    before = sorted(p.name for p in folders["cam2"].iterdir())
+    rc, _, err = _run(capsys, calib, folders, "--out", folders["cam2"] / "seq")
+    assert rc == 2 and "inside --video cam2's folder" in _one_line(err)
+    assert sorted(p.name for p in folders["cam2"].iterdir()) == before

@@ -411,6 +411,10 @@ def run(args) -> int:
     offsets = _offsets(args.offset, names, calibration)
     out = Path(args.out)
     check_folder_target(out, SEQUENCE_PARTS, overwrite=args.overwrite, what="sequence")
+    for option, given in (("--video", videos), ("--background", backgrounds)):
+        for n, source in given.items():  # --overwrite would replace the recording's own frames
+            if source.is_dir() and out.resolve().is_relative_to(source.resolve()):
+                raise UserError(f"--out {out}: inside {option} {n}'s folder {source}; choose a folder outside it")
 
     # Every source is opened, sized and counted before anything is written.
     sources = {n: FrameSource(n, videos[n], "--video") for n in names}
@@ -458,7 +462,11 @@ def run(args) -> int:
         print_warning(f"--missing-frames skip: left out of every camera: frame numbers {_listed(list(missing))} ("
                       + "; ".join(f"{n} lacks {_listed(lack)}" for n, lack in each.items() if lack) + ")")
 
-    fps = args.fps or sources[names[0]].fps or DEFAULT_FPS
+    fps = args.fps or sources[names[0]].fps
+    if fps is None:
+        fps = DEFAULT_FPS
+        print_warning(f"the recordings do not say their frame rate: {DEFAULT_FPS:g} fps taken (--fps sets it; "
+                      "exports play at it)")
     # the whole sequence is built beside OUT and moved in at the end: a failed import leaves OUT as it was
     with staged_folder(out, merge=True) as staged:
         for n in names:
