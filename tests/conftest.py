@@ -5,6 +5,7 @@ walk, no noise, seed 0: cheap enough for every test file that needs real silhoue
 """
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +21,14 @@ SHARED_CLIPS = tuple(sorted(SHARED_MOCAP.glob("**/*.bvh"))) if SHARED_MOCAP.is_d
 SMALL_CAMERAS = 4
 SMALL_SIZE = (160, 120)  # width, height
 SMALL_FRAMES = 3
+
+
+def load_tool(name: str):
+    """The module of ``tools/NAME.py`` (the tools are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, REPO / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 @pytest.fixture(scope="session")

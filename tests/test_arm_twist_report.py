@@ -1,22 +1,12 @@
 """tools/arm_twist_report.py: a frame's fits, the truth's basin and an arm's twists, each scored."""
 from __future__ import annotations
 
-import importlib.util
 import re
-from pathlib import Path
 
 import pytest
 
+from conftest import load_tool
 from server.cli import main as mocap
-
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "arm_twist_report.py"
-
-
-def load_tool():
-    spec = importlib.util.spec_from_file_location("arm_twist_report", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.mark.timeout(300)
@@ -27,7 +17,8 @@ def test_the_report_scores_each_fit_against_the_truth(small_sequence, tmp_path, 
     assert mocap(["fit", str(small_sequence), "--out", str(out), "--quiet", "--frames", "2"]) == 0
     frame = load_sequence(small_sequence).frames[1]
     capsys.readouterr()
-    assert load_tool().main([str(out), str(small_sequence), "--frame", str(frame), "--arm", "left_arm"]) == 0
+    report = load_tool("arm_twist_report")
+    assert report.main([str(out), str(small_sequence), "--frame", str(frame), "--arm", "left_arm"]) == 0
     lines = capsys.readouterr().out.splitlines()
     scored = [re.search(r"(\d+) pixels +([\d.]+) / +([\d.]+) mm$", line) for line in lines]
     assert all(scored), lines

@@ -1,21 +1,10 @@
 """tools/fit_diagnostics.py: energies against the truth's, lag, and a restart from the truth."""
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
+from conftest import load_tool
 from server.cli import main as mocap
-
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "fit_diagnostics.py"
-
-
-def load_tool():
-    spec = importlib.util.spec_from_file_location("fit_diagnostics", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.mark.timeout(300)
@@ -25,8 +14,8 @@ def test_diagnostics_compare_a_run_with_the_truth(small_sequence, tmp_path, caps
     assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "fit"), "--quiet"]) == 0
     frames = load_sequence(small_sequence).frames
     capsys.readouterr()
-    assert load_tool().main([str(tmp_path / "fit"), str(small_sequence), "--every", "1",
-                             "--restart-at", str(frames[1])]) == 0
+    assert load_tool("fit_diagnostics").main([str(tmp_path / "fit"), str(small_sequence), "--every", "1",
+                                              "--restart-at", str(frames[1])]) == 0
     out = capsys.readouterr().out.splitlines()
     assert [line.split()[1] for line in out[:len(frames)]] == [str(f) for f in frames]
     assert out[len(frames)].startswith("the truth's energy is lower in ") and out[len(frames)].endswith(f"of {len(frames)} frames")
@@ -40,7 +29,7 @@ def test_a_restart_must_be_a_fitted_frame_after_the_first(small_sequence, tmp_pa
     assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "fit"), "--quiet", "--frames", "2"]) == 0
     first = load_sequence(small_sequence).frames[0]
     with pytest.raises(SystemExit, match="restart-at"):
-        load_tool().main([str(tmp_path / "fit"), str(small_sequence), "--restart-at", str(first)])
+        load_tool("fit_diagnostics").main([str(tmp_path / "fit"), str(small_sequence), "--restart-at", str(first)])
 
 
 @pytest.mark.timeout(300)
@@ -56,7 +45,8 @@ def test_chains_put_one_at_a_time_at_the_truth(small_sequence, tmp_path, capsys)
     assert mocap(["fit", str(small_sequence), "--out", str(tmp_path / "fit"), "--quiet", "--frames", "3"]) == 0
     frames = load_sequence(small_sequence).frames
     capsys.readouterr()
-    assert load_tool().main([str(tmp_path / "fit"), str(small_sequence), "--chains", f"{frames[1]}"]) == 0
+    diagnostics = load_tool("fit_diagnostics")
+    assert diagnostics.main([str(tmp_path / "fit"), str(small_sequence), "--chains", f"{frames[1]}"]) == 0
     out = capsys.readouterr().out.splitlines()
     (line,) = [x for x in out if "one chain at the truth" in x]
     (more,) = [x for x in out if "fewest chains" in x]
@@ -74,7 +64,8 @@ def test_chains_put_one_at_a_time_at_the_truth(small_sequence, tmp_path, capsys)
     assert int(line.split()[3]) == record["energy"]
     assert all(s.split()[1][0] in "+-" for s in swaps)  # changes, signed
     with pytest.raises(SystemExit, match="--chains"):
-        load_tool().main([str(tmp_path / "fit"), str(small_sequence), "--chains", f"{frames[-1] + 1000}"])
+        load_tool("fit_diagnostics").main([str(tmp_path / "fit"), str(small_sequence), "--chains",
+                                           f"{frames[-1] + 1000}"])
 
 
 def test_the_truth_is_compared_a_whole_turn_nearer_the_fit():
@@ -87,8 +78,8 @@ def test_the_truth_is_compared_a_whole_turn_nearer_the_fit():
     truth = np.random.default_rng(2).normal(0.0, 0.5, PARAM_COUNT)
     fit = truth + 0.05
     fit[P["root_heading"]] += 2.0 * np.pi
-    near = load_tool().heading_near(truth, fit)
+    near = load_tool("fit_diagnostics").heading_near(truth, fit)
     assert near[P["root_heading"]] == pytest.approx(truth[P["root_heading"]] + 2.0 * np.pi)
     others = np.arange(PARAM_COUNT) != P["root_heading"]
     np.testing.assert_array_equal(near[others], truth[others])
-    np.testing.assert_array_equal(load_tool().heading_near(truth, truth), truth)
+    np.testing.assert_array_equal(load_tool("fit_diagnostics").heading_near(truth, truth), truth)
