@@ -117,7 +117,7 @@ class Worker:
                  curve: CurveKeys | None = None, context: zmq.Context | None = None,
                  reconnect_min: float = RECONNECT_MIN, reconnect_max: float = RECONNECT_MAX,
                  exit_with_parent: bool = False, stall_seconds: float = 0.0, stall_requests: int = 0):
-        self.model = model
+        self.model = model  # the body data; each FRAME says the actor's size to fit it at
         self.connect = connect
         # host and pid repeat across containers (own pid spaces, shared host names): add a nonce
         self.client_id = client_id or f"{socket.gethostname()}-{os.getpid()}-{os.urandom(3).hex()}"
@@ -130,6 +130,7 @@ class Worker:
         self._stop = threading.Event()
         self.dropped: dict[str, int] = {}
         self.solved = 0
+        self._scaled: BodyModel | None = None  # the body at the last FRAME's size, when not the model's
         self.sessions = 0  # how many times a WELCOME was received (1 + re-registrations)
         self._jobs: queue.Queue = queue.Queue()
         self._done: queue.Queue = queue.Queue()
@@ -379,7 +380,7 @@ class Worker:
                 if cache is None or cache[0] != key:
                     cache = (key, self._frame_data(job.frame))
                 for chain in solve.chains:
-                    r = solve_job(self.model, cache[1], chain, np.asarray(solve.params), options,
+                    r = solve_job(cache[1].model, cache[1], chain, np.asarray(solve.params), options,
                                   solve.iteration, solve.frame)
                     self.solved += 1
                     self._finish(Result(session=solve.session, frame=solve.frame, iteration=solve.iteration,
@@ -393,11 +394,21 @@ class Worker:
                                    frame=solve.frame, iteration=solve.iteration, request=solve.request))
 
     def _frame_data(self, frame: Frame) -> FrameData:
-        if frame.body_fingerprint != self.model.fingerprint:
+        body = self._body_at(frame.body_scale)
+        if frame.body_fingerprint != body.fingerprint:
             raise ValueError(f"the server fits body {frame.body_fingerprint}, this client has body "
-                             f"{self.model.fingerprint} (different body data or actor scale)")
+                             f"{body.fingerprint} at size {frame.body_scale:g} (different body data)")
         studio = Studio(tuple(c.to_camera() for c in frame.cameras), "<wire>")
-        return FrameData(self.model, studio, frame.masks())
+        return FrameData(body, studio, frame.masks())
+
+    def _body_at(self, scale: float) -> BodyModel:
+        """The body at the actor's size ``scale`` (over the body model's), scaled as the server's
+        was (``BodyModel.scaled`` from the model's own size), so that the fingerprints agree."""
+        if scale != self.model.scale:
+            if self._scaled is None or self._scaled.scale != scale:
+                self._scaled = self.model.scaled(scale / self.model.scale)
+            return self._scaled
+        return self.model
 
     def _finish(self, msg) -> None:
         self._done.put(msg)

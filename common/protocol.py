@@ -35,7 +35,8 @@ import numpy as np
 from common.camera import Camera, CalibrationError, Studio, make_camera
 from common.packing import clear_padding, packed_length, padded_shape, unpackbits_masks
 
-PROTOCOL_VERSION = 4  # 2: hops (HOP_JOB_NAMES) beside the chains; 3: cameras of different sizes; 4: whole fits
+PROTOCOL_VERSION = 5  # 2: hops (HOP_JOB_NAMES) beside the chains; 3: cameras of different sizes; 4: whole fits;
+#                       5: FRAME's body_scale (the actor's size)
 PARAM_COUNT = 35  # pose parameters of the body model
 CHAIN_NAMES = ("torso", "head", "left_arm", "right_arm", "left_leg", "right_leg")
 # the hops of a refinement's round (common.fitting.HOP_JOBS): sent and answered as chains are;
@@ -60,6 +61,7 @@ MAX_NAME_CHARS = 128  # session and client ids, camera, backend and option names
 MAX_TEXT_CHARS = 4096  # error text, shutdown reason, string option values
 MAX_BACKENDS = 16
 MAX_OPTIONS = 64
+BODY_SCALE_RANGE = (0.1, 10.0)  # FRAME's body_scale: far beyond any actor, short of a degenerate body
 INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1  # integer option values
 
 # msgpack parse limits: far above any valid header, far below what would hurt.
@@ -272,11 +274,13 @@ class Frame:
     cameras: tuple[CameraSpec, ...]
     silhouettes: bytes
     previous_params: tuple[float, ...]  # (PARAM_COUNT,) the previous frame's pose
-    body_fingerprint: str               # BodyModel.fingerprint of the body the server fits
+    body_scale: float                   # the actor's size over the body model's (BodyModel.scale)
+    body_fingerprint: str               # BodyModel.fingerprint of the body the server fits, at that size
 
     def __post_init__(self):
         _session(self, required=True)
         _indices(self, "frame")
+        _set(self, "body_scale", _float(self.body_scale, "frame.body_scale", *BODY_SCALE_RANGE))
         _set(self, "body_fingerprint", _str(self.body_fingerprint, "frame.body_fingerprint", MAX_NAME_CHARS,
                                             allow_empty=False))
         cams = _sequence(self.cameras, "frame.cameras")

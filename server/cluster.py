@@ -40,8 +40,9 @@ Reliability (zguide's Paranoid Pirate, adapted):
    buffering it (counted as ``disconnects``, zmq gives no reason). zmq buffers every frame
    of a message before it delivers the first, so only CURVE bounds what an unknown peer can
    make the server hold (docs/cluster.md);
- - FRAME carries the body's fingerprint: a client with other body data or another actor scale
-   fails the SOLVEs of that frame and gets no more work, rather than fit limbs of another body;
+ - FRAME carries the actor's size (its clients fit the body at it, whatever size they started
+   with) and the body's fingerprint at that size: a client with other body data fails the SOLVEs
+   of that frame and gets no more work, rather than fit limbs of another body;
  - CURVE: ``curve_keys`` names a folder with ``server.key_secret`` and ``clients/``, the public
    keys allowed to connect; other peers fail the handshake and get nothing. Without it only a
    loopback or ipc address may be bound, unless ``insecure`` (``check_bind``).
@@ -334,7 +335,7 @@ class ClusterSolver:
         self._frame_options = options
         msg = Frame(session=self.session, frame=int(frame), cameras=camera_specs(data.studio),
                     silhouettes=packbits_masks(data.masks), previous_params=np.asarray(start).tolist(),
-                    body_fingerprint=self.model.fingerprint)
+                    body_scale=self.model.scale, body_fingerprint=self.model.fingerprint)
         parts = encode(msg)
         with self._lock:
             self._server["encode_seconds"] += time.perf_counter() - t0

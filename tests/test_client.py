@@ -83,7 +83,7 @@ def frame_and_data(model, frame=0):
     start = np.zeros(35)
     start[2] = 0.9
     msg = Frame(session="s1", frame=frame, cameras=camera_specs(studio), silhouettes=packbits_masks(masks),
-                previous_params=start.tolist(), body_fingerprint=model.fingerprint)
+                previous_params=start.tolist(), body_scale=model.scale, body_fingerprint=model.fingerprint)
     return msg, FrameData(model, studio, masks), start
 
 
@@ -158,16 +158,35 @@ def test_refuses_unknown_options(model, router, worker):
 
 
 @pytest.mark.timeout(30)
+def test_fits_the_actor_at_the_size_its_frame_gives(model, router, worker):
+    """The server's actor is the body model at another size (chosen by the first frame, or
+    --actor-height): the client, started with the model at its own size, fits the body at the
+    FRAME's size, as one process would."""
+    ident = register(router)
+    actor = model.scaled(1.3)
+    frame, data, start = frame_and_data(actor)
+    send(router, ident, frame)
+    send(router, ident, Solve(session="s1", frame=0, iteration=0, request=3, params=start.tolist(),
+                              chains=("left_arm",), options=OPTIONS.to_wire()))
+    _, r = receive(router, Result)
+    expected = solve_chain(actor, data, "left_arm", start, OPTIONS, iteration=0)
+    assert np.array_equal(np.array(r.params), expected.params) and r.energy == expected.energy
+    at_own_size = solve_chain(model, FrameData(model, data.studio, data.masks), "left_arm", start, OPTIONS, iteration=0)
+    assert r.energy != at_own_size.energy  # the size made a difference the test can see
+
+
+@pytest.mark.timeout(30)
 def test_refuses_a_frame_of_another_body(model, router, worker):
-    """A client with other body data (or another actor scale) must not fit limbs for the server."""
+    """A client with other body data must not fit limbs for the server."""
     ident = register(router)
     frame, _, start = frame_and_data(model)
-    send(router, ident, replace(frame, body_fingerprint=model.scaled(1.1).fingerprint))
+    other = replace(model, ellipsoid_radii=model.ellipsoid_radii * 1.1)  # other data at the same size
+    send(router, ident, replace(frame, body_fingerprint=other.fingerprint))
     send(router, ident, Solve(session="s1", frame=0, iteration=0, request=4, params=start.tolist(),
                               chains=("head",)))
     _, err = receive(router, Error)
     assert err.code == "solve_failed" and err.request == 4
-    assert model.scaled(1.1).fingerprint in err.text and model.fingerprint in err.text
+    assert other.fingerprint in err.text and model.fingerprint in err.text
 
 
 @pytest.mark.timeout(30)

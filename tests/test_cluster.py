@@ -5,13 +5,13 @@ import subprocess
 import numpy as np
 import pytest
 
-from common.body import LIMB_CHAINS
+from common.body import LIMB_CHAINS, load_body_model
 from common.fitting import FitOptions
 from common.sequence import load_sequence
 from server.cluster import LOCAL_BIND, ClusterSolver
 from server.session import run_fit
-from test_cluster_support import (HEARTBEAT, PY, ROOT, THREAD_HEARTBEAT, TRACKING_ONLY, env, poses, records,
-                                  reference_fit, thread_workers)
+from test_cluster_support import (HEARTBEAT, PY, ROOT, THREAD_HEARTBEAT, TRACKING_ONLY, env, free_port, poses, records,
+                                  reference_fit, start_client, start_server, stop, thread_workers)
 
 TOLERANCE = 1e-9
 EQUAL_FRAMES = 2  # of the small sequence's FRAMES: a second frame sends a second FRAME
@@ -157,6 +157,40 @@ def test_mocap_fit_with_local_clients(seq_path, reference, tmp_path):
     assert summary["mode"] == "cluster" and summary["clients"] == 2
     assert {p["name"] for p in summary["timing"]["processes"]} == {"server", "local-1", "local-2"}
     assert (out / "motion.bvh").exists()
+
+
+@pytest.mark.timeout(120)
+def test_an_actor_of_another_size_fitted_by_clients(seq_path, tmp_path):
+    """An actor whose size is not the body model's (here given, --actor-height; chosen by the
+    first frame where none is): `mocap fit --clients 2` and `mocap server` with a client started
+    on its own, both with the body model at its own size, give the single process's poses, and
+    the clients do the work (none of their results refused)."""
+    sized = ("--actor-height", "1.9", "--frames", "2", "--heartbeat", str(HEARTBEAT), "--quiet", *TRACKING_ONLY)
+
+    def fit(out, *extra):
+        proc = subprocess.run([PY, "-m", "server.cli", "fit", str(seq_path), "--out", str(out), *sized, *extra],
+                              cwd=ROOT, env=env(), capture_output=True, text=True, timeout=100)
+        assert proc.returncode == 0, proc.stderr
+        return json.loads((out / "summary.json").read_text())
+
+    single = fit(tmp_path / "single")
+    assert abs(single["actor_scale"] - 1.9 / load_body_model().height) < 1e-6
+    clients = fit(tmp_path / "clients", "--clients", "2")
+    port = free_port()
+    server = start_server(seq_path, tmp_path / "server", port, tmp_path / "server.log", "--min-clients", "1",
+                          "--actor-height", "1.9", "--frames", "2")
+    client = start_client(f"tcp://127.0.0.1:{port}", "own", tmp_path / "client.log")
+    try:
+        assert server.wait(90) == 0, (tmp_path / "server.log").read_text()
+    finally:
+        stop([server, client])
+    served = json.loads((tmp_path / "server" / "summary.json").read_text())
+    for out, summary in ((tmp_path / "clients", clients), (tmp_path / "server", served)):
+        assert np.abs(poses(out) - poses(tmp_path / "single")).max() <= TOLERANCE
+        assert summary["actor_scale"] == single["actor_scale"]
+        workers = [p for p in summary["timing"]["processes"] if p["role"] == "client"]
+        assert workers and sum(p["chains"] for p in workers) > 0
+        assert summary["timing"]["rejected"] == 0 and all(p["rejected"] == 0 for p in workers)
 
 
 def test_mocap_fit_refuses_negative_clients(seq_path, tmp_path):

@@ -43,7 +43,8 @@ def pack(header: dict) -> bytes:
 def frame_message() -> list:
     masks = np.zeros((2, 8, 8), bool)
     return encode(Frame(session="s", frame=0, cameras=camera_specs(circle_studio(2, 8, 8)),
-                        silhouettes=packbits_masks(masks), previous_params=PARAMS, body_fingerprint="0123456789abcdef"))
+                        silhouettes=packbits_masks(masks), previous_params=PARAMS, body_scale=1.0,
+                        body_fingerprint="0123456789abcdef"))
 
 
 BAD_MESSAGES = {

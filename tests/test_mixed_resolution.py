@@ -137,7 +137,7 @@ def test_frame_message_of_a_mixed_studio(studio, masks):
     cams = tuple(CameraSpec.from_camera(c) for c in studio)
     garbage = with_garbage_padding(masks, SIZES)
     msg = Frame(session="s1", frame=3, cameras=cams, silhouettes=packbits_masks(garbage),
-                previous_params=[0.0] * 35, body_fingerprint="0123456789abcdef")
+                previous_params=[0.0] * 35, body_scale=1.0, body_fingerprint="0123456789abcdef")
     assert (msg.H, msg.W) == PADDED and msg.sizes == SIZES
     back = decode(encode(msg))
     np.testing.assert_array_equal(back.masks(), masks)  # the padding's bits are cleared

@@ -38,7 +38,8 @@ def test_the_wire_knows_the_fitters_chains_and_hops():
 def make_frame(K=5, H=17, W=33, seed=0, **overrides) -> Frame:
     masks = np.random.default_rng(seed).random((K, H, W)) < 0.3
     fields = dict(session="s1", frame=7, cameras=camera_specs(circle_studio(K, W, H)),
-                  silhouettes=packbits_masks(masks), previous_params=PARAMS, body_fingerprint="0123456789abcdef")
+                  silhouettes=packbits_masks(masks), previous_params=PARAMS, body_scale=1.0,
+                        body_fingerprint="0123456789abcdef")
     fields.update(overrides)
     return Frame(**fields)
 
@@ -230,6 +231,9 @@ def test_no_frames():
     (FRAME, ["cameras"], {}),
     (FRAME, ["previous_params"], {}),
     (FRAME, ["body_fingerprint"], {}),
+    (FRAME, ["body_scale"], {}),
+    (FRAME, [], {"body_scale": 0.0}),
+    (FRAME, [], {"body_scale": "1.4"}),
     (FRAME, [], {"body_fingerprint": ""}),
     (FRAME, [], {"body_fingerprint": 7}),
     (FRAME, [], {"previous_params": [0.0] * 3}),
@@ -238,7 +242,7 @@ def test_no_frames():
     (FRAME, [], {"K": "5"}),
     (FRAME, [], {"cameras": "cams"}),
     (FRAME, [], {"cameras": [1, 2, 3, 4, 5]}),
-], ids=range(58))
+], ids=range(61))
 def test_bad_field(msg, drop, changes):
     frames = tampered(msg, drop, **changes)
     if msg is FRAME and changes.get("K") == 4:
@@ -303,6 +307,7 @@ NAN, INF = float("nan"), float("inf")
     (RESULT, {"cpu_seconds": NAN}),
     (RESULT, {"wall_seconds": INF}),
     (FRAME, {"previous_params": [NAN] * 35}),
+    (FRAME, {"body_scale": NAN}),
     (FRAME, {"cameras": camera_maps(t=[0.0, NAN, 0.0])}),
     (EXAMPLES[1], {"heartbeat_interval": INF}),
 ])
@@ -406,7 +411,7 @@ if given is not None:
     def test_frame_property(session, frame, K, H, W, seed, previous):
         masks = np.random.default_rng(seed).random((K, H, W)) < 0.5
         msg = Frame(session=session, frame=frame, cameras=camera_specs(circle_studio(K, W, H)),
-                    silhouettes=packbits_masks(masks), previous_params=previous,
+                    silhouettes=packbits_masks(masks), previous_params=previous, body_scale=1.4,
                     body_fingerprint="0123456789abcdef")
         out = decode(encode(msg))
         assert out == msg

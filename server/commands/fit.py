@@ -268,9 +268,6 @@ def run(args) -> int:
     options = options_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
     model, size = actor_model(base, seq, options, args, init)
-    if args.clients and model is not base:
-        raise UserError("--clients: limb clients fit the body model at its own size; pass --actor-height "
-                        f"{base.height:.2f} (or fit single-process) for this sequence")
     total = min(len(seq.frames), args.frames or len(seq.frames))
     bar = Progress("fit", total, enabled=None if not args.quiet else False)
     if args.clients == 0:

@@ -15,9 +15,11 @@ from common.sequence import load_sequence
 from server.cluster import ClusterSolver
 from server.local_cluster import Terminated, add_cluster_arguments, terminate_on_sigterm
 from server.trust import check_bind
-from server.commands.fit import (add_fit_arguments, check_resume_or_overwrite, finish, options_from_args,
-                                 warn_if_software_gl)
+from server.commands.fit import (actor_model, add_fit_arguments, check_resume_or_overwrite, finish,
+                                 options_from_args, warn_if_software_gl)
+from server.output import check_folder_target
 from server.progress import Progress
+from server.results import RESULT_FILES
 from server.session import run_fit
 
 EXIT_TERMINATED = 143  # 128 + SIGTERM
@@ -34,11 +36,16 @@ def run(args) -> int:
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="mocap server: %(message)s")
     check_resume_or_overwrite(args)
     check_bind(args.bind, args.curve_keys, args.insecure)  # before the slow loading
+    # the folder first: a result in the way is refused before the slow actor-size search
+    check_folder_target(args.out, RESULT_FILES, resume=args.resume, overwrite=args.overwrite)
     warn_if_software_gl(args.energy)
-    model = load_body_model()
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
                         clean_masks=args.clean_masks)
     options = options_from_args(args)
+    init = args.init or ("truth" if seq.truth() else "auto")
+    # the actor's size as mocap fit chooses it (on this machine, before the clients are used): the
+    # FRAMEs carry it to the clients
+    model, size = actor_model(load_body_model(), seq, options, args, init)
     total = min(len(seq.frames), args.frames or len(seq.frames))
     bar = Progress("fit", total, enabled=None if not args.quiet else False)
     with terminate_on_sigterm():
@@ -52,7 +59,7 @@ def run(args) -> int:
                                                          solver.endpoint)
                 solver.wait_for_clients(args.min_clients)
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
-                              max_frames=args.frames, progress=bar, overwrite=args.overwrite)
+                              max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)
             finish(model, seq, args, summary)  # results on disk before the clients are released
             shutdown = "run finished"
         except Terminated:
