@@ -32,6 +32,29 @@ _CHANNEL_BY_LOWER = {c.lower(): c for c in POSITION_CHANNELS + ROTATION_CHANNELS
 VALUE_FORMAT = "%.6f"  # written channel values and offsets: 1e-6 file units, ample for mm data
 MAX_DEPTH = 200  # joints nested in joints; skeletons have 10-30 levels (a hand's fingers included)
 _WHOLE = re.compile(r"[0-9]+")  # a count in the file: ASCII digits (str.isdigit also takes "²")
+# Frame rates that are not whole numbers, in frames per second: the NTSC video rates (N * 1000/1001).
+NTSC_RATES = (24000 / 1001, 30000 / 1001, 60000 / 1001, 120000 / 1001)
+# Relative distance within which a clip's rate is one of NTSC_RATES or a whole number of frames per
+# second. Writers round Frame Time to 6 or 7 decimals (CMU: 0.0083333, others 0.008333 = 120.0048
+# fps), up to 5e-7 s off: 6e-5 of the rate at 120 fps, 1.2e-4 at 240, 1.6e-4 at 480. Well under
+# the 1e-3 between 30 and 29.97 fps, so that an NTSC rate is never taken for the whole one.
+RATE_SNAP_TOLERANCE = 2e-4
+
+
+def recorded_rate(frame_time: float) -> float:
+    """Frames per second of a clip whose file says ``frame_time`` seconds per frame: 1 / frame_time,
+    or the NTSC or whole rate within RATE_SNAP_TOLERANCE of it, since the file rounds the frame
+    time (a 120 fps clip would otherwise give sequences at 30.00012 fps, a rate nobody records at).
+    0 for a frame time that is not positive."""
+    if not frame_time > 0:
+        return 0.0
+    rate = 1.0 / frame_time
+    if not math.isfinite(rate):  # a frame time below 1e-308 s: nothing to snap to
+        return rate
+    for known in NTSC_RATES + (float(round(rate)),):
+        if known > 0 and abs(rate - known) <= RATE_SNAP_TOLERANCE * known:
+            return known
+    return rate
 
 
 def _frozen(a, dtype) -> np.ndarray:
@@ -106,7 +129,8 @@ class BvhMotion:
 
     @property
     def fps(self) -> float:
-        return 1.0 / self.frame_time if self.frame_time > 0 else 0.0
+        """The rate the clip was recorded at (``recorded_rate``), not 1 / the rounded Frame Time."""
+        return recorded_rate(self.frame_time)
 
     @property
     def channel_starts(self) -> np.ndarray:

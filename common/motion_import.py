@@ -11,7 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.body import P, BodyModel, forward_kinematics, rot_z
-from common.bvh import BvhMotion, bvh_global_transforms, end_site_positions, read_bvh, rest_positions
+from common.bvh import (
+    BvhMotion, bvh_global_transforms, end_site_positions, read_bvh, recorded_rate, rest_positions,
+)
 from common.errors import UserError
 from common.retarget import retarget
 from common.skeleton_map import guess_up_axis, load_joint_map, map_skeleton, up_axis_rotation
@@ -31,6 +33,11 @@ class ImportedMotion:
     frame_time: float
     source: str
     frames: np.ndarray  # (F,) source frame indices
+
+    @property
+    def fps(self) -> float:
+        """The source's frame rate, as recorded (the file's Frame Time is rounded: ``recorded_rate``)."""
+        return recorded_rate(self.frame_time)
 
 
 def _roles(motion: BvhMotion, joint_map_path=None) -> dict:

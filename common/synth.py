@@ -194,7 +194,7 @@ def clip_motion(model: BodyModel, clip_path, opts: SynthOptions, joint_map=None)
     # centre the performance in the studio (the cameras look at the origin)
     params[:, 0:2] += np.asarray(opts.position) - params[:, 0:2].mean(axis=0)
     meta = dict(clip=str(clip_path), source_frames=[int(f) for f in src])
-    return params, 1.0 / (motion.frame_time * opts.step), meta
+    return params, motion.fps / opts.step, meta  # 120 fps every 4th frame: 30.0, not 30.00012
 
 
 def _on_floor(model: BodyModel, params: np.ndarray, x: float, y: float, heading: float) -> np.ndarray:

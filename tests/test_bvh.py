@@ -10,7 +10,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from common.bvh import (
-    BvhMotion, bvh_global_transforms, end_site_positions, format_bvh, parse_bvh, read_bvh,
+    BvhMotion, bvh_global_transforms, end_site_positions, format_bvh, parse_bvh, read_bvh, recorded_rate,
     rest_positions, write_bvh,
 )
 from common.errors import InputFileError, UserError
@@ -69,6 +69,7 @@ def test_cmu_clip_reads_maps_and_scales(clip):
     m = read_bvh(clip)
     assert m.num_joints == 31 and m.num_channels == 96 and m.num_frames > 100
     assert m.frame_time == pytest.approx(1 / 120, rel=1e-3)
+    assert m.fps == 120.0  # .0083333 and 0.008333 alike
     pos, rot = bvh_global_transforms(m)
     assert pos.shape == (m.num_frames, 31, 3) and rot.shape == (m.num_frames, 31, 3, 3)
     assert np.all(np.isfinite(pos))
@@ -116,6 +117,32 @@ def test_cmu_round_trip(tmp_path):
     write_bvh(tmp_path / "out.bvh", m)
     back = read_bvh(tmp_path / "out.bvh")
     assert_same_motion(m, back)
+
+
+# ------------------------------------------------------------------------------ frame rates
+
+@pytest.mark.timeout(10)
+@pytest.mark.parametrize("frame_time, fps", [
+    (0.008333, 120.0), (0.0083333, 120.0), (1 / 120, 120.0), (0.004167, 240.0), (0.002083, 480.0),
+    (0.041667, 24.0), (0.04, 25.0), (0.1, 10.0),
+    (0.033367, 30000 / 1001), (0.016683, 60000 / 1001), (0.041708, 24000 / 1001),  # NTSC stays NTSC
+    (0.0333, 1 / 0.0333), (0.0583333, 1 / 0.0583333),  # 30.03, 17.14: no rate near enough to snap to
+    (0.0, 0.0),
+])
+def test_recorded_rate_undoes_the_rounded_frame_time(frame_time, fps):
+    assert recorded_rate(frame_time) == fps
+
+
+@pytest.mark.timeout(30)
+def test_a_rounded_frame_time_is_kept_in_the_file_and_exports_write_the_rate(tmp_path, model):
+    from common.export import write_motion_bvh
+
+    motion = parse_bvh(TWO_BONE.replace("Frame Time: 0.1", "Frame Time: 0.008333"))
+    assert motion.fps == 120.0 and motion.frame_time == 0.008333
+    assert "Frame Time: 0.008333\n" in format_bvh(motion)  # as read: written back unchanged
+    write_motion_bvh(tmp_path / "fit.bvh", model, np.zeros((2, 35)), 30.0)  # a synthesized sequence's fps
+    again = read_bvh(tmp_path / "fit.bvh")
+    assert again.frame_time == 1 / 30 and again.fps == 30.0
 
 
 # ------------------------------------------------------------------------------ reading and writing

@@ -15,7 +15,9 @@ from common.sequence import load_sequence
 from common.synth import BLOB_RADIUS_PX, BLOBS_PER_IMAGE, CHEUNG_ETA, CHEUNG_XI, add_cheung_noise
 from server.cli import main
 
-from conftest import WALK_CLIP
+from conftest import SHARED_MOCAP, WALK_CLIP
+
+SHARED_120_FPS = SHARED_MOCAP / "cmu_jalderson" / "02_01.bvh"  # Frame Time: 0.008333 (120.0048 fps)
 
 SYNTH_SECONDS_60 = 30.0   # the issue's bound for 60 frames, 8 cameras, 320x240 (measured ~13 s here)
 JOINT_DILATION_PX = 2
@@ -71,7 +73,7 @@ def test_synth_writes_a_complete_sequence(walk8):
     assert_complete(clean, frames=5, cameras=8, size=(320, 240))
     meta = json.loads((clean / "sequence.json").read_text())
     assert meta["source_frames"] == [1, 5, 9, 13, 17]  # --start 1 --step 4
-    assert abs(meta["fps"] - 30.0) < 0.01             # 120 fps / 4
+    assert meta["fps"] == 30.0                        # 120 fps / 4 (Frame Time .0083333: 30.00012)
 
 
 @pytest.mark.slow
@@ -82,6 +84,18 @@ def test_synth_60_frames_under_30_seconds(tmp_path):
     assert rc == 0
     assert_complete(out, frames=60, cameras=8, size=(320, 240))
     assert seconds < SYNTH_SECONDS_60, f"{seconds:.1f} s"
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.skipif(not SHARED_120_FPS.is_file(), reason="needs the shared mocap clips")
+def test_a_120_fps_clip_every_4th_frame_is_30_fps_exactly(tmp_path):
+    """The file rounds 1/120 s to 0.008333; the sequence says the rate it was recorded at over 4."""
+    assert "Frame Time: 0.008333\n" in SHARED_120_FPS.read_text()
+    out = tmp_path / "seq"
+    assert main(["synth", "--clip", str(SHARED_120_FPS), "--out", str(out), "--frames", "2", "--step", "4",
+                 "--cameras", "2", "--size", "80x60", "--quiet"]) == 0
+    assert json.loads((out / "sequence.json").read_text())["fps"] == 30.0
+    assert load_sequence(out).fps == 30.0
 
 
 def test_truth_joints_fall_inside_the_silhouettes(walk8):
