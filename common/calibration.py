@@ -42,6 +42,11 @@ A folder of per-camera files (``opencv-xml`` and ``projection``) is either ``<ca
 (K, R and t, or P). Files holding no camera (a board description, an intrinsics-only estimate
 next to the full camera) are skipped and named in one warning line; two files with a camera in
 one sub-folder are an error. A ``.txt`` made only of numbers is a projection file (12 numbers).
+A folder may also hold a single-file calibration (our ``calibration.json``, a Pose2Sim or
+Anipose ``.toml``, a ``.qca.txt``), which is then read; a folder holding two calibrations of any
+kinds (``calibration.json`` beside the camera files it was converted from, EasyMocap's files
+beside camera files, camera files both at the top and in sub-folders) is refused, naming them
+(``folder_calibrations``), since the one last edited may not be the one that would be read.
 
 Image sizes are optional in every format (and at most ``MAX_IMAGE_PIXELS``, as every image read
 is): without one in the file or ``size``, a camera's size
@@ -60,7 +65,7 @@ Whoever gave the units, a rig whose farthest two cameras stand outside ``STUDIO_
 gets a warning line. Numbers are written with full double precision (EasyMocap itself writes 6
 decimals), so every written format round-trips exactly.
 
-One module of about 1,250 lines: the seven formats share the field checks, units, image sizes
+One module of about 1,370 lines: the seven formats share the field checks, units, image sizes
 and camera building of its first half; each later section is one format's reader and writer.
 """
 from __future__ import annotations
@@ -107,6 +112,8 @@ UNIT_ORIGINS = {  # where the units of a studio outside that span came from -> (
 # 8K video (7680 x 4320, 33 Mpx), ten times a 10 Mpx machine-vision camera; 300 MB as RGB.
 MAX_IMAGE_PIXELS = 100_000_000
 EASYMOCAP_FILES = ("intri.yml", "extri.yml")
+SINGLE_FILE_NAMES = ("calibration.json", "calibration.toml", "calib.toml")  # lower-cased; ours, Anipose's, Pose2Sim's
+MAX_SINGLE_FILE_BYTES = 16 * 2**20  # bytes; a larger .json/.toml in a calibration folder is not looked into
 TOML_NON_CAMERA_SECTIONS = ("metadata", "capture_volume", "charuco", "checkerboard")  # FreeMocap adds the last three
 TOML_CAMERA_FIELDS = ("name", "size", "matrix", "distortions", "rotation", "translation", "fisheye")
 # EasyMocap keys <prefix>_<camera> per file; a group's prefixes are spellings of one field
@@ -271,7 +278,9 @@ def load_calibration(path, units: str | None = None, fmt: str | None = None,
         raise CalibrationError(source, "units", f"expected one of {sorted(UNIT_SCALE)}, got {units!r}")
     if not path.exists():
         raise CalibrationError(source, "", "does not exist")
-    fmt = fmt or detect_format(path)
+    if fmt is None:
+        fmt, path = _locate(path)
+        source = str(path)
     lines: list[str] = []  # warnings wait for success: a failed read says one thing, its error
     if fmt == "json":
         if path.is_dir():
@@ -414,36 +423,122 @@ def check_sizes_writable(studio: Studio, path, fmt: str) -> None:
 
 def detect_format(path) -> str:
     """The format of an existing calibration file or folder (one of ``FORMATS``)."""
-    path = Path(path)
+    return _locate(Path(path))[0]
+
+
+def _locate(path: Path) -> tuple[str, Path]:
+    """(format, what to read) of a calibration file or folder: a folder holding one single-file
+    calibration (our JSON, a TOML, a .qca.txt) reads that file; one holding two calibrations
+    of any kinds is refused (``folder_calibrations``)."""
     if path.is_dir():
-        if all((path / name).is_file() for name in EASYMOCAP_FILES):
-            return "easymocap"
-        entries = _camera_files(path)
+        found = folder_calibrations(path)
+        _refuse_several(path, found)
+        if found and found[0][0] != "camera":
+            fmt, inner, _ = found[0]
+            return (fmt if fmt != "toml" else detect_format(inner)), inner
+        entries = _camera_files(path)  # also the broken ones, reported when read
         if entries:
-            return "projection" if any(kind == "projection" for _, _, kind in entries) else "opencv-xml"
-        if len(list(path.glob("*" + QUALISYS_SUFFIX))) == 1:
-            return "qualisys"
+            fmt = "projection" if any(kind == "projection" for _, _, kind in entries) else "opencv-xml"
+            return fmt, path
         raise CalibrationError(str(path), "<folder>", "no calibration found: expected intri.yml + extri.yml "
-                               "(EasyMocap), one .qca.txt (Qualisys), or camera files (.xml with K, R, t or P; "
-                               ".txt with a 3x4 P), one per camera or one per sub-folder")
+                               "(EasyMocap), calibration.json, a .toml (Pose2Sim, Anipose), one .qca.txt "
+                               "(Qualisys), or camera files (.xml with K, R, t or P; .txt with a 3x4 P), one per "
+                               "camera or one per sub-folder")
     name = path.name.lower()
     suffix = path.suffix.lower()
     if suffix == ".toml":
         doc = _read_toml_doc(path)
         sections = _toml_camera_sections(doc)
         if sections and all(isinstance(doc[s], dict) and "fisheye" in doc[s] for s in sections):
-            return "pose2sim"
-        return "anipose"
+            return "pose2sim", path
+        return "anipose", path
     if name.endswith(QUALISYS_SUFFIX):
-        return "qualisys"
+        return "qualisys", path
     if suffix in (".xml", ".txt"):
         kind = _file_kind(path)
         if kind in ("qualisys", "projection"):
-            return kind
-        return "projection" if suffix == ".txt" else "opencv-xml"
+            return kind, path
+        return ("projection" if suffix == ".txt" else "opencv-xml"), path
     if suffix in (".yml", ".yaml"):
-        return "easymocap"
-    return "json"
+        return "easymocap", path
+    return "json", path
+
+
+def folder_calibrations(folder) -> list[tuple[str, Path, str]]:
+    """(kind, path, description) of each whole calibration in ``folder``, in the order read.
+
+    kind: "easymocap" (intri.yml + extri.yml), "json" (``calibration.json``, or any .json saying
+    ``JSON_FORMAT_NAME``), "toml" (``SINGLE_FILE_NAMES``, or any .toml with a camera's
+    ``matrix``), "qualisys" (each .qca.txt), "camera" (the files holding a whole camera at the
+    top, and those in sub-folders: two sets when both are there). Files holding no camera (a
+    board, an intrinsics-only estimate) are no calibration. More than one means the folder does
+    not say which it is: a user who converted a lab's files to calibration.json beside them and
+    then edited one of the two would otherwise get the other without a word.
+    """
+    folder = Path(folder)
+    found: list[tuple[str, Path, str]] = []
+    if all((folder / name).is_file() for name in EASYMOCAP_FILES):
+        found.append(("easymocap", folder, " + ".join(EASYMOCAP_FILES)))
+    for p in sorted((p for p in folder.iterdir() if p.is_file()), key=lambda p: natural_key(p.name)):
+        low = p.name.lower()
+        if low.endswith(QUALISYS_SUFFIX):
+            found.append(("qualisys", p, p.name))
+        elif p.suffix.lower() == ".json" and _is_calibration_json(p):
+            found.append(("json", p, p.name))
+        elif p.suffix.lower() == ".toml" and _is_calibration_toml(p):
+            found.append(("toml", p, p.name))
+    for files in _full_camera_files(folder):
+        if files:
+            names = [f.relative_to(folder).as_posix() for f in files]
+            shown = ", ".join(names) if len(names) <= 3 else f"{names[0]}, ..., {names[-1]}"
+            found.append(("camera", folder, f"{len(names)} camera file{'s' * (len(names) > 1)} ({shown})"))
+    return found
+
+
+def _refuse_several(folder: Path, found: list[tuple[str, Path, str]]) -> None:
+    if len(found) > 1:
+        easymocap = " (intri.yml for EasyMocap)" if any(kind == "easymocap" for kind, _, _ in found) else ""
+        raise CalibrationError(str(folder), "<folder>", f"holds {len(found)} calibrations: "
+                               + _and([what for _, _, what in found]) + f"; give the file to use{easymocap}, "
+                               "or move the others out of the folder")
+
+
+def _and(items: list[str]) -> str:
+    return items[0] if len(items) == 1 else ", ".join(items[:-1]) + " and " + items[-1]
+
+
+def _small_text(path: Path) -> str | None:
+    """A file's text, or None when it cannot be a calibration (unreadable, not UTF-8, too large)."""
+    try:
+        if path.stat().st_size > MAX_SINGLE_FILE_BYTES:
+            return None
+        return path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError):
+        return None
+
+
+def _is_calibration_json(path: Path) -> bool:
+    """Ours by name (even when broken: it is read, and refused, if it is the only one), or by its ``format``."""
+    if path.name.lower() in SINGLE_FILE_NAMES:
+        return True
+    text = _small_text(path)
+    try:
+        doc = json.loads(text) if text is not None else None
+    except ValueError:
+        return False
+    return isinstance(doc, dict) and doc.get("format") == JSON_FORMAT_NAME
+
+
+def _is_calibration_toml(path: Path) -> bool:
+    """Pose2Sim's and Anipose's names, or a section with a camera ``matrix`` (not a Config.toml)."""
+    if path.name.lower() in SINGLE_FILE_NAMES:
+        return True
+    text = _small_text(path)
+    try:
+        doc = tomllib.loads(text) if text is not None else {}
+    except tomllib.TOMLDecodeError:
+        return False
+    return any(isinstance(doc[s], dict) and "matrix" in doc[s] for s in _toml_camera_sections(doc))
 
 
 def output_format(path, fmt: str | None = None) -> str:
@@ -892,6 +987,15 @@ def _camera_files(folder: Path, warn: Warn | None = None) -> list[tuple[str, Pat
     return sorted(entries, key=lambda e: natural_key(e[0]))
 
 
+def _full_camera_files(folder: Path) -> tuple[list[Path], list[Path]]:
+    """The files holding a whole camera at the top of ``folder``, and in its sub-folders (all of
+    them, even two in one sub-folder: that is refused when read)."""
+    top = [p for p in _camera_candidates(folder) if _file_kind(p) in FULL_KINDS]
+    subs = [p for sub in sorted(d for d in folder.iterdir() if d.is_dir())
+            for p in _camera_candidates(sub) if _file_kind(p) in FULL_KINDS]
+    return top, subs
+
+
 def _sub_folder_cameras(folder: Path) -> tuple[list[tuple[str, Path, str]], list[Path]]:
     """(camera name = sub-folder, file, kind) for each sub-folder with a camera file, and the files skipped."""
     entries, skipped = [], []
@@ -939,7 +1043,8 @@ def _file_kind(path: Path) -> str:
 
 
 def _read_camera_files(path: Path, scale: float, size, warn: Warn) -> Studio:
-    if path.is_dir():
+    if path.is_dir():  # --from says the kind, not which of two sets of camera files
+        _refuse_several(path, [c for c in folder_calibrations(path) if c[0] == "camera"])
         entries = _camera_files(path, warn)
         if not entries:
             raise CalibrationError(str(path), "<folder>", "no camera files (.xml with K, R, t or P; .txt with a 3x4 P)")

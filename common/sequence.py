@@ -2,7 +2,7 @@
 
 Layout (see docs/CONTRIBUTING.md)::
 
-    SEQUENCE/calibration.json                     (or EasyMocap's intri.yml + extri.yml)
+    SEQUENCE/calibration.json                     (or EasyMocap's intri.yml + extri.yml; not both)
     SEQUENCE/sequence.json                        {"frames": [...], "fps": 30.0, "cameras": [...]}
     SEQUENCE/silhouettes/<camera>/<frame:06d>.png (or EasyMocap / ZJU-MoCap mask/ or masks/)
     SEQUENCE/images/<camera>/<frame:06d>.png
@@ -40,7 +40,7 @@ from PIL import Image, UnidentifiedImageError
 
 from common.body import JOINT_NAMES, PARAM_NAMES
 from common.calibration import EASYMOCAP_FILES, MAX_IMAGE_PIXELS, load_calibration, natural_key, with_image_sizes
-from common.camera import Studio
+from common.camera import CalibrationError, Studio
 from common.consistency import PROP_SAMPLES, StaticProps, static_props, supported_masks
 from common.errors import FieldChecks, InputFileError, UserError, print_warning
 from common.packing import pad_stack
@@ -214,7 +214,11 @@ class Sequence:
                             f"got {mask_threshold!r}")
         self.mask_threshold = mask_threshold
         calibration = self.path / "calibration.json"
-        if not calibration.exists() and all((self.path / n).is_file() for n in EASYMOCAP_FILES):
+        easymocap = all((self.path / n).is_file() for n in EASYMOCAP_FILES)
+        if easymocap and calibration.exists():  # which one was last edited is not ours to guess
+            raise CalibrationError(str(self.path), "<folder>", "holds 2 calibrations: calibration.json and "
+                                   + " + ".join(EASYMOCAP_FILES) + "; keep one")
+        if easymocap:
             self.user_studio: Studio = load_calibration(self.path, units, fmt="easymocap")
         else:
             self.user_studio = load_calibration(calibration, units)

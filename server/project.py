@@ -7,7 +7,7 @@ A project is a folder with ``Config.toml`` at its root; a take is a folder below
  - or a ready sequence (``sequence.json`` or ``silhouettes/``): fitted as it is;
 plus a calibration (``[calibration] file``, else ``calibration.json``, ``calibration.toml``,
 ``Calib.toml``, a ``calibration/`` folder or EasyMocap's ``intri.yml`` + ``extri.yml``, in the
-take and then in the project).
+take and then in the project; two of them in one folder are refused, naming both).
 
 Steps (import, segment, fit, export, report) run the ``mocap`` commands themselves, so every
 check and message is theirs. Each step leaves a record (``TAKE/.mocap/<step>.json``) of its
@@ -92,12 +92,16 @@ def find_calibration(take: Path, config: Config) -> Path:
             raise UserError(f"[calibration] file {given} (from {config.source('calibration', 'file')}): missing")
         return Path(given)
     project = project_of(take)
-    for folder in [take] + ([project] if project else []):
-        for name in CALIBRATION_NAMES:
-            if (folder / name).exists():
-                return folder / name
+    for folder in [take] + ([project] if project else []):  # a take's own calibration before the project's
+        found = [folder / name for name in CALIBRATION_NAMES if (folder / name).exists()]
         if all((folder / name).is_file() for name in EASYMOCAP_FILES):
-            return folder
+            found.append(folder)
+        if len(found) > 1:  # two in one folder: which was meant (or last edited) is not ours to guess
+            names = [p.name if p != folder else " + ".join(EASYMOCAP_FILES) for p in found]
+            raise UserError(f"{folder}: holds {len(found)} calibrations: {', '.join(names)}; keep one, or set "
+                            "[calibration] file")
+        if found:
+            return found[0]
     raise UserError(f"{take}: no calibration (looked for {', '.join(CALIBRATION_NAMES)} and intri.yml + extri.yml "
                     "in the take and the project; or set [calibration] file)")
 

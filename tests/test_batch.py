@@ -358,6 +358,32 @@ def test_find_takes(project):
         plan_take(project)
 
 
+@pytest.mark.timeout(60)
+def test_two_calibrations_in_one_folder_of_a_take_are_refused(tmp_path, small_studio, capsys):
+    """A take's calibration is looked for by name in the take, then in the project: two in one
+    folder are refused naming both; the take's own before the project's is meant."""
+    from common.calibration import save_calibration
+
+    root = tmp_path / "project"
+    take = root / "take"
+    (take / "images" / "cam1").mkdir(parents=True)
+    (root / "Config.toml").write_text(PROJECT_CONFIG)
+    save_calibration(small_studio, root / "calibration.toml")
+    assert plan_take(take).steps[0].commands[0][2] == str(root / "calibration.toml")
+    save_calibration(small_studio, take / "calibration.json")
+    assert plan_take(take).steps[0].commands[0][2] == str(take / "calibration.json")
+    save_calibration(small_studio, take / "Calib.toml")
+    with pytest.raises(UserError) as info:
+        plan_take(take)
+    assert str(info.value) == (f"{take}: holds 2 calibrations: calibration.json, Calib.toml; keep one, "
+                               "or set [calibration] file")
+    assert main(["run", str(take)]) == 2 and "holds 2 calibrations" in refusal(capsys)
+    (take / "Calib.toml").unlink()
+    save_calibration(small_studio, take, fmt="easymocap")
+    with pytest.raises(UserError, match=r"holds 2 calibrations: calibration.json, intri.yml \+ extri.yml"):
+        plan_take(take)
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(420)
 def test_batch_on_a_local_dask_cluster(project, tmp_path, capsys):

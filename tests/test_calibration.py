@@ -13,8 +13,9 @@ import pytest
 from PIL import Image
 
 from common.calibration import (
-    FORMATS, WRITE_FORMATS, decompose_projection, detect_format, load_calibration, matrix_to_rodrigues, natural_key,
-    output_format, rodrigues_to_matrix, save_calibration, units_doubt, with_image_sizes,
+    EASYMOCAP_FILES, FORMATS, WRITE_FORMATS, decompose_projection, detect_format, folder_calibrations, load_calibration,
+    matrix_to_rodrigues, natural_key, output_format, rodrigues_to_matrix, save_calibration, units_doubt,
+    with_image_sizes,
 )
 from common.camera import Camera, CalibrationError, Studio, circle_studio, make_camera
 from server.cli import main
@@ -794,6 +795,93 @@ def test_real_uu_folder(tmp_path, capsys):
     rc, _, err = cli(capsys, "calib", "convert", REAL_UU, toml, "--units", "mm", "--size-from", *sources)
     assert rc == 0 and err.count("\n") == 1 and "skipped (no camera fields)" in err
     assert_same(load_calibration(toml), real)
+
+
+def one_line(err: str) -> str:
+    """The one error line of a refused command (no traceback)."""
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    return err.strip()
+
+
+@pytest.mark.timeout(60)
+def test_a_folder_holding_two_calibrations_is_refused(tmp_path, capsys):
+    """calibration.json converted from the lab's XML files into their folder, then edited: which of
+    the two is meant is not known, so the folder is refused naming both, and each is read when given."""
+    folder = copy_fixture(tmp_path, "../calibration/uu_layout")
+    rc, _, err = cli(capsys, "calib", "convert", folder, folder / "calibration.json", "--units", "mm")
+    assert rc == 0, err
+    edit(folder / "calibration.json", '"name": "cam1"', '"name": "cam1_moved"')
+    expected = (f"{folder}: <folder>: holds 2 calibrations: calibration.json and 3 camera files (cam1/config.xml, "
+                "cam2/config.xml, cam3/config.xml); give the file to use, or move the others out of the folder")
+    with pytest.raises(CalibrationError) as info:
+        load_calibration(folder, units="mm")
+    assert str(info.value) == expected
+    with pytest.raises(CalibrationError, match="holds 2 calibrations"):
+        detect_format(folder)
+    for argv in (["calib", "show", folder, "--units", "mm"],
+                 ["calib", "convert", folder, tmp_path / "out.json", "--units", "mm"],
+                 ["import-video", "--calibration", folder, "--video", "cam1=cam1.avi", "--out", tmp_path / "seq",
+                  "--units", "mm"]):
+        rc, _, err = cli(capsys, *argv)
+        assert rc == 2 and one_line(err).endswith(expected), argv
+    assert not (tmp_path / "out.json").exists() and not (tmp_path / "seq").exists()
+    edited = load_calibration(folder / "calibration.json")  # each is read when given by name
+    assert edited.names == ["cam1_moved", "cam2", "cam3"]
+    assert load_calibration(folder / "cam1" / "config.xml", units="mm", warn=lambda line: None).names == ["config"]
+
+    # EasyMocap's files beside them make three; the intrinsics-only files and the board are none
+    save_calibration(edited, folder, fmt="easymocap")
+    rc, _, err = cli(capsys, "calib", "show", folder)
+    assert rc == 2 and one_line(err).endswith(
+        "holds 3 calibrations: intri.yml + extri.yml, calibration.json and 3 camera files (cam1/config.xml, "
+        "cam2/config.xml, cam3/config.xml); give the file to use (intri.yml for EasyMocap), or move the others "
+        "out of the folder")
+    assert "intrinsics.xml" not in err and "checkerboard" not in err
+    assert_same(load_calibration(folder / "intri.yml"), edited)
+
+    # the camera files alone are read as before; a folder whose one calibration is a file reads it
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    (folder / "calibration.json").rename(alone / "calibration.json")
+    for name in EASYMOCAP_FILES:
+        (folder / name).unlink()
+    assert_same(load_calibration(folder, units="mm", warn=lambda line: None),
+                load_calibration(NEW / "uu_layout", units="mm", warn=lambda line: None), tol=0)
+    (alone / "notes.json").write_text('{"lab": "uu"}')  # not a calibration
+    assert detect_format(alone) == "json"
+    assert_same(load_calibration(alone), edited, tol=0)
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("beside", ["Calib.toml", "rig.json", "Calib.qca.txt", "top-level xml"])
+def test_any_second_calibration_in_a_folder_is_named(tmp_path, beside):
+    folder = copy_fixture(tmp_path, "opencv_xml")
+    if beside in ("Calib.toml", "rig.json"):  # a .json is ours by its "format", whatever its name
+        save_calibration(load_calibration(folder), folder / beside)
+    elif beside == "Calib.qca.txt":
+        shutil.copy(NEW / "qualisys" / beside, folder / beside)
+    else:  # camera files at the top and in sub-folders: two sets
+        shutil.copytree(DATA / "opencv_xml_subfolders", folder, dirs_exist_ok=True)
+        beside = "2 camera files (left/calibration.xml, right/calibration.xml)"
+    (folder / "Config.toml").write_text('[calibration]\nunits = "mm"\n')  # a project's settings: no calibration
+    with pytest.raises(CalibrationError) as info:
+        load_calibration(folder)
+    assert str(info.value).startswith(f"{folder}: <folder>: holds 2 calibrations: ")
+    assert beside in str(info.value) and "3 camera files (cam1.xml, cam2.xml, cam10.xml)" in str(info.value)
+    if beside.startswith("2 camera files"):  # --from says the kind, not which of the two sets
+        with pytest.raises(CalibrationError, match="holds 2 calibrations"):
+            load_calibration(folder, fmt="opencv-xml")
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.skipif(not REAL_UU.is_dir(), reason="needs the shared real recordings")
+def test_real_uu_folder_is_one_calibration(capsys):
+    """Per-camera folders with config.xml and intrinsics.xml, and a checkerboard.xml: one calibration."""
+    assert [kind for kind, _, _ in folder_calibrations(REAL_UU)] == ["camera"]
+    rc, out, err = cli(capsys, "calib", "show", REAL_UU, "--units", "mm")
+    assert rc == 0, err
+    assert out.startswith(f"{REAL_UU}: 4 cameras (opencv-xml")
+    assert "skipped (no camera fields): checkerboard.xml, cam1/intrinsics.xml" in err
 
 
 # ----------------------------------------------------------------------------- Qualisys

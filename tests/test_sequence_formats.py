@@ -136,6 +136,27 @@ def test_easymocap_layout(tmp_path, masks_folder, sizes_written):
     assert seq.check_masks(seq.frames) == []
 
 
+@pytest.mark.timeout(60)
+def test_calibration_json_beside_easymocap_files_is_refused(tmp_path, capsys):
+    """A sequence reads calibration.json or EasyMocap's intri.yml + extri.yml: with both, the one
+    edited last might not be the one read, so the sequence is refused naming both."""
+    from server.cli import main
+
+    root, studio = _root(tmp_path)
+    for k, cam in enumerate(studio):
+        _save(root / "silhouettes" / cam.name / "000000.png", _mask(W, H, k).astype(np.uint8) * 255)
+    save_calibration(studio, root, fmt="easymocap")
+    expected = f"{root}: <folder>: holds 2 calibrations: calibration.json and intri.yml + extri.yml; keep one"
+    with pytest.raises(UserError) as info:
+        load_sequence(root)
+    assert str(info.value) == expected
+    assert main(["fit", str(root), "--out", str(tmp_path / "result")]) == 2 and not (tmp_path / "result").exists()
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err and err.strip().endswith(expected), err
+    (root / "calibration.json").unlink()
+    assert load_sequence(root).studio.names == studio.names
+
+
 # --------------------------------------------------------------------------- non-binary masks
 def test_colour_and_grey_masks_need_a_threshold(tmp_path):
     root, studio = _root(tmp_path)

@@ -4,7 +4,8 @@
                                [--size-from CAMERA=PATH ...]
     mocap calib show FILE [--from FMT] [--units m|cm|mm] [--size WxH] [--size-from CAMERA=PATH ...]
 
-The input format is detected (see ``common.calibration.detect_format``); projection (3x4 P
+The input format is detected (see ``common.calibration.detect_format``; a folder holding two
+calibrations is refused, naming them); projection (3x4 P
 files) and qualisys (.qca.txt) are read only. The output format is ``--format``, else from OUT's
 name: .json -> json, .toml -> pose2sim (``--format anipose`` for aniposelib), .xml -> opencv-xml
 (one camera); easymocap and opencv-xml write a folder OUT. Cameras without an image size in the
