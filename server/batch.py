@@ -138,7 +138,8 @@ def take_line(row: dict) -> str:
         figures = f", {row['frames']} frames"
         if row.get("seconds_per_frame"):
             figures += f", {row['seconds_per_frame']:.2f} s/frame"
-    return f"  {row['name']}: {row['status']}{figures}"
+    kept = "".join(f"; {s['step']}: {s['note']}" for s in row.get("steps", ()) if "note" in s)
+    return f"  {row['name']}: {row['status']}{figures}{kept}"
 
 
 def _progress_line(takes: list[Path], results: dict, elapsed: float) -> None:

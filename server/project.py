@@ -11,10 +11,14 @@ take and then in the project; two of them in one folder are refused, naming both
 
 Steps (import, segment, fit, export, report) run the ``mocap`` commands themselves, so every
 check and message is theirs. Each step leaves a record (``TAKE/.mocap/<step>.json``) of its
-settings and of the sizes and times of its inputs and outputs; a step whose record matches is
-skipped, so a run after a change redoes only what the change affects. A run replaces only
-outputs that a run made and that are as it left them (``made.json``): any other output in the
-way (made by hand, or changed since) refuses the take before anything is written, unless
+settings and of the sizes and times of its inputs and outputs; a step whose settings and
+inputs match its record, and whose outputs are all there, is done and skipped, so a run after a
+change redoes only what the change affects. Outputs edited by hand since (silhouettes touched
+up, a calibration.json corrected) are kept as edited (the step's status is "kept (edited)")
+and the steps that read them run again, as make does; an output removed makes its step run.
+A run replaces only outputs that a run made and that are as it left them (``made.json``; an
+output kept as edited is not vouched for): any other output in the way of a step that runs
+(made by hand, or changed since) refuses the take before anything is written, unless
 ``overwrite``. A step being run leaves ``<step>.pending.json`` until it is done, so what it
 was replacing when stopped is still its own. A fit that was interrupted is continued
 (``--resume``); one whose settings changed is replaced. A lock file keeps two runs off one take.
@@ -276,11 +280,46 @@ def _read_record(take: Path, step: str) -> dict | None:
     return done if isinstance(done, dict) else None
 
 
-def up_to_date(take: Path, step: Step) -> bool:
-    """Whether the step's record says its outputs were made from these inputs and settings and
-    are as it left them."""
+UP_TO_DATE = "up to date"
+KEPT_EDITED = "kept (edited)"
+
+
+def done_status(take: Path, step: Step) -> str | None:
+    """Whether the step is done, as make says it: its record says its outputs were made from
+    these settings and inputs, and they are all there. ``UP_TO_DATE`` where they are as it left
+    them, ``KEPT_EDITED`` where they were edited since (kept, not made again: the steps that
+    read them see that their inputs changed), None where the step must run."""
     done = _read_record(take, step.name)
-    return done is not None and all(p.exists() for p in step.outputs) and done == _record(step)
+    if done is None or not all(p.exists() for p in step.outputs):
+        return None
+    now = _record(step)
+    if any(done.get(key) != now[key] for key in ("settings", "commands", "inputs")):
+        return None
+    return UP_TO_DATE if done.get("outputs") == now["outputs"] else KEPT_EDITED
+
+
+def _overlap(a: Path, b: Path) -> bool:
+    return a == b or a in b.parents or b in a.parents
+
+
+def steps_to_run(take: Path, plan: TakePlan) -> list[Step]:
+    """The steps a run would run: those not done, and those after them that read or make what
+    an earlier one that runs writes or removes (a fit after a new segmentation)."""
+    running, replaced = [], []
+    for step in plan.steps:
+        if done_status(take, step) is None or any(_overlap(p, q) for p in step.inputs + step.outputs
+                                                   for q in replaced):
+            running.append(step)
+            replaced += step.replaced
+    return running
+
+
+def edited_outputs(take: Path, plan: TakePlan, step: Step) -> list[str]:
+    """The step's outputs (relative to the take) that are not as a run left them: those a step
+    kept as edited names."""
+    made = _made_by_runs(take, plan)
+    names = [_relative(take, p) for p in step.outputs]
+    return [n for n in names if made.get(n) != _as_left(take / n)] or names
 
 
 def _made_by_runs(take: Path, plan: TakePlan) -> dict[str, str]:
@@ -314,11 +353,10 @@ def _vouched_for(take: Path, plan: TakePlan) -> set[str]:
 
 def check_replaceable(take: Path, plan: TakePlan) -> None:
     """Raise UserError if a step that would run would replace or remove an output that a run did
-    not make, or one changed since (a result made by hand, silhouettes touched up)."""
+    not make, or one changed since (a result made by hand, silhouettes touched up). A step that
+    is done keeps its outputs, edited or not: it is not in the way."""
     vouched = _vouched_for(take, plan)
-    for step in plan.steps:
-        if up_to_date(take, step):
-            continue
+    for step in steps_to_run(take, plan):
         for path in step.replaced:
             name = _relative(take, path)
             if path.exists() and name not in vouched:
@@ -358,9 +396,11 @@ def run_mocap(argv: tuple[str, ...], log) -> None:
 
 
 def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
-    """Run the take's steps that are not up to date; returns what was done (``mocap run``,
-    ``mocap batch``). Raises UserError with the failing step's message, or before anything is
-    written where a step would replace an output no run made (``overwrite`` allows it)."""
+    """Run the take's steps that are not done; returns what was done (``mocap run``,
+    ``mocap batch``): each step's status is "done", "up to date" or "kept (edited)" (with a
+    ``note`` naming the outputs kept as edited). Raises UserError with the failing step's
+    message, or before anything is written where a step would replace an output no run made
+    (``overwrite`` allows it)."""
     take = Path(take).resolve()
     plan = plan_take(take)
     t0 = time.perf_counter()
@@ -370,12 +410,18 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
             check_replaceable(take, plan)
         with open(take / STATE_DIR / "run.log", "a") as log:
             for step in plan.steps:
-                if up_to_date(take, step):
-                    steps.append({"step": step.name, "status": "up to date", "seconds": 0.0})
-                    if progress:
-                        progress(step.name, "up to date")
+                status = done_status(take, step)
+                if status is None:
+                    steps.append(_run_step(take, plan, step, log, progress))
                     continue
-                steps.append(_run_step(take, plan, step, log, progress))
+                steps.append({"step": step.name, "status": status, "seconds": 0.0})
+                if status == KEPT_EDITED:
+                    edited = edited_outputs(take, plan, step)
+                    steps[-1]["note"] = (f"kept {', '.join(edited)} as edited since mocap run made "
+                                         f"{'it' if len(edited) == 1 else 'them'}")
+                    log.write(f"{step.name}: {steps[-1]['note']}\n")
+                if progress:
+                    progress(step.name, status)
     ran = [s for s in steps if s["status"] == "done"]
     return {"name": take.name, "path": str(take), "status": "done" if ran else "skipped", "steps": steps,
             "result": str(plan.result), "seconds": time.perf_counter() - t0, **result_figures(plan.result)}

@@ -242,10 +242,18 @@ def test_run_refuses_outputs_changed_since_it_made_them(project, capsys):
     assert "fit: result/motion.csv holds a result mocap run did not make (or one changed since)" in refusal(capsys)
     assert csv.read_bytes() == edited and len(poses(take)) == 3
     (take / "Config.toml").unlink()
-    assert main(["run", str(take)]) == 2  # the export alone would replace it
-    assert "export: result/motion.csv holds" in refusal(capsys) and csv.read_bytes() == edited
-    csv.unlink()
+    # the export's settings and input as when it ran: it is done, and the edit is kept (mocap batch says so too)
+    from server.batch import run_take_task, take_line
+
+    kept = run_take_task(str(take))
+    assert kept["status"] == "skipped", kept
+    assert [s["status"] for s in kept["steps"]] == ["up to date", "kept (edited)", "up to date"]
+    assert "export: kept result/motion.csv as edited since mocap run made it" in take_line(kept)
+    assert main(["run", str(take)]) == 0 and csv.read_bytes() == edited
+    assert f"walk_a: export: kept result/motion.csv as edited since mocap run made it\n" in capsys.readouterr().out
+    csv.unlink()  # an output removed: its step runs
     assert [s["status"] for s in run_take(take)["steps"]] == ["up to date", "done", "up to date"]
+    assert csv.read_bytes() != edited
     # a take last run before made.json was kept: the step records vouch for their outputs, then and later
     (take / ".mocap" / "made.json").unlink()
     (take / "Config.toml").write_text("[report]\ngif = true\n")
@@ -254,27 +262,45 @@ def test_run_refuses_outputs_changed_since_it_made_them(project, capsys):
     assert [s["status"] for s in run_take(take)["steps"]] == ["done"] * 3 and len(poses(take)) == 2
 
 
-def test_run_replaces_its_own_segmentation_not_touched_up_silhouettes(tmp_path, model, small_studio, capsys):
+@pytest.mark.timeout(150)
+def test_run_keeps_touched_up_silhouettes_and_refits_with_them(tmp_path, model, small_studio, capsys):
+    """As make: a step whose settings and inputs did not change is done, its outputs edited by
+    hand kept and used by the steps after it; one that must run is refused where it would
+    replace them, unless --overwrite."""
     from PIL import Image
 
     root = tmp_path / "project"
     root.mkdir()
-    # a number for the actor's height, as mocap fit --actor-height takes it (and no size search)
-    (root / "Config.toml").write_text(PROJECT_CONFIG.replace("[fit]", "[fit]\nactor_height = 1.66")
-                                      + "[export]\nformats = ['csv']\n")
+    # a number for the actor's height, as mocap fit --actor-height takes it (and no size search); a quick fit
+    # (one frame from a standing start: the fits here are only run or not), no report
+    config = (PROJECT_CONFIG.replace("[fit]", "[fit]\nactor_height = 1.66\nframes = 1\ninit = 'standing'")
+              .replace("[report]", "[report]\nenabled = false"))
+    (root / "Config.toml").write_text(config + "[export]\nformats = ['csv']\n")
     take = make_image_take(root / "take", model, small_studio)
-    assert [s["status"] for s in run_take(take)["steps"]] == ["done"] * 5
+    assert [s["status"] for s in run_take(take)["steps"]] == ["done"] * 4
     masks = take / "sequence" / "silhouettes"
     (take / "Config.toml").write_text("[segmentation]\nmethod = 'bottino'\n")  # outputs as the run left them
-    assert [s["status"] for s in run_take(take)["steps"]] == ["up to date"] + ["done"] * 4
+    assert [s["status"] for s in run_take(take)["steps"]] == ["up to date"] + ["done"] * 3
     mask = sorted((masks / "cam1").iterdir())[0]
     with Image.open(mask) as im:
         touched_up = im.copy()
     touched_up.putpixel((0, 0), 255)  # by hand
     touched_up.save(mask)
     touched = {p: p.read_bytes() for p in masks.rglob("*.png")}
-    fitted = (take / "result" / "poses.jsonl").read_bytes()
+    fitted = (take / "result" / "poses.jsonl").stat().st_mtime_ns
     capsys.readouterr()
+    assert main(["run", str(take), "--json"]) == 0
+    done = json.loads(capsys.readouterr().out)
+    assert [s["status"] for s in done["steps"]] == ["up to date", "kept (edited)", "done", "done"]
+    assert done["steps"][1]["note"] == "kept sequence/silhouettes as edited since mocap run made it"
+    assert {p: p.read_bytes() for p in masks.rglob("*.png")} == touched  # kept, and fitted with
+    assert (take / "result" / "poses.jsonl").stat().st_mtime_ns != fitted
+    fitted = (take / "result" / "poses.jsonl").read_bytes()
+    assert main(["run", str(take)]) == 0  # nothing changed since: nothing runs, the edit is said again
+    out = capsys.readouterr().out
+    assert f"take: segment: kept sequence/silhouettes as edited since mocap run made it\ntake: skipped" in out
+    # the segmentation's settings changed: it would replace the touched-up masks
+    (take / "Config.toml").write_text("[segmentation]\nmethod = 'cheung'\n")
     assert main(["run", str(take)]) == 2
     assert f"{take}: segment: sequence/silhouettes holds a result" in refusal(capsys)
     (take / "Config.toml").write_text("[segmentation]\nmethod = 'bottino'\n[import]\nfps = 25.0\n")
@@ -283,6 +309,23 @@ def test_run_replaces_its_own_segmentation_not_touched_up_silhouettes(tmp_path, 
     assert "import: sequence/silhouettes holds a result" in refusal(capsys)
     assert {p: p.read_bytes() for p in masks.rglob("*.png")} == touched
     assert (take / "result" / "poses.jsonl").read_bytes() == fitted
+    (take / "Config.toml").write_text("[segmentation]\nmethod = 'cheung'\n")
+    assert main(["run", str(take), "--overwrite"]) == 0
+    assert mask.read_bytes() != touched[mask]
+    assert {s["status"] for s in run_take(take)["steps"]} == {"up to date"}
+    capsys.readouterr()
+    # an export edited by hand, then a new segmentation: the fit after it would drop the export
+    csv = take / "result" / "motion.csv"
+    csv.write_text(csv.read_text() + "# checked by hand\n")
+    (take / "Config.toml").write_text("[segmentation]\nmethod = 'bottino'\n")
+    assert main(["run", str(take)]) == 2
+    assert "fit: result/motion.csv holds a result" in refusal(capsys)
+    csv.unlink()
+    # silhouettes removed: the segmentation runs again, as it would with no record
+    (take / "Config.toml").write_text("[segmentation]\nmethod = 'cheung'\n")
+    shutil.rmtree(masks)
+    assert [s["status"] for s in run_take(take)["steps"]] == ["up to date"] + ["done"] * 3
+    assert mask.is_file()
     shutil.rmtree(take / ".mocap")  # a sequence no run made (imported and segmented by hand)
     assert main(["run", str(take)]) == 2
     assert "import: sequence/images holds a result" in refusal(capsys)

@@ -1,9 +1,10 @@
 """``mocap run TAKE``: every step of a take, from its raw files to exports and report.html.
 
-Steps that are up to date (their outputs made from the same inputs and settings) are skipped;
-an output in a step's way that no run made, or one changed since, is refused unless
-``--overwrite``; see ``server.project``. Settings come from the project's and the take's
-Config.toml.
+Steps that are done (their outputs made from the same inputs and settings, and all there) are
+skipped; outputs edited by hand since are kept as edited, said in one line, and the steps that
+read them run again. An output in the way of a step that runs, that no run made or one changed
+since, is refused unless ``--overwrite``; see ``server.project``. Settings come from the
+project's and the take's Config.toml.
 """
 from __future__ import annotations
 
@@ -19,8 +20,9 @@ def register(sub) -> None:
                                    "Config.toml says; steps already up to date are skipped")
     p.add_argument("take", type=Path, help="take folder (videos/, images/ or a sequence, in a project)")
     p.add_argument("--overwrite", action="store_true",
-                   help="replace outputs that mocap run did not make, or that changed since it made them "
-                        "(default: refuse the take, so that nothing is lost)")
+                   help="where a step runs, replace outputs that mocap run did not make, or that changed since "
+                        "it made them (default: refuse the take, so that nothing is lost; outputs edited by "
+                        "hand of a step whose settings and inputs did not change are kept either way)")
     p.add_argument("--json", action="store_true", help="print what was done as JSON")
     p.set_defaults(func=run)
 
@@ -34,6 +36,9 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(done, indent=1))
     else:
+        for step in done["steps"]:
+            if "note" in step:  # outputs edited by hand, kept and used
+                print(f"{done['name']}: {step['step']}: {step['note']}")
         print(f"{done['name']}: {done['status']} -> {done['result']}")
         if "mean_xor_share" in done:  # what a take without truth is checked by (mocap fit's table)
             from server.session import xor_sides  # here: the fitting modules load only where a take has a fit
