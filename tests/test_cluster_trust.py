@@ -315,3 +315,23 @@ def test_a_client_refused_by_curve_says_so_and_exits(model, tmp_path):
     assert proc.returncode == 3, proc.stderr
     last = proc.stderr.strip().splitlines()[-1]
     assert "server refused the CURVE handshake" in last and "clients/ folder" in last, proc.stderr
+
+
+@pytest.mark.timeout(60)
+def test_mocap_server_refuses_an_earlier_result_before_sizing_the_actor(seq_path, tmp_path, capsys, monkeypatch):
+    """A result in the way is refused at once, as mocap fit refuses it: not after the actor's size
+    search, which may take minutes."""
+    import server.commands.fit as fit
+    from server.cli import main
+
+    def no_search(*args, **kwargs):
+        raise AssertionError("the size search ran before the folder was checked")
+
+    monkeypatch.setattr(fit, "choose_actor_scale", no_search)
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "poses.jsonl").write_text("{}\n")
+    assert main(["server", str(seq_path), "--out", str(out), "--init", "auto", "--bind", "tcp://127.0.0.1:5555"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--overwrite" in err, err
+    assert (out / "poses.jsonl").read_text() == "{}\n"
