@@ -186,7 +186,7 @@ def bench_cluster(sequence, frames: int | None = None, clients: int = DEFAULT_CL
                     "seconds": _frame_seconds(root / name)}
 
         def distributed(name: str):
-            with LocalCluster(model, options, clients) as solver:
+            with LocalCluster(options, clients) as solver:
                 summary = run_fit(model, seq, root / name, options, solver, max_frames=frames)
             return {"summary": summary, "processes": summary["timing"]["processes"],
                     "seconds": _frame_seconds(root / name)}
@@ -253,7 +253,7 @@ def bench_hops(sequence, frames: int | None = None, clients: int = DEFAULT_CLIEN
     with tempfile.TemporaryDirectory(prefix="bench-hops-") as tmp:
         root = Path(out) if out else Path(tmp)
         single = run_fit(model, seq, root / "single", options, LocalSolver(model, options), max_frames=frames)
-        with LocalCluster(model, options, clients) as solver:
+        with LocalCluster(options, clients) as solver:
             cluster = run_fit(model, seq, root / "distributed", options, solver, max_frames=frames)
         difference = float(np.abs(_params(root / "single") - _params(root / "distributed")).max())
 

@@ -73,7 +73,6 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils.monitor import recv_monitor_message
 
-from common.body import BodyModel
 from common.errors import UserError
 from common.fitting import (
     HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, redetects,
@@ -216,7 +215,7 @@ class ClusterSolver:
 
     mode = "cluster"
 
-    def __init__(self, model: BodyModel, options: FitOptions, bind: str = DEFAULT_BIND,
+    def __init__(self, options: FitOptions, bind: str = DEFAULT_BIND,
                  heartbeat_interval: float = HEARTBEAT_INTERVAL, client_timeout: float = CLIENT_TIMEOUT,
                  curve_keys: Path | None = None, insecure: bool = False):
         if check_bind(bind, curve_keys, insecure):
@@ -226,7 +225,6 @@ class ClusterSolver:
             raise UserError(f"--heartbeat must be in [0.001, 3600] seconds, got {heartbeat_interval}")
         if not client_timeout > 0:
             raise UserError(f"--client-timeout must be > 0 seconds, got {client_timeout}")
-        self.model = model
         self.heartbeat_interval, self.client_timeout = heartbeat_interval, client_timeout
         self.session = secrets.token_hex(8)
         self._frame_options = options  # each frame's own, from begin_frame
@@ -335,7 +333,7 @@ class ClusterSolver:
         self._frame_options = options
         msg = Frame(session=self.session, frame=int(frame), cameras=camera_specs(data.studio),
                     silhouettes=packbits_masks(data.masks), previous_params=np.asarray(start).tolist(),
-                    body_scale=self.model.scale, body_fingerprint=self.model.fingerprint)
+                    body_scale=data.model.scale, body_fingerprint=data.model.fingerprint)
         parts = encode(msg)
         with self._lock:
             self._server["encode_seconds"] += time.perf_counter() - t0
@@ -458,7 +456,7 @@ class ClusterSolver:
                 self._check(rnd, chain, claim)
                 continue
             t0 = time.perf_counter()
-            result = solve_job(self.model, self._data, chain, rnd.starts[chain], rnd.options[chain], rnd.iteration,
+            result = solve_job(self._data.model, self._data, chain, rnd.starts[chain], rnd.options[chain], rnd.iteration,
                                rnd.frame)
             seconds = time.perf_counter() - t0
             with self._lock:

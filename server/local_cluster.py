@@ -11,7 +11,6 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from common import argtypes
-from common.body import BodyModel
 from common.errors import UserError
 from common.fitting import FitOptions
 from server.cluster import (CLIENT_TIMEOUT, DEADLINE_FACTOR, DEADLINE_FLOOR, DEFAULT_BIND, HEARTBEAT_INTERVAL,
@@ -50,17 +49,17 @@ class LocalCluster:
     to clients still there after ``CLIENT_STOP_TIMEOUT``.
     """
 
-    def __init__(self, model: BodyModel, options: FitOptions, clients: int,
+    def __init__(self, options: FitOptions, clients: int,
                  heartbeat_interval: float = HEARTBEAT_INTERVAL, client_timeout: float = CLIENT_TIMEOUT,
                  client_args: tuple[str, ...] = ()):
-        self.model, self.options, self.n = model, options, clients
+        self.options, self.n = options, clients
         self.heartbeat_interval, self.client_timeout = heartbeat_interval, client_timeout
         self.client_args = client_args
         self.solver: ClusterSolver | None = None
         self.procs: list[subprocess.Popen] = []
 
     def __enter__(self) -> ClusterSolver:
-        self.solver = ClusterSolver(self.model, self.options, bind=LOCAL_BIND,
+        self.solver = ClusterSolver(self.options, bind=LOCAL_BIND,
                                     heartbeat_interval=self.heartbeat_interval, client_timeout=self.client_timeout)
         try:
             env = dict(os.environ)

@@ -33,7 +33,7 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     """Tracking's jobs (the limbs of a round, the whole fits of its starts, the limbs'
     re-detection) handed to any number of clients, or none: the single-process poses."""
     options = FitOptions(refine_passes=0)
-    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     try:
         with thread_workers(model, solver.endpoint, n) as workers:
             solver.wait_for_clients(n, timeout=10)
@@ -81,7 +81,7 @@ def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_pat
     options = FitOptions(refine_passes=2, refine_search=search, refine_hops=hops)
     seq = load_sequence(seq_path)
     single = run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options))
-    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     try:
         with thread_workers(model, solver.endpoint, 2):
             solver.wait_for_clients(2, timeout=10)
@@ -121,7 +121,7 @@ def test_automatic_start_same_poses_as_single_process(model, seq_path, tmp_path,
     options = FitOptions()
     seq = load_sequence(seq_path)
     run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options), init="auto", max_frames=1)
-    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     try:
         with thread_workers(model, solver.endpoint, 2):
             solver.wait_for_clients(2, timeout=10)
@@ -134,7 +134,7 @@ def test_automatic_start_same_poses_as_single_process(model, seq_path, tmp_path,
 @pytest.mark.timeout(60)
 def test_with_no_clients_the_server_solves_everything(model, seq_path, reference, tmp_path):
     options = FitOptions()
-    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT)
+    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT)
     try:
         summary = run_fit(model, load_sequence(seq_path), tmp_path, options, solver, max_frames=1)
     finally:
@@ -235,7 +235,7 @@ def test_chunked_refinement_same_poses_for_threads_and_clients(model, seq_path, 
             runs[threads] = run_fit(model, seq, tmp_path / f"threads-{threads}", options, solver)
         finally:
             solver.close()
-    solver = ClusterSolver(model, options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     try:
         with thread_workers(model, solver.endpoint, 2):
             solver.wait_for_clients(2, timeout=10)
@@ -271,10 +271,10 @@ def test_mocap_fit_refuses_negative_threads(seq_path, tmp_path):
 def test_server_refuses_a_busy_address(model):
     from common.errors import UserError
 
-    first = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND)
+    first = ClusterSolver(FitOptions(), bind=LOCAL_BIND)
     try:
         with pytest.raises(UserError, match="--bind"):
-            ClusterSolver(model, FitOptions(), bind=first.endpoint).close()
+            ClusterSolver(FitOptions(), bind=first.endpoint).close()
     finally:
         first.close()
 

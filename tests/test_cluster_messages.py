@@ -89,7 +89,7 @@ def fit_one_frame(model, seq_path, solver, out) -> np.ndarray:
 @pytest.mark.timeout(60)
 def test_bad_messages_are_dropped_counted_logged_once(model, seq_path, reference, tmp_path, caplog):
     caplog.set_level(logging.WARNING, logger="server.cluster")
-    solver = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    solver = ClusterSolver(FitOptions(), bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     ctx = zmq.Context()
     try:
         with thread_workers(model, solver.endpoint, 2):
@@ -131,7 +131,7 @@ def test_bad_messages_are_dropped_counted_logged_once(model, seq_path, reference
 
 @pytest.mark.timeout(60)
 def test_forged_and_stale_results_are_dropped(model, seq_path, reference, tmp_path):
-    solver = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT)
+    solver = ClusterSolver(FitOptions(), bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT)
     ctx = zmq.Context()
     try:
         with thread_workers(model, solver.endpoint, 1):
@@ -157,7 +157,7 @@ def test_curve_lets_only_allowed_keys_in(model, seq_path, reference, tmp_path):
     zmq.auth.create_certificates(tmp_path / "intruder", "client")
     allowed = CurveKeys.load(keys)
     intruder_public, intruder_secret = zmq.auth.load_certificate(tmp_path / "intruder" / "client.key_secret")
-    solver = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT,
+    solver = ClusterSolver(FitOptions(), bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT,
                            curve_keys=keys)
     ctx = zmq.Context()
     try:
@@ -184,14 +184,14 @@ def test_curve_keys_folder_is_checked(model, tmp_path):
     from common.errors import UserError
 
     with pytest.raises(UserError, match="server.key_secret"):
-        ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, curve_keys=tmp_path)
+        ClusterSolver(FitOptions(), bind=LOCAL_BIND, curve_keys=tmp_path)
 
 
 @pytest.mark.timeout(60)
 def test_a_client_that_fails_a_chain_gets_no_more_work(model, seq_path, reference, tmp_path):
     from common.protocol import Error, Solve, decode
 
-    solver = ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    solver = ClusterSolver(FitOptions(), bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     ctx = zmq.Context()
     solves, done = [], threading.Event()
 
@@ -235,6 +235,6 @@ def test_cluster_settings_are_checked(model):
     from common.errors import UserError
 
     with pytest.raises(UserError, match="--heartbeat"):
-        ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, heartbeat_interval=0.0)
+        ClusterSolver(FitOptions(), bind=LOCAL_BIND, heartbeat_interval=0.0)
     with pytest.raises(UserError, match="--client-timeout"):
-        ClusterSolver(model, FitOptions(), bind=LOCAL_BIND, client_timeout=-1.0)
+        ClusterSolver(FitOptions(), bind=LOCAL_BIND, client_timeout=-1.0)

@@ -62,7 +62,7 @@ def check_complete(out, reference):
 def test_poisoned_results_are_refused_and_the_sender_gets_no_more_work(model, seq_path, reference, tmp_path,
                                                                        caplog):
     caplog.set_level(logging.WARNING, logger="server.cluster")
-    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    solver = ClusterSolver(OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     liar = None
     try:
         liar = FakePeers(solver.endpoint, 1, "liar", random_result(np.random.default_rng(0)))
@@ -88,7 +88,7 @@ def test_poisoned_results_are_refused_and_the_sender_gets_no_more_work(model, se
 
 @pytest.mark.timeout(120)
 def test_a_flood_of_frames_is_dropped_and_its_sender_forgotten(model, seq_path, reference, tmp_path):
-    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    solver = ClusterSolver(OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     ctx = zmq.Context()
     try:
         with thread_workers(model, solver.endpoint, 1):
@@ -118,7 +118,7 @@ def test_a_flood_of_frames_is_dropped_and_its_sender_forgotten(model, seq_path, 
 
 
 def clean_seconds(model, seq_path, out) -> float:
-    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    solver = ClusterSolver(OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
     try:
         t0 = time.perf_counter()
         fit(model, seq_path, out, solver)
@@ -140,7 +140,7 @@ def test_twenty_peers_that_never_answer_cost_little(model, seq_path, reference, 
     one such job rather than wait): each round that finds fresh silent peers costs a few median
     solves."""
     clean = clean_seconds(model, seq_path, tmp_path / "clean")
-    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT,
+    solver = ClusterSolver(OPTIONS, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT,
                            client_timeout=STALL_CLIENT_TIMEOUT)
     crowd = None
     try:
@@ -167,7 +167,7 @@ def test_twenty_peers_that_never_answer_cost_little(model, seq_path, reference, 
 
 
 def test_the_deadline_follows_the_measured_solves(model):
-    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, client_timeout=3.0)
+    solver = ClusterSolver(OPTIONS, bind=LOCAL_BIND, client_timeout=3.0)
     try:
         kind = ("limb", ())
         assert solver._deadline(kind) == 3.0  # nothing measured yet
@@ -226,7 +226,7 @@ def test_insecure_bind_is_logged_loudly(model, caplog, monkeypatch):
     # the check says a network address; the socket still binds the loopback (tests bind no other)
     monkeypatch.setattr(cluster, "check_bind", lambda bind, keys, insecure: True)
     caplog.set_level(logging.WARNING, logger="server.cluster")
-    ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, insecure=True).close()
+    ClusterSolver(OPTIONS, bind=LOCAL_BIND, insecure=True).close()
     assert any("INSECURE" in r.getMessage() for r in caplog.records)
 
 
@@ -304,7 +304,7 @@ def test_a_client_refused_by_curve_says_so_and_exits(model, tmp_path):
     keys = create_curve_keys(tmp_path / "keys")
     stranger = create_curve_keys(tmp_path / "stranger")  # a pair the server does not know
     (stranger / "server.key").write_bytes((keys / "server.key").read_bytes())
-    solver = ClusterSolver(model, OPTIONS, bind=LOCAL_BIND, curve_keys=keys)
+    solver = ClusterSolver(OPTIONS, bind=LOCAL_BIND, curve_keys=keys)
     try:
         proc = subprocess.run([PY, "-m", "client", "--connect", solver.endpoint, "--curve-keys", str(stranger),
                                "--reconnect-min", "0.2", "--quiet"],
@@ -335,3 +335,27 @@ def test_mocap_server_refuses_an_earlier_result_before_sizing_the_actor(seq_path
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--overwrite" in err, err
     assert (out / "poses.jsonl").read_text() == "{}\n"
+
+
+@pytest.mark.timeout(120)
+def test_mocap_server_listens_while_it_sizes_the_actor(seq_path, tmp_path, monkeypatch):
+    """The server binds before the actor's size search (which may take minutes on a real take),
+    so clients and a container's health check find it meanwhile."""
+    import socket
+
+    import server.commands.fit as fit
+    from server.cli import main
+    from test_cluster_support import free_port
+
+    port, seen = free_port(), []
+    search = fit.choose_actor_scale
+
+    def search_while_listening(*args, **kwargs):
+        with socket.socket() as s:
+            seen.append(s.connect_ex(("127.0.0.1", port)) == 0)
+        return search(*args, **kwargs)
+
+    monkeypatch.setattr(fit, "choose_actor_scale", search_while_listening)
+    assert main(["server", str(seq_path), "--out", str(tmp_path / "out"), "--init", "auto", "--frames", "1",
+                 "--refine-passes", "0", "--min-clients", "0", "--bind", f"tcp://127.0.0.1:{port}", "--quiet"]) == 0
+    assert seen == [True]

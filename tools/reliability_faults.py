@@ -143,7 +143,7 @@ class _Context:
     def solver(self, **kwargs):
         from server.cluster import LOCAL_BIND, ClusterSolver
 
-        return ClusterSolver(self.model, OPTIONS, bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT, **kwargs)
+        return ClusterSolver(OPTIONS, bind=LOCAL_BIND, heartbeat_interval=HEARTBEAT, **kwargs)
 
 
 def load_records(out: Path) -> list[dict]:
@@ -371,14 +371,13 @@ def run_faults(work_dir: Path) -> list[dict]:
 
 _FLOOD_SERVER = r"""
 import sys, time
-from common.body import load_body_model
 from common.fitting import FitOptions
 from server import cluster
 def peak():
     return next(int(l.split()[1]) for l in open("/proc/self/status") if l.startswith("VmHWM")) / 1024
 if sys.argv[1] != "current":  # zmq takes the limit at bind
     cluster.MAX_CLIENT_MESSAGE_BYTES = int(sys.argv[1])
-solver = cluster.ClusterSolver(load_body_model(), FitOptions(), bind=cluster.LOCAL_BIND)
+solver = cluster.ClusterSolver(FitOptions(), bind=cluster.LOCAL_BIND)
 print(solver.endpoint, round(peak()), flush=True)
 sys.stdin.readline()  # the flood was sent
 deadline = time.monotonic() + 30

@@ -228,7 +228,8 @@ def actor_model(model, seq, options, args, init: str):
         return (model.scaled(scale) if scale != 1.0 else model), None
     if init == "truth":
         return model, None
-    size = choose_actor_scale(model, seq, options, resolve_threads(args.threads, options))
+    # mocap server has no --threads: its size search runs on every core, as a fit's default
+    size = choose_actor_scale(model, seq, options, resolve_threads(getattr(args, "threads", 0), options))
     if size.scale in (ACTOR_SCALES[0], ACTOR_SCALES[-1]):
         edge, beyond = ("largest", "larger") if size.scale == ACTOR_SCALES[-1] else ("smallest", "smaller")
         print_warning(f"actor size {size.scale:.2f} is the {edge} the size search tries ({ACTOR_SCALES[0]:g}-"
@@ -279,7 +280,7 @@ def run(args) -> int:
             solver.close()
     else:
         # SIGTERM unwinds like Ctrl-C, so the local clients are stopped either way
-        with terminate_on_sigterm(), LocalCluster(model, options, args.clients, heartbeat_interval=args.heartbeat,
+        with terminate_on_sigterm(), LocalCluster(options, args.clients, heartbeat_interval=args.heartbeat,
                                                   client_timeout=args.client_timeout) as solver:
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
                               max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)

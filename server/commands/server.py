@@ -43,21 +43,22 @@ def run(args) -> int:
                         clean_masks=args.clean_masks)
     options = options_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
-    # the actor's size as mocap fit chooses it (on this machine, before the clients are used): the
-    # FRAMEs carry it to the clients
-    model, size = actor_model(load_body_model(), seq, options, args, init)
-    total = min(len(seq.frames), args.frames or len(seq.frames))
-    bar = Progress("fit", total, enabled=None if not args.quiet else False)
     with terminate_on_sigterm():
-        solver = ClusterSolver(model, options, bind=args.bind, heartbeat_interval=args.heartbeat,
+        # bound first, so that clients (and a container's health check) find the server while
+        # it sizes the actor
+        solver = ClusterSolver(options, bind=args.bind, heartbeat_interval=args.heartbeat,
                                client_timeout=args.client_timeout, curve_keys=args.curve_keys,
                                insecure=args.insecure)
         shutdown = None
         try:
+            # the actor's size as mocap fit chooses it, on this machine; the FRAMEs carry it to the clients
+            model, size = actor_model(load_body_model(), seq, options, args, init)
             if args.min_clients > 0:
                 logging.getLogger("server.cluster").info("waiting for %d client(s) on %s", args.min_clients,
                                                          solver.endpoint)
                 solver.wait_for_clients(args.min_clients)
+            bar = Progress("fit", min(len(seq.frames), args.frames or len(seq.frames)),
+                           enabled=None if not args.quiet else False)
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
                               max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)
             finish(model, seq, args, summary)  # results on disk before the clients are released
