@@ -1,11 +1,12 @@
 """``mocap import-video`` with videos as users have them: lengths that differ by a frame or two,
-cameras that started late, unreadable, truncated and damaged files, image folders that lack a
-frame. Frames are matched by content: each synthetic frame is one grey level that encodes its
-frame number."""
+cameras that started late, unreadable, truncated and damaged files (frames lost in the middle),
+image folders that lack a frame. Frames are matched by content: each synthetic frame is one grey
+level that encodes its frame number."""
 from __future__ import annotations
 
 import json
 import shutil
+import subprocess
 from dataclasses import replace
 from pathlib import Path
 
@@ -55,6 +56,24 @@ def _damage(path: Path, at: float, size: int) -> Path:
     data = bytearray(path.read_bytes())
     start = int(len(data) * at)
     data[start:start + size] = b"\xff" * size
+    path.write_bytes(bytes(data))
+    return path
+
+
+def _lose_frames(path: Path, frames, headers: bool) -> Path:
+    """The AVI with the chunks of its video frames ``frames`` overwritten by 0xFF: whole (read in
+    file order, they are lost without a gap in the count) or their data only (the decoder fails
+    on them)."""
+    data = bytearray(path.read_bytes())
+    at, chunks = data.index(b"movi") + 4, []
+    while data[at:at + 4] == b"00dc":  # the video frames' chunks, up to the index
+        size = int.from_bytes(data[at + 4:at + 8], "little")
+        chunks.append((at, size))
+        at += 8 + size + size % 2
+    for k in frames:
+        at, size = chunks[k]
+        start = at if headers else at + 8
+        data[start:at + 8 + size] = b"\xff" * (at + 8 + size - start)
     path.write_bytes(bytes(data))
     return path
 
@@ -172,9 +191,10 @@ def test_unreadable_and_truncated_videos(tmp_path, calib, capsys):
         rc, _, err = _run(capsys, calib, {**good, "cam2": bad}, "--out", out)
         line = _one_line(err)
         assert rc == 2 and f"{bad}: --video cam2: not a readable video" in line, line
-    rc, _, err = _run(capsys, calib, {**good, "cam2": cut}, "--out", out)
-    line = _one_line(err)
-    assert rc == 2 and f"{cut}: --video cam2: only" in line and "truncated" in line, line
+    for extra in ((), ("--missing-frames", "skip")):  # where its frames were lost cannot be told
+        rc, _, err = _run(capsys, calib, {**good, "cam2": cut}, "--out", out, *extra)
+        line = _one_line(err)
+        assert rc == 2 and f"{cut}: --video cam2: only" in line and "truncated" in line, line
     # An unreadable background is found before anything is written too.
     rc, _, err = _run(capsys, calib, good, "--out", out, "--background",
                       *(f"{c}={garbage if c == 'cam3' else p}" for c, p in good.items()))
@@ -263,18 +283,90 @@ def test_offsets_shift_a_folders_numbers(tmp_path, calib, capsys):
         assert [_number(im) for im in seq.images(f)] == [f, f, f]
 
 
-def test_a_video_that_loses_frames_in_the_middle_is_refused(tmp_path, calib, capsys):
-    """A damaged stretch of an AVI drops its frames without a gap in their count: the camera's
-    later frames would stand in for earlier ones, at a place that cannot be told."""
-    videos = {c: _write_video(tmp_path / f"{c}.avi", range(20), noise_rows=8) for c in ("cam1", "cam2", "cam3")}
-    decoded = sum(1 for _ in imageio.get_reader(_damage(videos["cam2"], 0.5, 3000), "ffmpeg"))
-    assert 10 <= decoded < 20  # the premise: frames are lost
+@pytest.mark.parametrize("headers", [True, False], ids=["chunks", "data"])
+def test_frames_a_damaged_video_lost_are_missing_frame_numbers(tmp_path, calib, capsys, headers):
+    """A damaged stretch of an AVI loses frames: read in file order, its chunks are lost without a
+    gap in the count (chunks), or the decoder fails on them and the constant-rate output repeats
+    the frame before them and puts the one after them a frame early (data). Each frame the decoder
+    returns keeps its own number; the lost numbers are an error naming the video, or with
+    --missing-frames skip are left out of every camera, as a folder's missing images are."""
+    cams = ("cam1", "cam2", "cam3")
+    videos = {c: _write_video(tmp_path / f"{c}.avi", range(24), "mjpeg", noise_rows=8) for c in cams}
+    undamaged = {c: [np.asarray(f) for f in imageio.get_reader(p, "ffmpeg")] for c, p in videos.items()}
+    videos["cam2"] = _lose_frames(shutil.copy(videos["cam2"], tmp_path / "damaged.avi"), range(6, 10), headers)
+    decoded = [_number(np.asarray(f)[8:]) for f in imageio.get_reader(videos["cam2"], "ffmpeg")]
+    # the premise: decoded frame by frame, the frames after the stretch are out of place
+    assert (len(decoded), decoded[6]) == (20, 10) if headers else (len(decoded), decoded[9]) == (24, 10), decoded
+    out = tmp_path / "seq"
+    rc, _, err = _run(capsys, calib, videos, "--out", out)
+    line = _one_line(err)
+    assert rc == 2 and f"{videos['cam2']}: --video cam2: 4 frames 6, 7, 8, 9 are lost" in line, line
+    assert "but not in cam1, cam3" in line and "--missing-frames skip" in line and not out.exists()
+    rc, stdout, err = _run(capsys, calib, videos, "--out", out, "--missing-frames", "skip")
+    line = _one_line(err)
+    assert rc == 0 and "warning" in line and "frame numbers 6, 7, 8, 9 (cam2 lacks 6, 7, 8, 9)" in line, line
+    seq = load_sequence(out)
+    assert seq.frames == [f for f in range(24) if not 6 <= f <= 9] and "imported 20 frames" in stdout
+    # the undamaged cameras' frames are those decoded frame by frame; cam2's, its undamaged copy's
+    for f in seq.frames:
+        for image, c in zip(seq.images(f), cams):
+            assert np.array_equal(image, undamaged[c][f]), (c, f)
+
+
+def test_a_gap_in_a_videos_timestamps_is_lost_frames(tmp_path, calib, capsys):
+    """An MP4 whose timestamps skip frames 5..8 (a camera that dropped them): decoded frame by frame
+    at the constant rate, ffmpeg repeats the frames beside the gap and stays off after it. Each
+    frame keeps the number its time gives; the gap's numbers are lost (and any the constant-rate
+    output dropped to catch up)."""
+    import imageio_ffmpeg
+
+    videos = {c: _write_video(tmp_path / f"{c}.mp4", range(24), "libx264", noise_rows=8) for c in ("cam1", "cam3")}
+    videos["cam2"] = tmp_path / "cam2.mp4"
+    subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-loglevel", "error", "-i", str(videos["cam1"]), "-vf",
+                    "select='not(between(n,5,8))'", "-fps_mode", "passthrough", "-c:v", "libx264", str(videos["cam2"])],
+                   check=True)
+    decoded = [_number(np.asarray(f)[8:]) for f in imageio.get_reader(videos["cam2"], "ffmpeg")]
+    assert decoded[15:] != list(range(15, len(decoded)))  # the premise: out of step after the gap
+    out = tmp_path / "seq"
+    rc, _, err = _run(capsys, calib, videos, "--out", out, "--missing-frames", "skip")
+    line = _one_line(err)
+    assert rc == 0 and "frame numbers 5, 6, 7, 8" in line, line
+    seq = load_sequence(out)
+    assert not {5, 6, 7, 8} & set(seq.frames) and seq.frames[-1] == 23 and len(seq.frames) >= 16
+    for f in seq.frames:
+        assert [_number(im[8:]) for im in seq.images(f)] == [f, f, f]
+
+
+def test_a_damaged_video_stays_in_step_with_offset_and_step(tmp_path, calib, capsys, monkeypatch):
+    monkeypatch.setattr(import_video, "HOLD_BYTES", 5 * W * H * 3)  # most frames are decoded again, by the index
+    videos = {c: _write_video(tmp_path / f"{c}.avi", range(24), "mjpeg", noise_rows=8) for c in ("cam1", "cam3")}
+    # cam2 started 2 frames early: its frames 8..11, lost, are the others' 6..9
+    videos["cam2"] = _lose_frames(_write_video(tmp_path / "cam2.avi", [None, None, *range(24)], "mjpeg", noise_rows=8),
+                                  range(8, 12), headers=True)
+    out = tmp_path / "seq"
+    rc, _, err = _run(capsys, calib, videos, "--out", out, "--offset", "cam2=2", "--start", "1", "--step", "2",
+                      "--stop", "21", "--missing-frames", "skip")
+    line = _one_line(err)
+    assert rc == 0 and "frame numbers 7, 9 (cam2 lacks 7, 9)" in line, line  # 6 and 8 are not on the grid
+    seq = load_sequence(out)
+    assert seq.frames == [1, 3, 5, 11, 13, 15, 17, 19]
+    for f in seq.frames:
+        assert [_number(im[8:]) for im in seq.images(f)] == [f, f, f]
+
+
+def test_an_ffmpeg_that_cannot_say_which_frames_are_lost(tmp_path, calib, capsys, monkeypatch):
+    """Before 6.1 ffmpeg cannot say which decoded frame each output frame shows: a video that
+    decodes shorter than its file declares is refused, as the place of its lost frames cannot be
+    told, whatever --missing-frames says."""
+    monkeypatch.setattr(import_video, "_reports_frames", lambda: False)
+    videos = {c: _write_video(tmp_path / f"{c}.avi", range(24), "mjpeg", noise_rows=8) for c in ("cam1", "cam2", "cam3")}
+    _lose_frames(videos["cam2"], range(6, 10), headers=True)
     out = tmp_path / "seq"
     for extra in ((), ("--missing-frames", "skip")):
         rc, _, err = _run(capsys, calib, videos, "--out", out, *extra)
         line = _one_line(err)
-        assert rc == 2 and f"{videos['cam2']}: --video cam2: only" in line and "frames are lost" in line, line
-        assert not out.exists()
+        assert rc == 2 and f"{videos['cam2']}: --video cam2: only 0.80 s of the 0.96 s" in line, line
+        assert "about 4 frames are lost" in line and "cannot leave them out" in line and not out.exists()
 
 
 def test_one_file_for_two_cameras_is_refused(tmp_path, calib, capsys):
@@ -326,7 +418,12 @@ def real_calib(tmp_path) -> Path:
 
 
 @pytest.mark.skipif(not REAL_TAKE.is_dir(), reason="the real 4-camera take is not in ../shared")
-def test_real_take_with_a_damaged_stretch_is_refused(tmp_path, real_calib, capsys):
+def test_real_take_with_a_damaged_stretch(tmp_path, real_calib, capsys):
+    """The take's Xvid AVIs have two packets per frame (50 per second, at 25 fps); a damaged
+    stretch of cam3 loses 9 frames (90..98), read in file order without a gap in their count. Read
+    by the index, each frame keeps its number: those before the stretch and after the next key
+    frame are the undamaged file's, those between (decoded from a damaged reference) nearest to it
+    at their own number; the lost ones are said, or left out with --missing-frames skip."""
     damaged = tmp_path / "cam3.avi"
     shutil.copy(REAL_TAKE / "cam3" / "video.avi", damaged)
     damaged.chmod(0o644)
@@ -334,9 +431,26 @@ def test_real_take_with_a_damaged_stretch_is_refused(tmp_path, real_calib, capsy
     data[300_000:320_000] = b"\xff" * 20_000  # the decoder drops about 9 frames here
     damaged.write_bytes(bytes(data))
     videos = {f"cam{k}": REAL_TAKE / f"cam{k}" / "video.avi" for k in range(1, 5)}
-    rc, _, err = _run(capsys, real_calib, {**videos, "cam3": damaged}, "--out", tmp_path / "seq", "--step", "10")
+    out = tmp_path / "seq"
+    rc, _, err = _run(capsys, real_calib, {**videos, "cam3": damaged}, "--out", out, "--step", "10")
     line = _one_line(err)
-    assert rc == 2 and f"{damaged}: --video cam3: only 8.18 s of the 8.56 s" in line, line
+    assert rc == 2 and f"{damaged}: --video cam3: frame 90 is lost" in line, line  # 90..98: 91..98 are off --step
+    rc, _, err = _run(capsys, real_calib, {**videos, "cam3": damaged}, "--out", out, "--step", "10",
+                      "--missing-frames", "skip")
+    assert rc == 0 and "frame numbers 90 (cam3 lacks 90)" in err, err
+    seq = load_sequence(out)
+    assert seq.frames == [f for f in range(0, 211, 10) if f != 90]
+    near = {g for f in seq.frames for g in (f - 1, f, f + 1)}
+    undamaged = {k: {i: np.asarray(im) for i, im in enumerate(imageio.get_reader(videos[f"cam{k}"], "ffmpeg"))
+                     if i in near} for k in (1, 3)}
+    for f in seq.frames:
+        images = seq.images(f)
+        assert np.array_equal(images[0], undamaged[1][f]), f  # an undamaged camera: as decoded frame by frame
+        if f < 89 or f > 150:
+            assert np.array_equal(images[2], undamaged[3][f]), f
+        else:
+            error = {d: np.abs(images[2].astype(int) - undamaged[3][f + d]).mean() for d in (-1, 0, 1)}
+            assert min(error, key=error.get) == 0, (f, error)
 
 
 @pytest.mark.skipif(not REAL_TAKE.is_dir(), reason="the real 4-camera take is not in ../shared")

@@ -17,19 +17,23 @@ have and others lack is an error naming the file, or with ``--missing-frames ski
 out of every camera with a warning. Videos are decoded in order, never by seeking (seeking
 gives grey, half-decoded frames in AVI and MP4), and their frames are counted by decoding them
 (container headers can be wrong: imageio's ``count_frames`` says 426 for 214-frame AVIs). A
-damaged stretch of a video loses its frames without a gap in their count, so a video whose
-packets span less than the duration its container declares is refused. Recordings that differ
-in length by at most ``MAX_TRIM_FRAMES`` frames and ``MAX_TRIM_FRACTION`` of the longest are cut
-to their common range with one warning; larger differences are an error. One file given for
-two cameras is refused. Every source is opened, sized and counted before the output folder is
-made.
+video's frames lost to a damaged stretch (or a gap in its timestamps) are missing frame numbers
+like a folder's missing images, found from the decoded frames' times (an AVI is read again by
+its index where a damaged stretch lost packets without a gap in their count); a video that lost
+frames where they cannot be told (cut short, an AVI without index, its first frames) is
+refused. Recordings that differ in length by at most ``MAX_TRIM_FRAMES`` frames and
+``MAX_TRIM_FRACTION`` of the longest are cut to their common range with one warning; larger
+differences are an error. One file given for two cameras is refused. Every source is opened,
+sized and counted before the output folder is made.
 """
 from __future__ import annotations
 
+import functools
 import math
 import re
 import shutil
 import subprocess
+import tempfile
 from bisect import bisect_left
 from fractions import Fraction
 from pathlib import Path
@@ -54,6 +58,13 @@ HOLD_BYTES = 1 << 30  # decoded frames kept in memory from counting to writing; 
 MISSING_FRAMES = ("error", "skip")  # --missing-frames: what a frame number some cameras lack is
 SHOWN_FRAMES = 5  # frame numbers a message lists before "and N more"
 DURATION_RESOLUTION = 0.01  # seconds: ffmpeg prints a container's duration to 10 ms
+# an AVI read by its index: the frames after a damaged stretch keep their times (read in file
+# order, they take those of the lost ones); no effect on other containers
+INDEX_ORDER = ("-fflags", "+sortdts")
+# frame periods from a video's first packet to its first decoded frame that are a decoder's delay
+# (an Xvid AVI's packed frames: 1.5); more are frames lost at the start, which would shift the rest
+MAX_START_DELAY = Fraction(3, 2)
+NO_PTS = -(1 << 63)  # a packet without a time, as framecrc writes it
 
 
 def register(subparsers) -> None:
@@ -80,8 +91,9 @@ def register(subparsers) -> None:
     parser.add_argument("--fps", type=real(0.0, exclusive_minimum=True), default=None,
                         help="frame rate of the sources (default: from the video, else 30)")
     parser.add_argument("--missing-frames", choices=MISSING_FRAMES, default="error",
-                        help="a frame number that some cameras have and others lack: error (default), or skip: "
-                             "leave it out of every camera, with a warning")
+                        help="a frame number that some cameras have and others lack (an image missing from a "
+                             "folder, frames a damaged video lost): error (default), or skip: leave it out of "
+                             "every camera, with a warning")
     add_units_argument(parser)
     add_overwrite_argument(parser)
     parser.set_defaults(func=run)
@@ -96,36 +108,115 @@ def _short(exc: Exception) -> str:
     return lines[0] if len(lines) == 1 else f"{lines[0]}: {lines[-1]}"
 
 
-def _declared_and_read_seconds(path: Path) -> tuple[float, float] | None:
-    """(seconds a video's container declares, seconds its video and audio packets span), from
-    its packets as read without decoding them; None where the container declares no duration or
-    only estimates it from the bit rate. The audio counts because a container's duration is its
-    longest stream's."""
+def _ffmpeg(path: Path, *output: str, by_index: bool = False) -> tuple[str, str] | None:
+    """ffmpeg's (stdout, stderr) reading ``path`` (an AVI in the order of its index: INDEX_ORDER)
+    into the ``output`` arguments; None where it cannot run or fails."""
     import imageio_ffmpeg
 
-    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", "-i", str(path),
-               "-map", "0:v:0", "-map", "0:a?", "-c", "copy", "-f", "framecrc", "-"]
+    command = [imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-nostdin", *(INDEX_ORDER if by_index else ()),
+               "-i", str(path), *output]
     try:
         done = subprocess.run(command, capture_output=True)
     except OSError:
         return None
-    log = done.stderr.decode(errors="replace")
-    declared = re.search(r"Duration: (\d+):(\d\d):(\d\d(?:\.\d+)?)", log)
-    if done.returncode or declared is None or "Estimating duration from bitrate" in log:
+    if done.returncode:
         return None
-    time_bases, first, end = {}, {}, {}
-    for line in done.stdout.decode(errors="replace").splitlines():
+    return done.stdout.decode(errors="replace"), done.stderr.decode(errors="replace")
+
+
+@functools.cache
+def _reports_frames() -> bool:
+    """Whether ffmpeg can say which decoded frame each output frame shows (-stats_enc_pre, 6.1 on)."""
+    import imageio_ffmpeg
+
+    try:
+        done = subprocess.run([imageio_ffmpeg.get_ffmpeg_exe(), "-hide_banner", "-h", "full"], capture_output=True)
+    except OSError:
+        return False
+    return b"-stats_enc_pre_fmt" in done.stdout
+
+
+def _packets(path: Path) -> tuple[float, float, Fraction] | None:
+    """(seconds a video's container declares, seconds its video and audio packets span, the time
+    of its first video packet), from its packets as read in file order without decoding them;
+    the declared seconds are 0 where the container declares no duration or only estimates it
+    from the bit rate. None where ffmpeg cannot read them. The audio counts because a
+    container's duration is its longest stream's."""
+    ran = _ffmpeg(path, "-map", "0:v:0", "-map", "0:a?", "-c", "copy", "-f", "framecrc", "-")
+    if ran is None:
+        return None
+    stdout, log = ran
+    time_bases, first, end, start = {}, {}, {}, None
+    for line in stdout.splitlines():
         if line.startswith("#tb "):  # "#tb 0: 1/50"
             stream, base = line[4:].split(":")
             time_bases[int(stream)] = Fraction(base.strip())
         elif line and not line.startswith("#"):  # "stream, dts, pts, duration, size, crc"
-            stream, dts, _, duration = (int(v) for v in line.split(",")[:4])
+            stream, dts, pts, duration = (int(v) for v in line.split(",")[:4])
             first[stream] = min(first.get(stream, dts), dts)
             end[stream] = max(end.get(stream, dts + duration), dts + duration)
-    if not end:
+            if stream == 0 and start is None:  # the video, mapped first; an AVI's packets may lack a pts
+                start = (dts if pts == NO_PTS else pts) * time_bases[0]
+    if start is None:
         return None
     read = max(float((end[s] - first[s]) * time_bases[s]) for s in end)
-    return int(declared[1]) * 3600 + int(declared[2]) * 60 + float(declared[3]), read
+    declared = re.search(r"Duration: (\d+):(\d\d):(\d\d(?:\.\d+)?)", log)
+    if declared is None or "Estimating duration from bitrate" in log:
+        return 0.0, read, start
+    return int(declared[1]) * 3600 + int(declared[2]) * 60 + float(declared[3]), read, start
+
+
+def _decoded_times(path: Path, by_index: bool) -> tuple[list[Fraction], Fraction] | None:
+    """(the times of the frames the decoder returns, in seconds and in order; the video's frame
+    rate), decoding it as ``FrameSource._decode`` does but converting and keeping no frame; None
+    where ffmpeg fails, gives no rate or a frame without a time."""
+    ran = _ffmpeg(path, "-an", "-sn", "-dn", "-vf", "showinfo=checksum=0", "-f", "null", "-", by_index=by_index)
+    if ran is None:
+        return None
+    log = ran[1]
+    config = re.search(r"config in time_base: (\d+)/(\d+), frame_rate: (\d+)/(\d+)", log)
+    if config is None or 0 in (int(config[2]), int(config[3]), int(config[4])):
+        return None
+    base, rate = Fraction(int(config[1]), int(config[2])), Fraction(int(config[3]), int(config[4]))
+    try:
+        times = [int(pts) * base for pts in re.findall(r"\] n: *\d+ pts: *(\S+)", log)]
+    except ValueError:  # NOPTS
+        return None
+    return (times, rate) if times else None
+
+
+def _in_step(sources: list[int], times: list[Fraction], rate: Fraction) -> dict[int, int]:
+    """Frame number by output frame, for the output frames of a constant-rate decode that keep
+    one, given each output frame's decoded frame (``sources``) and the decoded frames' times.
+
+    Before the first repeated frame (an undamaged start) a frame's number is its position. At a
+    gap in the decoded frames' times the output goes wrong: it repeats the frames beside the gap,
+    puts the one after it early, may drop frames to catch up or stay off by the gap (an MP4's
+    frame durations). From the first repeat on, a decoded frame's number is the one its time
+    gives, in step with the output before the repeat (its lag: output position less the frame
+    periods since the first frame); where two decoded frames get one number, the one the output
+    put there wins, else the later (as the constant-rate output picks)."""
+    def slot(k):
+        return math.floor((times[k] - times[0]) * rate + Fraction(1, 2))
+
+    first = next((n for n in range(1, len(sources)) if sources[n] == sources[n - 1]), len(sources))
+    numbered = {n: n for n in range(first)}
+    if first == len(sources):
+        return numbered
+    lag = (first - 1) - slot(sources[first - 1])
+    last, used = first - 1, set(sources[:first])
+    for n in range(first, len(sources)):
+        k = sources[n]
+        if k in used:
+            continue
+        i = slot(k) + lag
+        if i == numbered[last] and numbered[last] != last:  # the later one, unless the output put the other there
+            del numbered[last]
+        elif i <= numbered[last]:
+            continue
+        numbered[n], last = i, n
+        used.add(k)
+    return numbered
 
 
 class FrameSource:
@@ -141,6 +232,8 @@ class FrameSource:
         self.what = f"{option} {camera}"
         self.fps = None
         self.held: dict[int, np.ndarray] = {}  # source number -> frame, from scan() until written
+        self.by_index = False  # a video decoded by its AVI index (see scan)
+        self.numbering: dict[int, int] | None = None  # a video's frame number by position where frames were lost
         if path.is_dir():
             self.files = frame_files(path)
             if not self.files:
@@ -176,11 +269,16 @@ class FrameSource:
         except InputFileError as exc:
             raise InputFileError(exc.path, f"{self.what}: {exc.problem}") from None
 
-    def _decode(self):
-        """Yield the video's (H, W, 3) uint8 frames in order."""
+    def _decode(self, report: Path | None = None):
+        """Yield the video's (H, W, 3) uint8 frames in order, at its constant frame rate (ffmpeg
+        repeats or drops decoded frames to keep it); ``report``: a file where ffmpeg writes, per
+        frame, the number of the decoded frame it shows."""
         import imageio.v2 as imageio
+        options = {"input_params": list(INDEX_ORDER)} if self.by_index else {}
+        if report is not None:
+            options["output_params"] = ["-stats_enc_pre", str(report), "-stats_enc_pre_fmt", "{ni}"]
         try:
-            reader = imageio.get_reader(self.path, "ffmpeg")
+            reader = imageio.get_reader(self.path, "ffmpeg", **options)
             meta = reader.get_meta_data()
         except Exception as exc:  # imageio and ffmpeg raise many kinds for unreadable files
             raise InputFileError(self.path, f"{self.what}: not a readable video ({_short(exc)})") from None
@@ -209,6 +307,14 @@ class FrameSource:
         if n == 0:
             raise InputFileError(self.path, f"{self.what}: a video without frames (truncated?)")
 
+    def _numbered(self):
+        """Yield (frame number, frame) for a scanned video's frames in order."""
+        for i, frame in enumerate(self._decode()):
+            if self.numbering is None:
+                yield i, frame
+            elif i in self.numbering:
+                yield self.numbering[i], frame
+
     def first(self) -> np.ndarray:
         """(H, W, 3) uint8: the first frame."""
         if self.files is not None:
@@ -219,10 +325,12 @@ class FrameSource:
         finally:
             decoded.close()
 
-    def scan(self, keep, hold_bytes: int, camera) -> int:
+    def scan(self, keep, hold_bytes: int, camera, whole: bool = False) -> int:
         """Number the frames (decoding a video to its end), check their size against ``camera``
         and hold those with ``keep(number)`` in memory while they fit in ``hold_bytes``; the
-        rest are read again by ``frames``. Returns the bytes held."""
+        rest are read again by ``frames``. Returns the bytes held. ``whole``: a video's frames
+        lost to damage are left out of ``numbers``, each frame keeping its own number, and a
+        video that lost frames where they cannot be told is refused."""
         used = 0
         if self.files is not None:
             for i in self.numbers:
@@ -237,36 +345,65 @@ class FrameSource:
                     width, height = image_size(self.where(i))
                     check_size((height, width), self.where(i), camera)
             return used
-        count = 0
-        for i, frame in enumerate(self._decode()):
-            if i == 0:
-                check_size(frame.shape, self.path, camera)
-            if keep(i) and used < hold_bytes:
-                self.held[i] = frame
-                used += frame.nbytes
-            count = i + 1
-        self.numbers = range(count)
+        used, clock = self._scan_video(keep, hold_bytes, camera, whole)
+        packets = _packets(self.path) if whole else None
+        if packets is None:
+            return used
+        declared, read, start = packets
+        if clock is None and read > 0:
+            rate = len(self.numbers) / read  # frames per second as decoded
+            if declared - read > 1 / rate + DURATION_RESOLUTION:
+                # Read in file order, a damaged stretch of an AVI loses its frames without a gap
+                # in their count (packets are numbered as read), so every later frame would stand
+                # in for an earlier one. Read by the AVI's index, the frames after it keep their
+                # times, and the decode shows the gap.
+                if _reports_frames():
+                    self.by_index = True
+                    self.held.clear()
+                    used, clock = self._scan_video(keep, hold_bytes, camera, whole)
+                if clock is None:
+                    lost = max(1, round((declared - read) * rate))
+                    raise InputFileError(self.path, f"{self.what}: only {read:.2f} s of the {declared:.2f} s the file "
+                                                    f"declares can be read: about {lost} frames are lost (a damaged or "
+                                                    "truncated file) at a place that cannot be told, so this camera "
+                                                    "would fall out of step with the others (--missing-frames skip "
+                                                    "cannot leave them out); repair or export the video again")
+        if clock is not None and (clock[0] - start) * clock[1] > MAX_START_DELAY:
+            lost = round((clock[0] - start) * clock[1])
+            raise InputFileError(self.path, f"{self.what}: about {lost} frames before its first readable one are lost "
+                                            "(a damaged file), so every later frame would stand in for an earlier one; "
+                                            "repair or export the video again")
         return used
 
-    def check_whole(self) -> None:
-        """Refuse a scanned video whose packets span less than its container declares. A damaged
-        stretch of an AVI loses its frames without a gap in their count (packets are numbered as
-        they are read), so every later frame would stand in for an earlier one, and where they
-        were lost cannot be told. A gap in a container's timestamps needs no check: ffmpeg's
-        constant-rate output repeats the frame before it, and the cameras stay in step."""
-        if self.files is not None:
-            return
-        seconds = _declared_and_read_seconds(self.path)
-        if seconds is None or seconds[1] <= 0:
-            return
-        declared, read = seconds
-        rate = len(self.numbers) / read  # frames per second as decoded
-        if declared - read > 1 / rate + DURATION_RESOLUTION:
-            lost = max(1, round((declared - read) * rate))
-            raise InputFileError(self.path, f"{self.what}: only {read:.2f} s of the {declared:.2f} s the file declares "
-                                            f"can be read: about {lost} frames are lost (a damaged or truncated file) "
-                                            "at a place that cannot be told, so this camera would fall out of step "
-                                            "with the others; repair or export the video again")
+    def _scan_video(self, keep, hold_bytes: int, camera, whole: bool) -> tuple[int, tuple[Fraction, Fraction] | None]:
+        """``scan`` for a video: (bytes held, None or where frames were lost and left out of
+        ``numbers``: the first decoded frame's time and the frame rate)."""
+        used = 0
+        self.numbers, self.numbering = [], None
+        with tempfile.TemporaryDirectory(prefix="mocap-decode-") as folder:
+            report = Path(folder) / "frames.txt" if whole and _reports_frames() else None
+            for i, frame in enumerate(self._decode(report)):
+                if i == 0:
+                    check_size(frame.shape, self.path, camera)
+                if keep(i) and used < hold_bytes:
+                    self.held[i] = frame
+                    used += frame.nbytes
+                self.numbers.append(i)
+            shown = report.read_text().split() if report is not None and report.is_file() else []
+        sources = [int(k) for k in shown]
+        if (len(sources) != len(self.numbers) or min(sources, default=-1) < 0
+                or all(b != a for a, b in zip(sources, sources[1:]))):
+            return used, None  # no decoded frame repeated: none lost (or ffmpeg does not say)
+        decoded = _decoded_times(self.path, self.by_index)
+        if decoded is None or max(sources) >= len(decoded[0]):
+            raise InputFileError(self.path, f"{self.what}: frames are lost (a damaged file or a gap in its "
+                                            "timestamps) but the times of the others cannot be read, so where they "
+                                            "belong cannot be told; repair or export the video again")
+        times, rate = decoded
+        self.numbering = _in_step(sources, times, rate)
+        self.numbers = list(self.numbering.values())
+        self.held = {self.numbering[i]: frame for i, frame in self.held.items() if i in self.numbering}
+        return sum(frame.nbytes for frame in self.held.values()), (times[0], rate)
 
     def frames(self, numbers):
         """Yield (number, (H, W, 3) uint8) for the increasing source numbers ``numbers``; frames
@@ -275,7 +412,7 @@ class FrameSource:
         rest = set(numbers) - self.held.keys()
         decoded = None
         if rest and self.files is None:
-            decoded = ((i, f) for i, f in enumerate(self._decode()) if i in rest)
+            decoded = ((i, f) for i, f in self._numbered() if i in rest)
         for i in numbers:
             if i in self.held:
                 yield i, self.held.pop(i)
@@ -434,8 +571,7 @@ def run(args) -> int:
 
     hold = HOLD_BYTES
     for n in names:
-        hold -= sources[n].scan(keeper(offsets[n]), hold, studio.camera(n))
-        sources[n].check_whole()
+        hold -= sources[n].scan(keeper(offsets[n]), hold, studio.camera(n), whole=True)
     for n, src in bg_sources.items():
         hold -= src.scan(lambda j: True, hold, studio.camera(n))
     numbered = {n: [j - offsets[n] for j in sources[n].numbers] for n in names}
@@ -445,10 +581,16 @@ def run(args) -> int:
     missing = {i: cams for i, cams in lacking.items() if cams}
     if missing and args.missing_frames == "error":
         i, cams = next(iter(missing.items()))
+        src = sources[cams[0]]
+        lack = [j for j, c in missing.items() if src.camera in c]
         others = ", ".join(n for n in names if n not in cams)
-        more = f"; {len(missing) - 1} more frame numbers lack some camera's image" if len(missing) > 1 else ""
-        raise InputFileError(sources[cams[0]].where(i + offsets[cams[0]]),
-                             f"--video {cams[0]}: frame {i} is missing here but not in {others}{more} "
+        more = len(missing) - len(lack)
+        more = f"; {more} more frame numbers lack some camera's image" if more else ""
+        what = f"frame {i} is" if len(lack) == 1 else f"{len(lack)} frames {_listed(lack)} are"
+        # a video lacks the frames a damaged stretch lost; a folder, files
+        how = "missing here" if src.files is not None else "lost (a damaged stretch, or a gap in its timestamps)"
+        raise InputFileError(src.where(i + offsets[src.camera]),
+                             f"{src.what}: {what} {how} but not in {others}{more} "
                              "(--missing-frames skip leaves such frames out of every camera)")
     frames = [i for i, cams in lacking.items() if not cams]
     if not frames:
