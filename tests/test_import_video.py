@@ -354,6 +354,19 @@ def test_a_damaged_video_stays_in_step_with_offset_and_step(tmp_path, calib, cap
         assert [_number(im[8:]) for im in seq.images(f)] == [f, f, f]
 
 
+def test_a_video_that_lost_its_first_frame_is_refused(tmp_path, calib, capsys):
+    """Frames lost before the first one decoded leave no gap: every later frame would stand in
+    for an earlier one, whatever --missing-frames says."""
+    videos = {c: _write_video(tmp_path / f"{c}.avi", range(24), "mjpeg", noise_rows=8) for c in ("cam1", "cam2", "cam3")}
+    _lose_frames(videos["cam2"], [0, 10, 11], headers=False)
+    first = next(iter(imageio.get_reader(videos["cam2"], "ffmpeg")))
+    assert _number(np.asarray(first)[8:]) == 1  # the premise: decoded, frame 1 comes first
+    rc, _, err = _run(capsys, calib, videos, "--out", tmp_path / "seq", "--missing-frames", "skip")
+    line = _one_line(err)
+    assert rc == 2 and f"{videos['cam2']}: --video cam2: its first frames are lost (about 1;" in line, line
+    assert not (tmp_path / "seq").exists()
+
+
 def test_an_ffmpeg_that_cannot_say_which_frames_are_lost(tmp_path, calib, capsys, monkeypatch):
     """Before 6.1 ffmpeg cannot say which decoded frame each output frame shows: a video that
     decodes shorter than its file declares is refused, as the place of its lost frames cannot be

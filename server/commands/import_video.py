@@ -62,8 +62,9 @@ DURATION_RESOLUTION = 0.01  # seconds: ffmpeg prints a container's duration to 1
 # order, they take those of the lost ones); no effect on other containers
 INDEX_ORDER = ("-fflags", "+sortdts")
 # frame periods from a video's first packet to its first decoded frame that are a decoder's delay
-# (an Xvid AVI's packed frames: 1.5); more are frames lost at the start, which would shift the rest
-MAX_START_DELAY = Fraction(3, 2)
+# where packets carry no presentation time (an Xvid AVI's B-frames: 1.5) and rounding where they
+# do; more are frames lost at the start, which would shift the rest
+MAX_START_DELAY = {False: Fraction(3, 2), True: Fraction(1, 2)}
 NO_PTS = -(1 << 63)  # a packet without a time, as framecrc writes it
 
 
@@ -136,9 +137,10 @@ def _reports_frames() -> bool:
     return b"-stats_enc_pre_fmt" in done.stdout
 
 
-def _packets(path: Path) -> tuple[float, float, Fraction] | None:
+def _packets(path: Path) -> tuple[float, float, Fraction, bool] | None:
     """(seconds a video's container declares, seconds its video and audio packets span, the time
-    of its first video packet), from its packets as read in file order without decoding them;
+    of its first video packet, whether that is its presentation time), from its packets as read
+    in file order without decoding them;
     the declared seconds are 0 where the container declares no duration or only estimates it
     from the bit rate. None where ffmpeg cannot read them. The audio counts because a
     container's duration is its longest stream's."""
@@ -156,14 +158,14 @@ def _packets(path: Path) -> tuple[float, float, Fraction] | None:
             first[stream] = min(first.get(stream, dts), dts)
             end[stream] = max(end.get(stream, dts + duration), dts + duration)
             if stream == 0 and start is None:  # the video, mapped first; an AVI's packets may lack a pts
-                start = (dts if pts == NO_PTS else pts) * time_bases[0]
+                start, dated = (dts if pts == NO_PTS else pts) * time_bases[0], pts != NO_PTS
     if start is None:
         return None
     read = max(float((end[s] - first[s]) * time_bases[s]) for s in end)
     declared = re.search(r"Duration: (\d+):(\d\d):(\d\d(?:\.\d+)?)", log)
     if declared is None or "Estimating duration from bitrate" in log:
-        return 0.0, read, start
-    return int(declared[1]) * 3600 + int(declared[2]) * 60 + float(declared[3]), read, start
+        return 0.0, read, start, dated
+    return int(declared[1]) * 3600 + int(declared[2]) * 60 + float(declared[3]), read, start, dated
 
 
 def _decoded_times(path: Path, by_index: bool) -> tuple[list[Fraction], Fraction] | None:
@@ -221,7 +223,8 @@ def _in_step(sources: list[int], times: list[Fraction], rate: Fraction) -> dict[
 
 class FrameSource:
     """Frames of one camera by source number: a folder of images (the numbers in their file
-    names), one image (number 0), or a video file (a frame's position).
+    names), one image (number 0), or a video file (a frame's position in the constant-rate decode;
+    from a frame it repeats on, where frames were lost, the number the frames' times give).
 
     ``numbers`` (increasing) are known at once for images and after ``scan`` for a video.
     """
@@ -349,7 +352,7 @@ class FrameSource:
         packets = _packets(self.path) if whole else None
         if packets is None:
             return used
-        declared, read, start = packets
+        declared, read, start, dated = packets
         if clock is None and read > 0:
             rate = len(self.numbers) / read  # frames per second as decoded
             if declared - read > 1 / rate + DURATION_RESOLUTION:
@@ -368,11 +371,11 @@ class FrameSource:
                                                     "truncated file) at a place that cannot be told, so this camera "
                                                     "would fall out of step with the others (--missing-frames skip "
                                                     "cannot leave them out); repair or export the video again")
-        if clock is not None and (clock[0] - start) * clock[1] > MAX_START_DELAY:
+        if clock is not None and (clock[0] - start) * clock[1] > MAX_START_DELAY[dated]:
             lost = round((clock[0] - start) * clock[1])
-            raise InputFileError(self.path, f"{self.what}: about {lost} frames before its first readable one are lost "
-                                            "(a damaged file), so every later frame would stand in for an earlier one; "
-                                            "repair or export the video again")
+            raise InputFileError(self.path, f"{self.what}: its first frames are lost (about {lost}; a damaged file), so "
+                                            "every later frame would stand in for an earlier one (--missing-frames "
+                                            "skip cannot leave them out); repair or export the video again")
         return used
 
     def _scan_video(self, keep, hold_bytes: int, camera, whole: bool) -> tuple[int, tuple[Fraction, Fraction] | None]:
