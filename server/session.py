@@ -215,7 +215,7 @@ def initial_starts(model: BodyModel, seq: Sequence, data: FrameData, init: str) 
     raise UserError(f"unknown --init {init!r}")
 
 # Actor sizes the first frame is tried at when the actor's height is not given, over the body
-# model's own (1.66 m): adults of about 1.5 to 2.3 m in the calibration's units. A rig calibrated
+# model's own (1.67 m): adults of about 1.5 to 2.3 m in the calibration's units. A rig calibrated
 # with a mis-measured board scales everyone: the seated take's sitter is fitted best at 1.4 (hips bent
 # 74-76 degrees, `make real-test`); at 1.3, the largest size tried before 2026-12-02, 42-51.
 ACTOR_SCALES = (0.9, 1.0, 1.1, 1.2, 1.3, 1.4)
@@ -259,7 +259,7 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, thr
     falls steadily towards the actor's size (the seated take: 37.6k at 1.0 down to 27.0k at
     1.4), so stopping where it rises fits two sizes for an actor of the model's size, not five.
     Why: real subjects are not the body model's size, and a body too small for its silhouettes
-    folds into them wrongly (the seated take, fitted at 1.66 m, stood). ``threads``: the
+    folds into them wrongly (the seated take, fitted at 1.67 m, stood). ``threads``: the
     starts and the sizes are fitted that many at once."""
     t0 = time.perf_counter()
     frame = seq.frames[0]
