@@ -6,8 +6,9 @@ is started (and stopped); ``scheduler`` runs on an existing cluster (``dask sche
 ``dask worker`` started elsewhere: SSH, Slurm, containers). What Dask gives: a lost worker's
 take is run again elsewhere (up to ``distributed.scheduler.allowed-failures`` times), and the
 take's fit then continues from the frames already written. What this module adds: one progress
-line over the batch, a failed take reported with its error while the others go on, and at the
-end ``PROJECT/batch.json`` and ``PROJECT/index.html``.
+line over the batch, each take's line with the warnings its steps printed, a failed take
+reported with its error while the others go on, and at the end ``PROJECT/batch.json`` and
+``PROJECT/index.html``.
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from pathlib import Path
 
 from common.errors import UserError
 from server.output import write_text
-from server.project import find_takes, frames_done, run_take
+from server.project import TakeFailed, find_takes, frames_done, run_take
 from server.session import THREADS_ENV, usable_cores
 
 BATCH_FILE = "batch.json"
@@ -37,10 +38,14 @@ def run_take_task(take: str, overwrite: bool = False) -> dict:
     """A take on a worker: what ``run_take`` returns, or ``status: failed`` with the one-line error.
 
     Bad input is the take's own failure (reported, the batch goes on); anything else is said in
-    one line too, so that one broken take never stops the others.
+    one line too, so that one broken take never stops the others. A take that failed in a step
+    keeps the steps run until then (their warnings) and names its log.
     """
     try:
         return run_take(Path(take), overwrite=overwrite)
+    except TakeFailed as exc:
+        return {"name": Path(take).name, "path": take, "status": "failed", "error": str(exc), "steps": exc.steps,
+                "log": str(exc.log)}
     except UserError as exc:
         return {"name": Path(take).name, "path": take, "status": "failed", "error": str(exc)}
     except Exception as exc:  # a bug must not hide the other takes' results
@@ -98,7 +103,7 @@ def run_batch(project: Path, workers: int | None = None, scheduler: str | None =
                                      "error": f"{type(exc).__name__}: {exc}"}
                 if not quiet:
                     _clear_line()
-                    print(take_line(results[take]), flush=True)
+                    print("\n".join([take_line(results[take]), *warning_lines(results[take])]), flush=True)
             if not quiet:
                 _progress_line(takes, results, time.perf_counter() - t0)
     finally:
@@ -140,6 +145,15 @@ def take_line(row: dict) -> str:
             figures += f", {row['seconds_per_frame']:.2f} s/frame"
     kept = "".join(f"; {s['step']}: {s['note']}" for s in row.get("steps", ()) if "note" in s)
     return f"  {row['name']}: {row['status']}{figures}{kept}"
+
+
+def warning_lines(row: dict) -> list[str]:
+    """The warnings a take's steps printed (what mocap run shows under each step), each named by
+    the take, and where its whole log is when there were some or a step failed."""
+    lines = [f"  {row['name']}: {s['step']}: warning: {w}" for s in row.get("steps", ()) for w in s.get("warnings", ())]
+    if (lines or row["status"] == "failed") and row.get("log"):
+        lines.append(f"  {row['name']}: full log: {row['log']}")
+    return lines
 
 
 def _progress_line(takes: list[Path], results: dict, elapsed: float) -> None:

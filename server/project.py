@@ -4,7 +4,8 @@ A project is a folder with ``Config.toml`` at its root; a take is a folder below
  - ``videos/<camera>.<ext>`` (or ``videos/<camera>/`` image folders), optionally with
    ``background/<camera>.<ext>`` (or folders) of the empty studio: imported, then segmented;
  - or ``images/<camera>/`` and ``background/<camera>/``: imported the same way;
- - or a ready sequence (``sequence.json`` or ``silhouettes/``): fitted as it is;
+ - or a ready sequence (``sequence.json``, or ``silhouettes/`` without videos/ or images/): fitted as
+   it is, at its own frame rate; segmented first where it has ``images/`` and no ``silhouettes/``;
 plus a calibration (``[calibration] file``, else ``calibration.json``, ``calibration.toml``,
 ``Calib.toml``, a ``calibration/`` folder or EasyMocap's ``intri.yml`` + ``extri.yml``, in the
 take and then in the project; two of them in one folder are refused, naming both).
@@ -174,14 +175,25 @@ class Step:
 
 @dataclass(frozen=True)
 class TakePlan:
+    """``recordings``: {take folder name: {camera: source}} of a take that is imported, and the
+    ``calibration`` they are imported with (in ``units``)."""
+
     take: Path
     sequence: Path
     result: Path
     steps: tuple[Step, ...]
+    recordings: dict[str, dict[str, Path]] = field(default_factory=dict)
+    calibration: Path | None = None
+    units: str = ""
 
 
 def plan_take(take: Path, config: Config | None = None) -> TakePlan:
-    """The steps of a take under its configuration (nothing is run or written)."""
+    """The steps of a take under its configuration (nothing is run or written).
+
+    A folder with ``sequence.json`` is a ready sequence (one ``mocap import-video`` made, say):
+    its images/ are its frames, not recordings to import again at a guessed frame rate. It is
+    segmented only where it has images/ and no silhouettes/ (or silhouettes a run made), so that
+    silhouettes made or touched up by hand are fitted as they are."""
     take = Path(take).resolve()
     if not take.is_dir():
         raise UserError(f"{take}: not a folder")
@@ -189,16 +201,22 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     result = take / config.get("take", "result")
     steps = []
     calib_settings = config.section("calibration")
-    imports = {name: _sources(take / name) for name in ("videos", "images")}
+    imports = {name: _sources(take / name) for name in SOURCE_FOLDERS}
     source_kind = next((k for k, v in imports.items() if v), None)
-    if any((take / m).exists() for m in SEQUENCE_MARKERS) and source_kind is None:
+    recordings, calibration = {}, None
+    if (take / "sequence.json").is_file() or ((take / "silhouettes").exists() and source_kind is None):
         sequence = take
+        if (take / "images").is_dir() and (not (take / "silhouettes").exists()
+                                           or _read_record(take, "segment") is not None):
+            # not the sequence's own sequence.json: segment adds its record there and keeps the rest
+            steps.append(_segment_step(sequence, config, also_writes=()))
     elif source_kind is None:
         raise UserError(f"{take}: not a take (no videos/, images/, sequence.json or silhouettes/)")
     else:
         sequence = take / config.get("take", "sequence")
         calibration = find_calibration(take, config)
         videos, backgrounds = imports[source_kind], _sources(take / "background")
+        recordings = {source_kind: videos} | ({"background": backgrounds} if backgrounds else {})
         imp = config.section("import")
         command = ["import-video", "--calibration", str(calibration), "--out", str(sequence), "--overwrite",
                    "--video", *[f"{cam}={path}" for cam, path in videos.items()],
@@ -221,11 +239,7 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
                           {"import": imp, "calibration": calib_settings},
                           also_writes=(sequence / "background", sequence / "sequence.json"),
                           clears=(sequence / "silhouettes",)))  # import-video --overwrite drops the old ones
-        method = config.get("segmentation", "method")
-        steps.append(Step("segment", (("segment", str(sequence), "--method", method, "--overwrite"),),
-                          (sequence / "images", sequence / "background"), (sequence / "silhouettes",),
-                          {"segmentation": config.section("segmentation")},
-                          also_writes=(sequence / "sequence.json",)))  # its record of the segmentation
+        steps.append(_segment_step(sequence, config, also_writes=(sequence / "sequence.json",)))
     fit = config.section("fit")
     command = ["fit", str(sequence), "--out", str(result), "--quiet", "--up", calib_settings["up"],
                "--iterations", str(fit["iterations"]), "--turn-hypotheses", str(fit["turn_hypotheses"]),
@@ -255,7 +269,36 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
         command = ["report", str(result), "--overwrite", "--quiet"] + ([] if report["gif"] else ["--no-gif"])
         steps.append(Step("report", (tuple(command),), (result / "poses.jsonl", result / "summary.json"),
                           (result / "report.html",), {"report": report}, also_writes=(result / "pictures",)))
-    return TakePlan(take, sequence, result, tuple(steps))
+    return TakePlan(take, sequence, result, tuple(steps), recordings, calibration, calib_settings["units"])
+
+
+def _segment_step(sequence: Path, config: Config, also_writes: tuple[Path, ...]) -> Step:
+    """``also_writes``: the sequence.json that the segmentation's record goes into, where an import made it."""
+    return Step("segment", (("segment", str(sequence), "--method", config.get("segmentation", "method"),
+                             "--overwrite"),),
+                (sequence / "images", sequence / "background"), (sequence / "silhouettes",),
+                {"segmentation": config.section("segmentation")}, also_writes=also_writes)
+
+
+def check_recordings(plan: TakePlan) -> None:
+    """Raise UserError where an imported take's recordings do not match its calibration's
+    cameras, naming the take's folder (import-video would name its options, which a user of
+    mocap run never typed)."""
+    if not plan.recordings:
+        return
+    from common.calibration import load_calibration
+
+    # the calibration's warnings are the import's to say
+    cameras = load_calibration(plan.calibration, units=plan.units or None, warn=lambda line: None).names
+    for folder, given in plan.recordings.items():
+        for camera, path in given.items():
+            if camera not in cameras:
+                raise UserError(f"{path}: no camera {camera} in {plan.calibration} (cameras: {', '.join(cameras)})")
+        missing = [c for c in cameras if c not in given]
+        if missing:
+            what = "empty-studio recording" if folder == "background" else "recording"
+            raise UserError(f"{plan.take / folder}/: no {what} for camera(s) {', '.join(missing)} of "
+                            f"{plan.calibration}")
 
 
 def _record_path(take: Path, step: str) -> Path:
@@ -379,17 +422,46 @@ def take_lock(take: Path):
         fh.close()
 
 
-def run_mocap(argv: tuple[str, ...], log) -> None:
-    """One mocap command in this process, its output into ``log``; a failure raises UserError
-    with the command's one-line message."""
+class TakeFailed(UserError):
+    """A step of a take failed: its message, with the steps until then (the failed one last,
+    with the warnings it printed) and the log, for mocap batch to report."""
+
+    def __init__(self, message: str, steps: list[dict], log: Path):
+        super().__init__(message)
+        self.steps, self.log = steps, log
+
+
+class _Stderr(io.StringIO):
+    """A command's stderr, kept apart (for its warning lines) and copied into its whole output."""
+
+    def __init__(self, whole: io.StringIO):
+        super().__init__()
+        self.whole = whole
+
+    def write(self, text: str) -> int:
+        self.whole.write(text)
+        return super().write(text)
+
+
+WARNING = "warning:"  # how the commands start a warning line on stderr (common.errors.print_warning)
+
+
+def run_mocap(argv: tuple[str, ...], log, warn=None) -> None:
+    """One mocap command in this process, its output into ``log`` and each of its warning lines
+    (without "warning: ") to ``warn``; a failure raises UserError with the command's one-line
+    message, after its warnings."""
     from server.cli import main
 
     out = io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+    err = _Stderr(out)
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         code = main(list(argv))
     text = out.getvalue()
     log.write(f"$ mocap {' '.join(argv)}\n{text}")
     log.flush()
+    for line in err.getvalue().splitlines():
+        if warn and line.startswith(WARNING):
+            warn(line[len(WARNING):].strip())
     if code:
         errors = [line.split(": error: ", 1)[1] for line in text.splitlines() if ": error: " in line]
         raise UserError((errors or text.strip().splitlines() or ["failed"])[-1].strip())
@@ -398,23 +470,32 @@ def run_mocap(argv: tuple[str, ...], log) -> None:
 def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
     """Run the take's steps that are not done; returns what was done (``mocap run``,
     ``mocap batch``): each step's status is "done", "up to date" or "kept (edited)" (with a
-    ``note`` naming the outputs kept as edited). Raises UserError with the failing step's
-    message, or before anything is written where a step would replace an output no run made
-    (``overwrite`` allows it)."""
+    ``note`` naming the outputs kept as edited), and the ``warnings`` its commands printed this
+    run; ``log``: the file that holds the commands' whole output. ``progress(step, state)`` is
+    told "running" as a step starts, "warning: LINE" for each warning it prints, or the status
+    of a step that is done. Raises TakeFailed with the failing step's message, or UserError
+    before anything is written where the recordings do not match the calibration, or where a
+    step would replace an output no run made (``overwrite`` allows it)."""
     take = Path(take).resolve()
     plan = plan_take(take)
+    check_recordings(plan)
     t0 = time.perf_counter()
     steps = []
+    log_path = take / STATE_DIR / "run.log"
     with take_lock(take):
         if not overwrite:
             check_replaceable(take, plan)
-        with open(take / STATE_DIR / "run.log", "a") as log:
+        with open(log_path, "a") as log:
             for step in plan.steps:
                 status = done_status(take, step)
                 if status is None:
-                    steps.append(_run_step(take, plan, step, log, progress))
+                    steps.append({"step": step.name, "status": "failed", "warnings": []})
+                    try:
+                        steps[-1].update(_run_step(take, plan, step, log, progress, steps[-1]["warnings"]))
+                    except UserError as exc:
+                        raise TakeFailed(str(exc), steps, log_path) from None
                     continue
-                steps.append({"step": step.name, "status": status, "seconds": 0.0})
+                steps.append({"step": step.name, "status": status, "seconds": 0.0, "warnings": []})
                 if status == KEPT_EDITED:
                     edited = edited_outputs(take, plan, step)
                     steps[-1]["note"] = (f"kept {', '.join(edited)} as edited since mocap run made "
@@ -424,11 +505,13 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
                     progress(step.name, status)
     ran = [s for s in steps if s["status"] == "done"]
     return {"name": take.name, "path": str(take), "status": "done" if ran else "skipped", "steps": steps,
-            "result": str(plan.result), "seconds": time.perf_counter() - t0, **result_figures(plan.result)}
+            "result": str(plan.result), "log": str(log_path), "seconds": time.perf_counter() - t0,
+            **result_figures(plan.result)}
 
 
-def _run_step(take: Path, plan: TakePlan, step: Step, log, progress) -> dict:
-    """Run one step's commands and leave its record; a fit that an earlier run started with the
+def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, warnings: list[str]) -> dict:
+    """Run one step's commands and leave its record; the warnings they print go into
+    ``warnings`` (and to ``progress`` as they come). A fit that an earlier run started with the
     same settings and inputs is continued, any other fit replaces what is there."""
     pending = _pending_path(take, step.name)
     resume = step.name == "fit" and (plan.result / "poses.jsonl").exists() and _read_json(pending) == _pending(step)
@@ -438,11 +521,16 @@ def _run_step(take: Path, plan: TakePlan, step: Step, log, progress) -> dict:
     s0 = time.perf_counter()
     if progress:
         progress(step.name, "running")
+    def warn(line: str) -> None:
+        warnings.append(line)
+        if progress:
+            progress(step.name, f"{WARNING} {line}")
+
     for command in step.commands:
         if step.name == "fit":
             command += ("--resume",) if resume else ("--overwrite",)
         try:
-            run_mocap(command, log)
+            run_mocap(command, log, warn)
         except UserError as exc:
             raise UserError(f"{step.name}: {exc}") from None
     _note_made(take, plan, step)

@@ -31,6 +31,10 @@ polish_iterations = 0
 [report]
 gif = false
 """
+# a number for the actor's height, as mocap fit --actor-height takes it (and no size search); a quick fit
+# (one frame from a standing start: the fits here are only run or not), no report
+QUICK_CONFIG = (PROJECT_CONFIG.replace("[fit]", "[fit]\nactor_height = 1.66\nframes = 1\ninit = 'standing'")
+                .replace("[report]", "[report]\nenabled = false"))
 
 
 def make_take(folder: Path, model, studio, frames: int = 3, start: int = 1) -> Path:
@@ -271,11 +275,7 @@ def test_run_keeps_touched_up_silhouettes_and_refits_with_them(tmp_path, model, 
 
     root = tmp_path / "project"
     root.mkdir()
-    # a number for the actor's height, as mocap fit --actor-height takes it (and no size search); a quick fit
-    # (one frame from a standing start: the fits here are only run or not), no report
-    config = (PROJECT_CONFIG.replace("[fit]", "[fit]\nactor_height = 1.66\nframes = 1\ninit = 'standing'")
-              .replace("[report]", "[report]\nenabled = false"))
-    (root / "Config.toml").write_text(config + "[export]\nformats = ['csv']\n")
+    (root / "Config.toml").write_text(QUICK_CONFIG + "[export]\nformats = ['csv']\n")
     take = make_image_take(root / "take", model, small_studio)
     assert [s["status"] for s in run_take(take)["steps"]] == ["done"] * 4
     masks = take / "sequence" / "silhouettes"
@@ -375,6 +375,128 @@ def test_a_take_whose_calibration_needs_units_runs_from_its_images(tmp_path, mod
     assert imported[imported.index("--missing-frames") + 1] == "skip"
 
 
+def import_images(folder: Path, out: Path, *options: str) -> Path:
+    """mocap import-video of a take's image folders and backgrounds into a sequence, as a user would."""
+    cameras = sorted(p.name for p in (folder / "images").iterdir())
+    assert main(["import-video", "--calibration", str(folder / "calibration.json"), "--out", str(out),
+                 "--video", *[f"{c}={folder / 'images' / c}" for c in cameras],
+                 "--background", *[f"{c}={folder / 'background' / c}" for c in cameras], *options]) == 0
+    return out
+
+
+@pytest.mark.timeout(150)
+def test_a_take_that_is_an_imported_sequence_is_fitted_as_it_is(tmp_path, model, small_studio):
+    """A folder mocap import-video made (sequence.json, images/) is a ready sequence: not imported
+    again at a guessed frame rate, segmented where it has no silhouettes, fitted at its own rate."""
+    root = tmp_path / "project"
+    root.mkdir()
+    (root / "Config.toml").write_text(QUICK_CONFIG)
+    recorded = make_image_take(tmp_path / "recorded", model, small_studio)
+    seq = import_images(recorded, root / "seq", "--fps", "50")
+    assert [s.name for s in plan_take(seq).steps] == ["segment", "fit", "export"]
+    done = run_take(seq)
+    assert [(s["step"], s["status"]) for s in done["steps"]] == [("segment", "done"), ("fit", "done"),
+                                                                 ("export", "done")]
+    assert not (seq / "sequence").exists() and json.loads((seq / "sequence.json").read_text())["fps"] == 50
+    assert "Frame Time: 0.02\n" in (seq / "result" / "motion.bvh").read_text()
+    assert {s["status"] for s in run_take(seq)["steps"]} == {"up to date"}
+    (seq / "Config.toml").write_text("[segmentation]\nmethod = 'bottino'\n")  # silhouettes a run made: made again
+    assert [s["status"] for s in run_take(seq)["steps"]] == ["done"] * 3
+    # segmented by hand: its silhouettes are fitted as they are
+    seq = import_images(recorded, root / "segmented", "--fps", "50")
+    assert main(["segment", str(seq)]) == 0
+    silhouettes = {p: p.read_bytes() for p in (seq / "silhouettes").rglob("*.png")}
+    assert [s.name for s in plan_take(seq).steps] == ["fit", "export"]
+    assert [s["step"] for s in run_take(seq)["steps"]] == ["fit", "export"]
+    assert {p: p.read_bytes() for p in (seq / "silhouettes").rglob("*.png")} == silhouettes
+    assert "Frame Time: 0.02\n" in (seq / "result" / "motion.bvh").read_text()
+
+
+@pytest.mark.timeout(150)
+def test_run_says_each_step_s_warnings(tmp_path, model, small_studio, capsys):
+    """A step's warnings (here the import's frame rate taken for image folders) are said under
+    the step, with the log named; in --json they are a list per step and the output stays JSON;
+    mocap batch says them per take."""
+    from server.batch import run_take_task, warning_lines
+
+    root = tmp_path / "project"
+    root.mkdir()
+    (root / "Config.toml").write_text(QUICK_CONFIG)
+    take = make_image_take(root / "take", model, small_studio)
+    for name in ("again", "batched"):
+        shutil.copytree(take, root / name)
+    guess = "the recordings do not say their frame rate: 30 fps taken"
+    capsys.readouterr()
+    assert main(["run", str(take)]) == 0
+    said = capsys.readouterr()
+    assert f"  import: running\n  import: warning: {guess}" in said.err
+    assert f"  full log: {take / '.mocap' / 'run.log'}\n" in said.out
+    assert guess in (take / ".mocap" / "run.log").read_text()
+    assert main(["run", str(root / "again"), "--json"]) == 0
+    said = capsys.readouterr()
+    done = json.loads(said.out)
+    assert [w.startswith(guess) for w in done["steps"][0]["warnings"]] == [True] and guess not in said.err
+    assert [s["warnings"] for s in done["steps"][1:]] == [[]] * 3
+    assert main(["run", str(take)]) == 0  # nothing ran: nothing said again
+    said = capsys.readouterr()
+    assert "warning" not in said.err + said.out and "full log" not in said.out
+    lines = warning_lines(run_take_task(str(root / "batched")))
+    assert lines[0].startswith(f"  batched: import: warning: {guess}")
+    assert lines[1:] == [f"  batched: full log: {root / 'batched' / '.mocap' / 'run.log'}"]
+
+
+@pytest.mark.timeout(60)
+def test_a_take_missing_recordings_is_refused_naming_its_folders(tmp_path, small_studio, capsys):
+    """Recordings that do not match the calibration's cameras are said naming the take's folders,
+    not import-video's options (the user of mocap run never typed them), before anything is made."""
+    from common.calibration import save_calibration
+    from server.batch import run_take_task
+
+    take = tmp_path / "project" / "broken"
+    (take / "videos" / "cam1").mkdir(parents=True)
+    (take / "videos" / "cam1" / "000000.png").write_bytes(b"")  # never read: refused before the import
+    save_calibration(small_studio, take / "calibration.json")
+    failed = run_take_task(str(take))
+    assert failed["status"] == "failed" and "--video" not in failed["error"]
+    assert failed["error"] == (f"{take / 'videos'}/: no recording for camera(s) cam2, cam3, cam4 of "
+                               f"{take / 'calibration.json'}")
+    assert main(["run", str(take)]) == 2 and "videos/: no recording for camera(s) cam2, cam3, cam4" in refusal(capsys)
+    assert not (take / "sequence").exists()
+    for cam in ("cam2", "cam3", "cam4"):
+        (take / "videos" / cam).mkdir()
+    (take / "background" / "cam1").mkdir(parents=True)
+    assert run_take_task(str(take))["error"] == (f"{take / 'background'}/: no empty-studio recording for "
+                                                 f"camera(s) cam2, cam3, cam4 of {take / 'calibration.json'}")
+    (take / "videos" / "cam9").mkdir()
+    assert run_take_task(str(take))["error"].startswith(f"{take / 'videos' / 'cam9'}: no camera cam9 in ")
+
+
+@pytest.mark.timeout(30)
+def test_run_says_the_fit_quality_without_brackets_in_brackets(tmp_path, monkeypatch, capsys):
+    import server.commands.run as run_command
+
+    done = {"name": "seated", "status": "skipped", "result": str(tmp_path / "result"), "log": "run.log",
+            "steps": [{"step": "fit", "status": "up to date", "warnings": []}], "frames": 22, "actor_scale": 1.0,
+            "mean_xor_share": 0.40, "mean_outside_share": 0.01, "mean_missed_share": 0.39, "frames_flagged": 0}
+    monkeypatch.setattr(run_command, "run_take", lambda *args, **kwargs: done)
+    assert main(["run", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "XOR 40% of the silhouettes, 0 frames flagged" in out
+    assert "  of the XOR: body outside the masks 1%, masks the body misses 39% (mostly" in out
+    assert not any(line.count("(") > 1 for line in out.splitlines()), out
+
+
+@pytest.mark.timeout(30)
+def test_batch_names_the_index_page(tmp_path, monkeypatch, capsys):
+    import server.commands.batch as batch_command
+
+    record = {"project": str(tmp_path), "scheduler": "local", "workers": 1, "seconds": 1.0, "takes": []}
+    monkeypatch.setattr(batch_command, "run_batch", lambda *args, **kwargs: record)
+    assert main(["batch", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert f"written {tmp_path / 'batch.json'}\n" in out and f"written {tmp_path / 'index.html'}" in out
+
+
 def test_run_on_a_broken_take_is_one_line(project, capsys):
     assert main(["run", str(project / "broken")]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
@@ -447,6 +569,8 @@ def test_batch_on_a_local_dask_cluster(project, tmp_path, capsys):
     assert by_name["broken"]["status"] == "failed"
     assert "cam2" in by_name["broken"]["error"] and "\n" not in by_name["broken"]["error"]
     assert "failed" in out and "walk_a" in out and "XOR (outside)" in out
+    assert f"  broken: full log: {project / 'broken' / '.mocap' / 'run.log'}\n" in out
+    assert f"written {project / 'index.html'}" in out
     assert all(0 <= by_name[n]["mean_outside_share"] <= by_name[n]["mean_xor_share"] for n in ("walk_a", "walk_b"))
     index = (project / "index.html").read_text()
     assert 'href="walk_a/result/report.html"' in index and "body outside them" in index

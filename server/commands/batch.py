@@ -5,7 +5,7 @@ import json
 from pathlib import Path
 
 from common.argtypes import count
-from server.batch import BATCH_FILE, run_batch, summary_table
+from server.batch import BATCH_FILE, INDEX_FILE, run_batch, summary_table
 
 EXIT_SOME_FAILED = 1
 
@@ -37,4 +37,5 @@ def run(args) -> int:
     elif not args.quiet:
         print("\n".join(summary_table(record)))
         print(f"written {Path(record['project']) / BATCH_FILE}")
+        print(f"written {Path(record['project']) / INDEX_FILE} (every take's report linked)")
     return EXIT_SOME_FAILED if any(t["status"] == "failed" for t in record["takes"]) else 0

@@ -4,7 +4,8 @@ Steps that are done (their outputs made from the same inputs and settings, and a
 skipped; outputs edited by hand since are kept as edited, said in one line, and the steps that
 read them run again. An output in the way of a step that runs, that no run made or one changed
 since, is refused unless ``--overwrite``; see ``server.project``. Settings come from the
-project's and the take's Config.toml.
+project's and the take's Config.toml. The warnings a step prints are said under it, and the
+log of every command's output is named (``--json``: a ``warnings`` list per step, and ``log``).
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import json
 import sys
 from pathlib import Path
 
-from server.project import run_take
+from server.project import TakeFailed, run_take
 
 
 def register(sub) -> None:
@@ -32,7 +33,11 @@ def run(args) -> int:
         if not args.json:
             print(f"  {step}: {state}", file=sys.stderr, flush=True)
 
-    done = run_take(args.take, progress, overwrite=args.overwrite)
+    try:
+        done = run_take(args.take, progress, overwrite=args.overwrite)
+    except TakeFailed as exc:  # the error's one line is the command's last; its whole output is in the log
+        progress(exc.steps[-1]["step"], f"full log: {exc.log}")
+        raise
     if args.json:
         print(json.dumps(done, indent=1))
     else:
@@ -43,8 +48,11 @@ def run(args) -> int:
         if "mean_xor_share" in done:  # what a take without truth is checked by (mocap fit's table)
             from server.session import xor_sides  # here: the fitting modules load only where a take has a fit
 
-            sides = f" ({xor_sides(done)})" if "mean_missed_share" in done else ""
             print(f"  {done['frames']} frames, actor size {done.get('actor_scale', 1.0):.2f} x the body model, "
-                  f"XOR {done['mean_xor_share']:.0%} of the silhouettes{sides}, "
+                  f"XOR {done['mean_xor_share']:.0%} of the silhouettes, "
                   f"{done.get('frames_flagged', 0)} frames flagged (report.html)")
+            if "mean_missed_share" in done:  # a line of its own: the sides carry a note in brackets
+                print(f"  of the XOR: {xor_sides(done)}")
+        if any(step["warnings"] for step in done["steps"]):  # said under their steps, above
+            print(f"  full log: {done['log']}")
     return 0
