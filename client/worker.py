@@ -91,6 +91,10 @@ class CurveKeys:
     @classmethod
     def load(cls, directory: str) -> "CurveKeys":
         """``DIR/client.key_secret`` (this client) and ``DIR/server.key`` (the server's public key)."""
+        for name in ("client.key_secret", "server.key"):
+            if not os.path.isfile(os.path.join(directory, name)):  # zmq would say only "Invalid certificate file"
+                where = f"no {name} there" if os.path.isdir(directory) else "no such folder"
+                raise ValueError(f"{where}; give the folder mocap keys made for this client (for-NAME/)")
         public, secret = zmq.auth.load_certificate(os.path.join(directory, "client.key_secret"))
         server, _ = zmq.auth.load_certificate(os.path.join(directory, "server.key"))
         if secret is None:

@@ -78,14 +78,13 @@ from common.fitting import (
     HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, redetects,
 )
 from common.search import FIT_JOBS, job_options, job_starts, solve_job
-from server.trust import check_bind, check_result, server_keys
+from server.trust import check_bind, check_result, default_bind, server_keys
 from common.packing import packbits_masks
 from common.protocol import (
     MAX_CLIENT_MESSAGE_BYTES, MAX_PARTS, Error, Frame, Heartbeat, ProtocolError, Register, Result, Shutdown, Solve,
     Welcome, camera_specs, decode, encode,
 )
 
-DEFAULT_BIND = "tcp://*:5555"
 LOCAL_BIND = "tcp://127.0.0.1:*"  # a random free port on the loopback interface
 HEARTBEAT_INTERVAL = 1.0  # seconds between heartbeats, both ways
 HEARTBEAT_LIVENESS = 3  # silent intervals before a client counts as dead
@@ -215,9 +214,10 @@ class ClusterSolver:
 
     mode = "cluster"
 
-    def __init__(self, options: FitOptions, bind: str = DEFAULT_BIND,
+    def __init__(self, options: FitOptions, bind: str | None = None,
                  heartbeat_interval: float = HEARTBEAT_INTERVAL, client_timeout: float = CLIENT_TIMEOUT,
                  curve_keys: Path | None = None, insecure: bool = False):
+        bind = default_bind(curve_keys) if bind is None else bind
         if check_bind(bind, curve_keys, insecure):
             log.warning("INSECURE: %s bound without CURVE: any host that reaches it can join and send results",
                         bind)

@@ -13,7 +13,8 @@ from pathlib import Path
 from common import argtypes
 from common.errors import UserError
 from common.fitting import FitOptions
-from server.cluster import (CLIENT_TIMEOUT, DEADLINE_FACTOR, DEADLINE_FLOOR, DEFAULT_BIND, HEARTBEAT_INTERVAL,
+from server.trust import LOOPBACK_BIND, NETWORK_BIND
+from server.cluster import (CLIENT_TIMEOUT, DEADLINE_FACTOR, DEADLINE_FLOOR, HEARTBEAT_INTERVAL,
                             HEARTBEAT_LIVENESS, LOCAL_BIND, ClusterSolver)
 
 CLIENT_START_TIMEOUT = 60.0  # seconds for local clients to start and register
@@ -112,8 +113,10 @@ def stop_processes(procs: list, timeout: float) -> None:
 def add_cluster_arguments(p, server: bool) -> None:
     """Command-line flags of the cluster: ``mocap server`` (server=True) or ``mocap fit --clients``."""
     if server:
-        p.add_argument("--bind", default=DEFAULT_BIND, help=f"ROUTER address (default {DEFAULT_BIND}); without "
-                                                            f"--curve-keys only a loopback or ipc:// address")
+        p.add_argument("--bind", default=None, metavar="ADDRESS",
+                       help=f"ROUTER address (default: {LOOPBACK_BIND}, this machine's clients only; with "
+                            f"--curve-keys {NETWORK_BIND}, every interface); without --curve-keys only a loopback "
+                            "or ipc:// address, unless --insecure")
         p.add_argument("--min-clients", type=argtypes.count(0), default=1,
                        help="clients to wait for before the first frame (default 1; 0: start at once)")
         p.add_argument("--curve-keys", type=Path, default=None, metavar="DIR",

@@ -6,6 +6,7 @@ from __future__ import annotations
 import ipaddress
 import os
 import re
+import shlex
 import shutil
 import tempfile
 from dataclasses import replace
@@ -22,6 +23,10 @@ from common.fitting import (HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, F
 from common.search import FIT_JOBS
 
 LOOPBACK_NAMES = ("localhost",)
+# mocap server's --bind when none is given: every interface only where CURVE keeps strangers out;
+# without keys the one address check_bind allows, so that the default always starts
+NETWORK_BIND = "tcp://*:5555"
+LOOPBACK_BIND = "tcp://127.0.0.1:5555"
 
 SECRET_KEY_MODE = 0o600  # secret key files: their owner alone reads them
 
@@ -83,6 +88,10 @@ def create_curve_keys(directory: Path, clients: tuple[str, ...] = ("client",)) -
     return directory
 
 
+def default_bind(curve_keys: Path | None) -> str:
+    return LOOPBACK_BIND if curve_keys is None else NETWORK_BIND
+
+
 def check_bind(bind: str, curve_keys: Path | None, insecure: bool) -> bool:
     """Without CURVE, only a loopback (127.0.0.0/8, ::1, localhost) or ipc/inproc address:
     anyone who reaches a network address could send poses. ``insecure`` allows it; returns
@@ -109,6 +118,13 @@ def check_bind(bind: str, curve_keys: Path | None, insecure: bool) -> bool:
 def server_keys(directory: Path) -> tuple[bytes, bytes, Path]:
     directory = Path(directory)
     secret_file, allowed = directory / "server.key_secret", directory / "clients"
+    if not secret_file.is_file():  # zmq would say only "Invalid certificate file"
+        if (directory / "client.key_secret").is_file():
+            raise UserError(f"--curve-keys {directory}: a client's key folder (no server.key_secret); give the "
+                            "server the folder mocap keys made")
+        where = "no such folder" if not directory.is_dir() else f"{secret_file} is missing"
+        raise UserError(f"--curve-keys {directory}: {where}; make the keys with: mocap keys "
+                        f"{shlex.quote(str(directory))}")
     try:
         public, secret = zmq.auth.load_certificate(secret_file)
     except (OSError, ValueError) as exc:

@@ -20,7 +20,7 @@ from common.protocol import (MAX_CLIENT_MESSAGE_BYTES, MAX_TEXT_CHARS, Error, He
                              Result, Solve, encode)
 from common.sequence import load_sequence
 from server.cluster import DEADLINE_FACTOR, DEADLINE_FLOOR, LOCAL_BIND, ClusterSolver
-from server.trust import check_bind, create_curve_keys
+from server.trust import check_bind, create_curve_keys, default_bind
 from server.session import run_fit
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 from reliability_faults import FakePeers  # noqa: E402  the fault suite's fake peers, in tests too
@@ -218,6 +218,56 @@ def test_mocap_server_refuses_a_network_bind_without_keys(seq_path, tmp_path, ca
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--curve-keys" in err and "--insecure" in err, err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.timeout(60)
+def test_mocap_server_without_bind_binds_where_it_may(seq_path, tmp_path, capsys):
+    """No --bind: the loopback without keys (a default that always starts), every interface with
+    them. The bind passes its check, so the first refusal is the earlier result's."""
+    from server.cli import build_parser, main
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "poses.jsonl").write_text("{}\n")
+    assert main(["server", str(seq_path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--overwrite" in err and "--bind" not in err, err
+    keys = create_curve_keys(tmp_path / "keys")
+    args = build_parser().parse_args(["server", str(seq_path), "--out", str(out)])
+    assert args.bind is None  # resolved by mocap server from --curve-keys:
+    assert default_bind(None) == "tcp://127.0.0.1:5555" and check_bind(default_bind(None), None, False) is False
+    assert default_bind(keys) == "tcp://*:5555"
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("folder, said", [("missing", "no such folder; make the keys with: mocap keys {keys}"),
+                                          ("empty", "{keys}/server.key_secret is missing; make the keys with: "
+                                                    "mocap keys {keys}"),
+                                          ("client", "a client's key folder")])
+def test_mocap_server_says_a_key_folder_lacks_the_server_key(seq_path, tmp_path, capsys, folder, said):
+    from server.cli import main
+
+    keys = tmp_path / "keys"
+    if folder == "empty":
+        keys.mkdir()
+    elif folder == "client":
+        keys = create_curve_keys(tmp_path / "made") / "for-client"
+    assert main(["server", str(seq_path), "--out", str(tmp_path / "out"), "--curve-keys", str(keys)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Invalid certificate" not in err, err
+    assert err.startswith(f"mocap server: error: --curve-keys {keys}: ") and said.format(keys=keys) in err, err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.timeout(60)
+def test_mocap_client_says_a_key_folder_lacks_its_key(tmp_path, capsys):
+    from client.__main__ import main
+
+    keys = create_curve_keys(tmp_path / "keys")
+    assert main(["--connect", "tcp://127.0.0.1:1", "--curve-keys", str(keys / "clients")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Invalid certificate" not in err, err
+    assert f"--curve-keys {keys / 'clients'}: no client.key_secret there" in err and "for-NAME" in err, err
 
 
 def test_insecure_bind_is_logged_loudly(model, caplog, monkeypatch):

@@ -14,7 +14,7 @@ from common.body import load_body_model
 from common.sequence import load_sequence
 from server.cluster import ClusterSolver
 from server.local_cluster import Terminated, add_cluster_arguments, terminate_on_sigterm
-from server.trust import check_bind
+from server.trust import check_bind, default_bind, server_keys
 from server.commands.fit import (actor_model, add_fit_arguments, check_resume_or_overwrite, finish,
                                  options_from_args, warn_if_software_gl)
 from server.output import check_folder_target
@@ -35,7 +35,10 @@ def register(sub) -> None:
 def run(args) -> int:
     logging.basicConfig(level=logging.WARNING if args.quiet else logging.INFO, format="mocap server: %(message)s")
     check_resume_or_overwrite(args)
+    args.bind = default_bind(args.curve_keys) if args.bind is None else args.bind
     check_bind(args.bind, args.curve_keys, args.insecure)  # before the slow loading
+    if args.curve_keys is not None:
+        server_keys(args.curve_keys)  # a missing or wrong key folder, also before it
     # the folder first: a result in the way is refused before the slow actor-size search
     check_folder_target(args.out, RESULT_FILES, resume=args.resume, overwrite=args.overwrite)
     warn_if_software_gl(args.energy)
