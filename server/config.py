@@ -10,7 +10,9 @@ Paths in a file (``[calibration] file``) are relative to the folder of the file 
 """
 from __future__ import annotations
 
+import json
 import math
+import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -181,9 +183,29 @@ class Config:
         out = []
         for s in SETTINGS:
             value = self.get(s.section, s.key)
-            shown = repr(value).lower() if isinstance(value, bool) else repr(value)
-            out.append(f"[{s.section}] {s.key} = {shown}   # {self.source(s.section, s.key)}")
+            out.append(f"[{s.section}] {s.key} = {toml_value(value)}   # {self.source(s.section, s.key)}")
         return out
+
+
+BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def toml_value(value) -> str:
+    """``value`` (a setting's: bool, int, float, str, list or dict) as TOML writes it, so that
+    what ``mocap config`` prints can be pasted into a Config.toml."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)  # Python's int and finite float spellings are TOML's
+    if isinstance(value, str):
+        # a JSON string is a TOML basic string, but for DEL, which TOML wants escaped
+        return json.dumps(value, ensure_ascii=False).replace("\x7f", "\\u007f")
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        items = (f"{k if BARE_KEY.fullmatch(k) else toml_value(k)} = {toml_value(v)}" for k, v in value.items())
+        return "{" + ", ".join(items) + "}"
+    raise TypeError(f"no TOML spelling for {type(value).__name__}")
 
 
 def load_config(files: list[Path]) -> Config:

@@ -130,7 +130,33 @@ def test_config_show_says_where_each_value_came_from(project, capsys):
     out = capsys.readouterr().out
     assert f"[fit] frames = 2   # {project / 'walk_a' / 'Config.toml'}" in out
     assert f"[fit] iterations = 1   # {project / 'Config.toml'}" in out
-    assert "[fit] energy = 'cpu'   # default" in out
+    assert '[fit] energy = "cpu"   # default' in out
+
+
+@pytest.mark.timeout(30)
+def test_config_keys_prints_a_config_toml_of_the_defaults(tmp_path, capsys):
+    """Pasted whole or a line at a time, what mocap config keys prints is TOML a Config.toml may hold."""
+    import tomllib
+
+    from server.config import SETTINGS, read_config_file
+
+    assert main(["config", "keys"]) == 0
+    out = capsys.readouterr().out
+    for line in out.splitlines():
+        tomllib.loads(line)  # raises on a line that is not TOML
+    (tmp_path / "Config.toml").write_text(out)
+    assert read_config_file(tmp_path / "Config.toml") == {(s.section, s.key): s.default for s in SETTINGS}
+
+
+@pytest.mark.timeout(30)
+@pytest.mark.parametrize("value", [True, 0.5, 3, "a\\b 'c' \"d\"\n\x7f\u00e9", ["bvh", "trc"], {"cam 2": 3, "cam1": -1},
+                                   {}])
+def test_config_values_are_shown_as_toml(value):
+    import tomllib
+
+    from server.config import toml_value
+
+    assert tomllib.loads(f"key = {toml_value(value)}")["key"] == value
 
 
 @pytest.mark.timeout(30)

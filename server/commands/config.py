@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from common.errors import UserError
-from server.config import SETTINGS
+from server.config import SECTIONS, SETTINGS, toml_value
 from server.project import config_files, take_config
 
 
@@ -29,6 +29,11 @@ def run_show(args) -> int:
 
 
 def run_keys(args) -> int:
-    for s in SETTINGS:
-        print(f"[{s.section}] {s.key} = {s.default!r}   # {s.help}")
+    # a Config.toml of every key at its default: each section's keys under its header
+    print("# every key a Config.toml may hold, at its default")
+    for section in SECTIONS:
+        print(f"\n[{section}]")
+        for s in SETTINGS:
+            if s.section == section:
+                print(f"{s.key} = {toml_value(s.default)}   # {s.help}")
     return 0
