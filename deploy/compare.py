@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"compare: error: {exc}", file=sys.stderr)
         return 1
     print(f"{args.title}: {args.cluster}")
-    print_summary(c, sys.stdout)
+    print_summary(c, sys.stdout, args.cluster)
     print()
     print(f"single process ({args.single}) vs cluster:")
     print(comparison_table(s, c, worst))

@@ -13,6 +13,7 @@ Every command that writes follows the same rules:
 from __future__ import annotations
 
 import os
+import shlex
 import shutil
 import tempfile
 from contextlib import contextmanager
@@ -35,6 +36,16 @@ def add_units_argument(p) -> None:
 
     p.add_argument("--units", choices=sorted(UNIT_SCALE), default=None,
                    help="units of translations in calibration files that do not say (default: metres, checked)")
+
+
+def shell_word(path) -> str:
+    """``path`` as one word of a command to copy (quoted where it holds spaces or quotes)."""
+    return shlex.quote(str(path))
+
+
+def next_steps(*commands: str) -> str:
+    """The line a command ends with: what to run next, so that a new user sees the way on."""
+    return "next: " + "; ".join(commands)
 
 
 def _writable_folder(folder: Path, option: str) -> None:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import ipaddress
 import os
 import re
-import shlex
 import shutil
 import tempfile
 from dataclasses import replace
@@ -21,6 +20,7 @@ from common.errors import UserError
 from common.fitting import (HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, _limb_centre_segments,
                             _stage_backends, full_energy, with_spine_prior)
 from common.search import FIT_JOBS
+from server.output import shell_word
 
 LOOPBACK_NAMES = ("localhost",)
 # mocap server's --bind when none is given: every interface only where CURVE keeps strangers out;
@@ -123,8 +123,7 @@ def server_keys(directory: Path) -> tuple[bytes, bytes, Path]:
             raise UserError(f"--curve-keys {directory}: a client's key folder (no server.key_secret); give the "
                             "server the folder mocap keys made")
         where = "no such folder" if not directory.is_dir() else f"{secret_file} is missing"
-        raise UserError(f"--curve-keys {directory}: {where}; make the keys with: mocap keys "
-                        f"{shlex.quote(str(directory))}")
+        raise UserError(f"--curve-keys {directory}: {where}; make the keys with: mocap keys {shell_word(directory)}")
     try:
         public, secret = zmq.auth.load_certificate(secret_file)
     except (OSError, ValueError) as exc:

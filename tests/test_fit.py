@@ -444,6 +444,23 @@ def test_the_summary_table_shows_refinement_beside_tracking(fresh_result):
     assert "refinement" not in out.getvalue() and "tracking alone" not in out.getvalue()
 
 
+@pytest.mark.timeout(120)
+def test_fit_names_the_report_command_and_the_next_steps(small_sequence, tmp_path, capsys):
+    """mocap fit writes no report.html: its table and last line name the commands that follow,
+    with the result folder as one word to copy; --quiet and --json print neither."""
+    import shlex
+
+    out = tmp_path / "my result"
+    assert main(["fit", str(small_sequence), "--out", str(out), "--frames", "1", "--refine-passes", "0"]) == 0
+    printed = capsys.readouterr().out
+    result = shlex.quote(str(out))
+    assert f"in a camera (mocap report {result} names them)" in printed and "report.html names" not in printed
+    assert printed.splitlines()[-1].startswith(f"next: mocap report {result}; mocap export {result} --format ")
+    assert main(["fit", str(small_sequence), "--out", str(out), "--frames", "1", "--refine-passes", "0",
+                 "--resume", "--json"]) == 0
+    json.loads(capsys.readouterr().out)  # the summary alone
+
+
 def test_fit_refuses_negative_refine_passes(small_sequence, tmp_path, capsys):
     assert fit(small_sequence, tmp_path / "r", "--refine-passes", "-1") == 2
     assert "--refine-passes: expected an integer >= 0, got -1" in capsys.readouterr().err

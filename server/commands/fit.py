@@ -17,7 +17,8 @@ from common.argtypes import count, non_negative, real
 from server.local_cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.config import MAX_ACTOR_HEIGHT, MIN_ACTOR_HEIGHT, PRESETS
 from server.progress import Progress
-from server.output import add_overwrite_argument, add_units_argument, check_folder_target, replace_file
+from server.output import (add_overwrite_argument, add_units_argument, check_folder_target, next_steps,
+                           replace_file, shell_word)
 from server.results import MOTION_FILE, RESULT_FILES, earlier_actor_scale, load_records
 from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, resolve_threads, run_fit,
                             tracking_error_note, xor_sides)
@@ -123,10 +124,14 @@ def finish(model, seq, args, summary: dict) -> None:
     if args.json:
         print(json.dumps(summary, indent=1))
     elif not args.quiet:
-        print_summary(summary, sys.stdout)
+        print_summary(summary, sys.stdout, args.out)
+        result = shell_word(args.out)
+        print(next_steps(f"mocap report {result}", f"mocap export {result} --format all "
+                                                   f"({args.out / MOTION_FILE} is written already)"))
 
 
-def print_summary(summary: dict, out) -> None:
+def print_summary(summary: dict, out, result: Path | None = None) -> None:
+    """The summary table of a fit; ``result``: its folder, for the commands the table names."""
     rows = [("frames", summary["frames"]), ("mode", f"{summary['mode']} ({summary['clients']} clients"
                      + (f", {summary['threads']} threads)" if summary.get("threads", 1) > 1 else ")")),
             ("energy", summary["energy_backend"]),
@@ -149,7 +154,8 @@ def print_summary(summary: dict, out) -> None:
         flagged = len(quality.get("frames_flagged", []))
         rows.append(("XOR / silhouette area", f"{quality['mean_xor_share']:.0%} mean, {quality['max_xor_share']:.0%} "
                                               f"worst; {flagged} of {summary['frames']} frames over "
-                                              f"{quality['flag_share']:.0%} in a camera (report.html names them)"))
+                                              f"{quality['flag_share']:.0%} in a camera (mocap report "
+                                              f"{shell_word(result) if result else 'RESULT'} names them)"))
         if "mean_missed_share" in quality:
             rows.append(("of which", xor_sides(quality)))
     rows += _cluster_rows(summary)
