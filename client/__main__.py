@@ -27,8 +27,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                               "(default HOST-PID)")
     p.add_argument("--curve-keys", default=None, metavar="DIR",
                    help="CURVE keys: DIR/client.key_secret and the server's DIR/server.key")
-    p.add_argument("--reconnect-min", type=seconds, default=RECONNECT_MIN, help="first reconnect delay, s")
-    p.add_argument("--reconnect-max", type=seconds, default=RECONNECT_MAX, help="longest reconnect delay, s")
+    p.add_argument("--reconnect-min", type=seconds, default=RECONNECT_MIN,
+                   help=f"first reconnect delay, s (default {RECONNECT_MIN:g})")
+    p.add_argument("--reconnect-max", type=seconds, default=RECONNECT_MAX,
+                   help=f"longest reconnect delay, s (default {RECONNECT_MAX:g})")
     p.add_argument("-v", "--verbose", action="store_true", help="log every request")
     p.add_argument("-q", "--quiet", action="store_true", help="log warnings only")
     # for local clusters and fault tests; not part of the user interface

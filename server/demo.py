@@ -29,7 +29,8 @@ def add_demo_arguments(ap) -> None:
                     help="the demo's own folder, made again each run (one holding files the demo did not make "
                          "is refused)")
     ap.add_argument("--clip", type=Path, default=DEFAULT_CLIP, help="BVH motion (default: the bundled CMU walk)")
-    ap.add_argument("--frames", type=count(1), default=DEMO_FRAMES)
+    ap.add_argument("--frames", type=count(1), default=DEMO_FRAMES,
+                    help=f"frames of the clip to synthesise and fit (default {DEMO_FRAMES})")
     ap.add_argument("--clients", type=count(0), default=0, help="local limb clients (default 0: one process)")
 
 

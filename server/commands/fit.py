@@ -39,11 +39,12 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--out", type=Path, required=True, help="result folder")
     p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
     p.add_argument("--frames", type=count(1), default=None, help="fit only the first N frames")
-    p.add_argument("--iterations", type=count(1), default=FitOptions.max_iterations, help="rounds per frame")
+    p.add_argument("--iterations", type=count(1), default=FitOptions.max_iterations,
+                   help=f"rounds per frame (default {FitOptions.max_iterations})")
     p.add_argument("--grid-steps", type=count(1), default=FitOptions.grid_steps,
-                   help="grid points per limb parameter")
+                   help=f"grid points per limb parameter (default {FitOptions.grid_steps})")
     p.add_argument("--grid-range", type=non_negative, default=FitOptions.grid_range_rad,
-                   help="limb grid half-width, rad")
+                   help=f"limb grid half-width, rad (default {FitOptions.grid_range_rad:g})")
     p.add_argument("--no-prerender", action="store_true", help="render every part in every evaluation")
     p.add_argument("--turn-hypotheses", type=count(0), default=FitOptions.turn_hypotheses, metavar="N",
                    help="also fit each frame from the start turned by -+1..N turn steps about the vertical and "
@@ -82,7 +83,8 @@ def add_fit_arguments(p) -> None:
     add_units_argument(p)
     add_world_arguments(p)
     p.add_argument("--actor-height", default="auto", metavar="M|auto",
-                   help="the actor's height in the calibration's units (metres): the body model is scaled to it; "
+                   help="the actor's height in metres, in the fit's world (the calibration after --units): the body "
+                        "model is scaled to it; "
                         "auto (default): the model's own size when starting from the truth, else chosen by the "
                         f"first frame's silhouettes among {ACTOR_SCALES[0]:g}-{ACTOR_SCALES[-1]:g} times the model's "
                         "1.66 m (printed with the result: a size far from 1 can mean a calibration in other units)")

@@ -8,7 +8,8 @@ from common.errors import UserError
 
 def register(sub) -> None:
     p = sub.add_parser("keys", help="make CURVE keys: a server pair and an allow-list of client keys")
-    p.add_argument("directory", type=Path)
+    p.add_argument("directory", type=Path,
+                   help="folder to make the keys in (made if missing; one that holds keys already is refused)")
     p.add_argument("--clients", default="client", help="comma-separated client names (default: client)")
     p.set_defaults(func=run)
 

@@ -61,16 +61,21 @@ def register(sub) -> None:
                    help="instead of a clip: a take moving smoothly between seeded variations of this posture "
                         "(--frames frames at 30 fps; --start, --step and --joint-map are for clips)")
     p.add_argument("--out", type=Path, required=True, help="sequence folder to write")
-    p.add_argument("--frames", type=count(1), default=60)
-    p.add_argument("--start", type=count(0), default=1, help="first source frame (CMU frame 0 is a T-pose)")
-    p.add_argument("--step", type=count(1), default=4, help="take every STEP-th source frame (120 fps -> 30 fps: 4)")
-    p.add_argument("--cameras", type=count(1), default=8)
+    p.add_argument("--frames", type=count(1), default=60,
+                   help="frames to write (default 60; fewer where the clip ends first)")
+    p.add_argument("--start", type=count(0), default=1,
+                   help="first source frame (default 1: CMU frame 0 is a T-pose)")
+    p.add_argument("--step", type=count(1), default=4,
+                   help="take every STEP-th source frame (default 4: 120 fps -> 30 fps)")
+    p.add_argument("--cameras", type=count(1), default=8,
+                   help="cameras, 1 to 64 (default 8): a ring around the actor, from 5 on one of them overhead")
     sizes = p.add_mutually_exclusive_group()
     sizes.add_argument("--size", default=None, help=f"every camera's image size (default {DEFAULT_SIZE})")
     sizes.add_argument("--sizes", default=None, metavar="WxH,WxH,...",
                        help="image size per camera, cycled when fewer than cameras (a mixed-resolution studio)")
-    p.add_argument("--radius", type=real(), default=3.0, help="studio radius: cameras' distance from its axis, metres")
-    p.add_argument("--height", type=real(), default=1.5, help="height of the ring cameras, metres")
+    p.add_argument("--radius", type=real(), default=3.0,
+                   help="studio radius: cameras' distance from its axis, metres (default 3)")
+    p.add_argument("--height", type=real(), default=1.5, help="height of the ring cameras, metres (default 1.5)")
     p.add_argument("--fov", type=real(), default=RING_FOV_DEG, metavar="DEG",
                    help=f"vertical field of view of the ring cameras, degrees (default {RING_FOV_DEG:g})")
     p.add_argument("--distortion", type=real(), default=0.0, metavar="K1",
@@ -82,13 +87,19 @@ def register(sub) -> None:
                    help="a static prop: a chair under the actor's pelvis or a box beside the actor")
     p.add_argument("--position", default="0,0", metavar="X,Y",
                    help="the actor's floor position in the z-up studio, metres (default 0,0; write --position=-1,0)")
-    p.add_argument("--noise", choices=NOISE_MODELS, default="none")
-    p.add_argument("--surface", choices=SURFACES, default="skinned")
+    p.add_argument("--noise", choices=NOISE_MODELS, default="none",
+                   help="silhouette noise: none (default), or cheung: pixels missed and added and a few blobs, "
+                        "as background subtraction leaves them (Cheung et al.)")
+    p.add_argument("--surface", choices=SURFACES, default="skinned",
+                   help="the body's surface: skinned (default: bends smoothly at the joints) or rigid (each "
+                        "vertex moves with its own body part)")
     p.add_argument("--images", action="store_true", help="also render colour images and empty backgrounds")
     p.add_argument("--joint-map", type=Path, default=None, help="TOML joint-name overrides for the clip")
-    p.add_argument("--seed", type=count(0), default=0)
+    p.add_argument("--seed", type=count(0), default=0,
+                   help="seed of the noise, the colours and a posture's variations (default 0): the same seed, "
+                        "the same sequence")
     add_overwrite_argument(p)
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
     p.set_defaults(func=run)
 
 
