@@ -98,6 +98,20 @@ def test_a_120_fps_clip_every_4th_frame_is_30_fps_exactly(tmp_path):
     assert load_sequence(out).fps == 30.0
 
 
+@pytest.mark.timeout(120)
+def test_synth_says_what_it_wrote_in_words_and_as_json_when_asked(tmp_path, capsys):
+    out = tmp_path / "seq"
+    argv = ["synth", "--clip", str(WALK_CLIP), "--out", str(out), "--frames", "2", "--cameras", "2",
+            "--size", "80x60"]
+    assert main(argv) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines == [f"wrote {out}: 2 frames at 30 fps from 2 cameras (skinned surface, no noise; truth.jsonl "
+                     f"holds the true poses)", f"next: mocap fit {out} --out RESULT"]
+    assert main([*argv, "--overwrite", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == {"out": str(out), "frames": 2, "fps": 30.0, "cameras": 2,
+                                                   "noise": "none", "surface": "skinned"}
+
+
 def test_truth_joints_fall_inside_the_silhouettes(walk8):
     clean, _ = walk8
     seq = load_sequence(clean)

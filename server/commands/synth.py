@@ -18,7 +18,7 @@ from common.postures import POSTURES
 from common.synth import (MAX_DISTORTION_K1, NOISE_MODELS, PROPS, RING_FOV_DEG, SURFACES, UP_AXES, SynthOptions,
                           synth_studio, synthesize)
 from common.argtypes import count, real
-from server.output import add_overwrite_argument, check_folder_target, staged_folder
+from server.output import add_overwrite_argument, check_folder_target, next_steps, shell_word, staged_folder
 from server.progress import Progress
 
 DEFAULT_CLIP = Path(__file__).resolve().parents[2] / "common" / "data" / "clips" / "cmu_12_01_walk.bvh"
@@ -100,6 +100,7 @@ def register(sub) -> None:
                         "the same sequence")
     add_overwrite_argument(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON")
     p.set_defaults(func=run)
 
 
@@ -140,6 +141,12 @@ def run(args) -> int:
     check_folder_target(args.out, ("*",), overwrite=args.overwrite, what="sequence")
     with staged_folder(args.out) as staged:  # a new folder whole, or the old one as it was
         summary = synthesize(load_body_model(), studio, clip, staged, opts, args.joint_map, bar)
-    if not args.quiet:
-        print(json.dumps({k: summary[k] for k in ("frames", "fps", "cameras", "noise", "surface")}))
+    shown = {k: summary[k] for k in ("frames", "fps", "cameras", "noise", "surface")}
+    if args.json:
+        print(json.dumps({"out": str(args.out), **shown}))
+    elif not args.quiet:
+        noise = "no noise" if shown["noise"] == "none" else f"{shown['noise']} noise"
+        print(f"wrote {args.out}: {shown['frames']} frames at {shown['fps']:g} fps from {shown['cameras']} cameras "
+              f"({shown['surface']} surface, {noise}; truth.jsonl holds the true poses)")
+        print(next_steps(f"mocap fit {shell_word(args.out)} --out RESULT"))
     return 0
