@@ -48,7 +48,13 @@ def next_steps(*commands: str) -> str:
     return "next: " + "; ".join(commands)
 
 
-def _writable_folder(folder: Path, option: str) -> None:
+def _named(path: Path, option: str, given: bool) -> str:
+    """How an error names a target: with the option the user gave it by ("--out r/x.bvh"), or
+    alone where it is the command's default, which no option the user typed named."""
+    return f"{option} {path}" if given else str(path)
+
+
+def _writable_folder(folder: Path, where: str) -> None:
     """The folder, or the nearest folder above it that exists, can be written to."""
     probe = folder
     while not probe.exists():
@@ -56,8 +62,8 @@ def _writable_folder(folder: Path, option: str) -> None:
             break
         probe = probe.parent
     if not probe.is_dir():
-        raise UserError(f"{option} {folder}: {probe} is a file, not a folder")
-    _probe_write(probe, f"{option} {folder}")
+        raise UserError(f"{where}: {probe} is a file, not a folder")
+    _probe_write(probe, where)
 
 
 def _probe_write(folder: Path, where: str) -> None:
@@ -71,17 +77,20 @@ def _probe_write(folder: Path, where: str) -> None:
 
 
 def check_folder_target(folder: Path, earlier: tuple[str, ...], option: str = "--out", resume: bool = False,
-                        overwrite: bool = False, what: str = "result") -> bool:
+                        overwrite: bool = False, what: str = "result", given: bool = True) -> bool:
     """Check a folder a command is about to write before any work is done.
 
     ``earlier``: names of files or folders whose presence means the folder holds an earlier
     result (``("*",)``: anything at all). Returns whether such a result is there (which
     ``resume`` or ``overwrite`` then allowed). Raises UserError naming the folder otherwise.
+    ``option`` sets the folder; ``given``: whether the user gave it (else the folder is the
+    command's default, named alone, and ``option`` is offered as the way elsewhere).
     """
     folder = Path(folder)
+    where = _named(folder, option, given)
     if folder.exists() and not folder.is_dir():
-        raise UserError(f"{option} {folder}: is a file; name a folder")
-    _writable_folder(folder, option)
+        raise UserError(f"{where}: is a file; name a folder")
+    _writable_folder(folder, where)
     if not folder.is_dir():
         return False
     present = sorted(p.name for p in folder.iterdir()) if earlier == ("*",) else \
@@ -89,22 +98,25 @@ def check_folder_target(folder: Path, earlier: tuple[str, ...], option: str = "-
     if present and not (resume or overwrite):
         shown = ", ".join(present[:4]) + (", ..." if len(present) > 4 else "")
         again = "--resume to continue it or " if what == "result" else ""
-        raise UserError(f"{option} {folder}: holds an earlier {what} ({shown}); pass {again}--overwrite to "
-                        "replace it, or choose another folder")
+        elsewhere = "choose another folder" if given else f"{option} to write elsewhere"
+        raise UserError(f"{where}: holds an earlier {what} ({shown}); pass {again}--overwrite to replace it, or "
+                        f"{elsewhere}")
     return bool(present)
 
 
-def check_file_target(path: Path, overwrite: bool, option: str = "--out") -> None:
+def check_file_target(path: Path, overwrite: bool, option: str = "--out", given: bool = True) -> None:
     """A file a command is about to write: its folder exists and is writable, and an existing file
-    there is replaced only with ``overwrite``."""
+    there is replaced only with ``overwrite``. ``option``, ``given``: as for ``check_folder_target``."""
     path = Path(path)
+    where = _named(path, option, given)
     if path.is_dir():
-        raise UserError(f"{option} {path}: is a folder; name a file")
+        raise UserError(f"{where}: is a folder; name a file")
     if not path.parent.is_dir():
-        raise UserError(f"{option} {path}: folder {path.parent} does not exist")
-    _probe_write(path.parent, f"{option} {path}")
+        raise UserError(f"{where}: folder {path.parent} does not exist")
+    _probe_write(path.parent, where)
     if path.exists() and not overwrite:
-        raise UserError(f"{option} {path}: exists; pass --overwrite to replace it")
+        elsewhere = "" if given else f", or {option} to write elsewhere"
+        raise UserError(f"{where}: exists; pass --overwrite to replace it{elsewhere}")
 
 
 def _partial_name(path: Path) -> Path:

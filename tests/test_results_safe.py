@@ -257,7 +257,13 @@ def test_export_and_report_refuse_to_overwrite(fitted, tmp_path, capsys):
     bvh = (fitted / "motion.bvh").read_bytes()  # mocap fit wrote it
     code, err = run(capsys, "export", fitted, "--format", "bvh", "--rest", "tpose")  # other bytes
     assert code == 2
-    one_error_line(err, "motion.bvh", "--overwrite")
+    # no --out given: the default file is named alone, and --out offered
+    assert one_error_line(err).endswith(f"error: {fitted / 'motion.bvh'}: exists; pass --overwrite to replace it, "
+                                        "or --out to write elsewhere")
+    code, err = run(capsys, "export", fitted, "--format", "bvh", "--rest", "tpose", "--out", fitted / "motion.bvh")
+    assert code == 2
+    assert one_error_line(err).endswith(f"error: --out {fitted / 'motion.bvh'}: exists; pass --overwrite to "
+                                        "replace it")
     assert (fitted / "motion.bvh").read_bytes() == bvh
     # the same bytes as the fit's: nothing to lose, so not refused
     assert run(capsys, "export", fitted, "--format", "bvh", "--quiet")[0] == 0
@@ -267,7 +273,8 @@ def test_export_and_report_refuse_to_overwrite(fitted, tmp_path, capsys):
     before = (fitted / "report.html").read_bytes()
     code, err = run(capsys, "report", fitted, "--no-pictures", "--quiet")
     assert code == 2
-    one_error_line(err, "report.html", "--overwrite")
+    assert one_error_line(err).endswith(f"error: {fitted / 'report.html'}: exists; pass --overwrite to replace "
+                                        "it, or --out to write elsewhere")
     assert (fitted / "report.html").read_bytes() == before
 
 

@@ -105,6 +105,7 @@ def _size(path: Path) -> int:
 def run(args) -> int:
     formats = list(dict.fromkeys(FORMATS if ALL in args.format else args.format))
     several = ALL in args.format or len(formats) > 1
+    given = args.out is not None  # else the targets are defaults, which errors name without --out
     result = load_result(args.result, args.sequence, args.fps)
     motion = result.motion
     if several:
@@ -112,7 +113,7 @@ def run(args) -> int:
         if not folder.exists() and folder.suffix.lower() in FILE_SUFFIXES:  # a file's name, for a folder
             raise UserError(f"--out {folder}: several formats are written into a folder, and this names a "
                             f"{folder.suffix} file; give a folder, or one format")
-        check_folder_target(folder, (), overwrite=True)  # a file, or not writable: refused
+        check_folder_target(folder, (), overwrite=True, given=given)  # a file, or not writable: refused
         folder.mkdir(parents=True, exist_ok=True)
         targets = [(f, folder / export_name(f)) for f in formats]
     else:
@@ -122,9 +123,9 @@ def run(args) -> int:
             if not path.parent.is_dir():  # as for a file: no folders made on the way
                 raise UserError(f"--out {path}: folder {path.parent} does not exist")
             check_folder_target(path, ("*",), overwrite=args.overwrite or _unchanged(fmt, path, motion, args.rest),
-                                what="export")
+                                what="export", given=given)
         else:
-            check_file_target(path, args.overwrite or _unchanged(fmt, path, motion, args.rest))
+            check_file_target(path, args.overwrite or _unchanged(fmt, path, motion, args.rest), given=given)
     written = []
     for fmt, path in targets:
         _write(fmt, path, motion, args.rest)

@@ -55,7 +55,7 @@ def run(args) -> int:
     missing = [f for f in frames or () if f not in fitted]
     if missing:
         raise UserError(f"--frames: frame {missing[0]} was not fitted (frames fitted: {frames_text(fitted)})")
-    check_file_target(args.out or args.result / REPORT_NAME, args.overwrite)
+    check_file_target(args.out or args.result / REPORT_NAME, args.overwrite, given=args.out is not None)
     if not args.no_pictures:
         check_folder_target(args.result / PICTURES_DIR, ("*",), option="pictures", overwrite=args.overwrite,
                             what="set of pictures")
