@@ -120,7 +120,8 @@ def add_cluster_arguments(p, server: bool) -> None:
         p.add_argument("--min-clients", type=argtypes.count(0), default=1,
                        help="clients to wait for before the first frame (default 1; 0: start at once)")
         p.add_argument("--curve-keys", type=Path, default=None, metavar="DIR",
-                       help="CURVE: DIR/server.key_secret, allowed client keys in DIR/clients/*.key")
+                       help="CURVE: DIR/server.key_secret, allowed client keys in DIR/clients/*.key (the folder "
+                            "mocap keys DIR makes)")
         p.add_argument("--insecure", action="store_true",
                        help="bind a network address without CURVE: any host that reaches it can join")
     p.add_argument("--client-timeout", type=argtypes.seconds, default=CLIENT_TIMEOUT,
