@@ -58,10 +58,10 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--refine-passes", type=count(0), default=FitOptions.refine_passes, metavar="N",
                    help="after tracking, fit every frame again N times, backwards then forwards alternately, each "
                         f"from its neighbour's fit, keeping the lower energy (default {FitOptions.refine_passes}; "
-                        "0: tracking only, half the time)")
+                        "0: tracking only, under half the time)")
     p.add_argument("--refine-search", action="store_true",
                    help="the first refinement pass also fits every frame from each limb's other basins, as a "
-                        "first frame is: more accurate, about nine times tracking's time (offline work)")
+                        "first frame is: more accurate, about eight times tracking's time (offline work)")
     p.add_argument("--refine-hops", type=count(0), default=FitOptions.refine_hops, metavar="N",
                    help="the first refinement pass also fits every frame by N hops: one chain moved at random, "
                         "then the whole body fitted at once, the lowest energy kept (basin hopping; 60: about a "
@@ -87,7 +87,7 @@ def add_fit_arguments(p) -> None:
                         "model is scaled to it; "
                         "auto (default): the model's own size when starting from the truth, else chosen by the "
                         f"first frame's silhouettes among {ACTOR_SCALES[0]:g}-{ACTOR_SCALES[-1]:g} times the model's "
-                        "1.66 m (printed with the result: a size far from 1 can mean a calibration in other units)")
+                        "1.67 m (printed with the result: a size far from 1 can mean a calibration in other units)")
     p.add_argument("--resume", action="store_true",
                    help="continue a result folder after a crash (with the options it was started with)")
     add_overwrite_argument(p)
