@@ -18,6 +18,7 @@ from common.calibration import load_calibration, save_calibration, studio_to_jso
 from common.camera import Studio, circle_studio
 from common.sequence import load_sequence
 from server.cli import main
+from server import frame_sources
 from server.commands import import_video
 
 imageio = pytest.importorskip("imageio.v2")
@@ -371,7 +372,7 @@ def test_an_ffmpeg_that_cannot_say_which_frames_are_lost(tmp_path, calib, capsys
     """Before 6.1 ffmpeg cannot say which decoded frame each output frame shows: a video that
     decodes shorter than its file declares is refused, as the place of its lost frames cannot be
     told, whatever --missing-frames says."""
-    monkeypatch.setattr(import_video, "_reports_frames", lambda: False)
+    monkeypatch.setattr(frame_sources, "_reports_frames", lambda: False)
     videos = {c: _write_video(tmp_path / f"{c}.avi", range(24), "mjpeg", noise_rows=8) for c in ("cam1", "cam2", "cam3")}
     _lose_frames(videos["cam2"], range(6, 10), headers=True)
     out = tmp_path / "seq"

@@ -27,7 +27,7 @@ from common.calibration import (
 from common.camera import Studio
 from common.errors import UserError, print_warning
 from common.world import UP_CHOICES, below_floor_warning, resolve_world
-from server.commands.import_video import FrameSource
+from server.frame_sources import FrameSource
 from server.output import (add_overwrite_argument, add_units_argument, check_file_target, check_folder_target,
                            replace_file, staged_folder)
 
