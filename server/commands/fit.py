@@ -61,7 +61,7 @@ def add_fit_arguments(p) -> None:
                         "0: tracking only, under half the time)")
     p.add_argument("--refine-search", action="store_true",
                    help="the first refinement pass also fits every frame from each limb's other basins, as a "
-                        "first frame is: more accurate, about eight times tracking's time (offline work)")
+                        "first frame is: about three times tracking's time (offline work)")
     p.add_argument("--refine-hops", type=count(0), default=FitOptions.refine_hops, metavar="N",
                    help="the first refinement pass also fits every frame by N hops: one chain moved at random, "
                         "then the whole body fitted at once, the lowest energy kept (basin hopping; 60: about a "
