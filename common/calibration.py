@@ -498,9 +498,15 @@ def folder_calibrations(folder) -> list[tuple[str, Path, str]]:
 def _refuse_several(folder: Path, found: list[tuple[str, Path, str]]) -> None:
     if len(found) > 1:
         easymocap = " (intri.yml for EasyMocap)" if any(kind == "easymocap" for kind, _, _ in found) else ""
-        raise CalibrationError(str(folder), "<folder>", f"holds {len(found)} calibrations: "
-                               + _and([what for _, _, what in found]) + f"; give the file to use{easymocap}, "
-                               "or move the others out of the folder")
+        refuse_calibrations(folder, [what for _, _, what in found],
+                            f"give the file to use{easymocap}, or move the others out of the folder")
+
+
+def refuse_calibrations(folder: Path, calibrations: list[str], advice: str) -> None:
+    """Raise CalibrationError: ``folder`` holds these (two or more) calibrations, and which was
+    meant (or last edited) is not ours to guess; ``advice`` says what to do."""
+    raise CalibrationError(str(folder), "<folder>", f"holds {len(calibrations)} calibrations: "
+                           f"{_and(calibrations)}; {advice}")
 
 
 def _and(items: list[str]) -> str:

@@ -9,9 +9,12 @@ from typing import Callable
 SHOWN_CHARS = 40  # of a bad value quoted in a message: enough to recognise it, short enough for one line
 
 
+WARNING_PREFIX = "warning: "  # how a warning line starts: mocap run finds its steps' warnings by it
+
+
 def print_warning(line: str) -> None:
     """A warning the user should see but that does not stop the run: one line on stderr."""
-    print(f"warning: {line}", file=sys.stderr)
+    print(f"{WARNING_PREFIX}{line}", file=sys.stderr)
 
 
 class UserError(Exception):

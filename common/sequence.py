@@ -39,8 +39,9 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from common.body import JOINT_NAMES, PARAM_NAMES
-from common.calibration import EASYMOCAP_FILES, MAX_IMAGE_PIXELS, load_calibration, natural_key, with_image_sizes
-from common.camera import CalibrationError, Studio
+from common.calibration import (EASYMOCAP_FILES, MAX_IMAGE_PIXELS, load_calibration, natural_key, refuse_calibrations,
+                                with_image_sizes)
+from common.camera import Studio
 from common.consistency import PROP_SAMPLES, StaticProps, static_props, supported_masks
 from common.errors import FieldChecks, InputFileError, UserError, print_warning
 from common.packing import pad_stack
@@ -215,9 +216,8 @@ class Sequence:
         self.mask_threshold = mask_threshold
         calibration = self.path / "calibration.json"
         easymocap = all((self.path / n).is_file() for n in EASYMOCAP_FILES)
-        if easymocap and calibration.exists():  # which one was last edited is not ours to guess
-            raise CalibrationError(str(self.path), "<folder>", "holds 2 calibrations: calibration.json and "
-                                   + " + ".join(EASYMOCAP_FILES) + "; keep one")
+        if easymocap and calibration.exists():
+            refuse_calibrations(self.path, [calibration.name, " + ".join(EASYMOCAP_FILES)], "keep one")
         if easymocap:
             self.user_studio: Studio = load_calibration(self.path, units, fmt="easymocap")
         else:

@@ -40,7 +40,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from common.errors import UserError
+from common.errors import WARNING_PREFIX, UserError
 from common.export import export_name
 from server.config import CONFIG_FILE, Config, load_config
 from server.output import write_text
@@ -447,9 +447,6 @@ class _Stderr(io.StringIO):
         return super().write(text)
 
 
-WARNING = "warning:"  # how the commands start a warning line on stderr (common.errors.print_warning)
-
-
 def run_mocap(argv: tuple[str, ...], log, warn=None) -> None:
     """One mocap command in this process, its output into ``log`` and each of its warning lines
     (without "warning: ") to ``warn``; a failure raises UserError with the command's one-line
@@ -464,8 +461,8 @@ def run_mocap(argv: tuple[str, ...], log, warn=None) -> None:
     log.write(f"$ mocap {' '.join(argv)}\n{text}")
     log.flush()
     for line in err.getvalue().splitlines():
-        if warn and line.startswith(WARNING):
-            warn(line[len(WARNING):].strip())
+        if warn and line.startswith(WARNING_PREFIX):
+            warn(line[len(WARNING_PREFIX):].strip())
     if code:
         errors = [line.split(": error: ", 1)[1] for line in text.splitlines() if ": error: " in line]
         raise UserError((errors or text.strip().splitlines() or ["failed"])[-1].strip())
@@ -528,7 +525,7 @@ def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, warnings: l
     def warn(line: str) -> None:
         warnings.append(line)
         if progress:
-            progress(step.name, f"{WARNING} {line}")
+            progress(step.name, f"{WARNING_PREFIX}{line}")
 
     for command in step.commands:
         if step.name == "fit":

@@ -219,9 +219,10 @@ def add_world_arguments(p) -> None:
                    help="fit the masks as they are (default: blobs the other cameras do not support are dropped)")
 
 
-def actor_model(model, seq, options, args, init: str):
+def actor_model(model, seq, options, args, init: str, threads: int = 0):
     """(the body model at the actor's size, the ``ActorSize`` search that chose it or None)
-    (``--actor-height``; auto: see ``choose_actor_scale``)."""
+    (``--actor-height``; auto: see ``choose_actor_scale``, on ``threads`` threads, 0: as
+    ``resolve_threads`` says)."""
     if args.actor_height != "auto":
         try:
             height = float(args.actor_height)
@@ -236,8 +237,7 @@ def actor_model(model, seq, options, args, init: str):
         return (model.scaled(scale) if scale != 1.0 else model), None
     if init == "truth":
         return model, None
-    # mocap server has no --threads: its size search runs on every core, as a fit's default
-    size = choose_actor_scale(model, seq, options, resolve_threads(getattr(args, "threads", 0), options))
+    size = choose_actor_scale(model, seq, options, resolve_threads(threads, options))
     if size.scale in (ACTOR_SCALES[0], ACTOR_SCALES[-1]):
         edge, beyond = ("largest", "larger") if size.scale == ACTOR_SCALES[-1] else ("smallest", "smaller")
         print_warning(f"actor size {size.scale:.2f} is the {edge} the size search tries ({ACTOR_SCALES[0]:g}-"
@@ -276,7 +276,7 @@ def run(args) -> int:
                         clean_masks=args.clean_masks)
     options = options_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
-    model, size = actor_model(base, seq, options, args, init)
+    model, size = actor_model(base, seq, options, args, init, args.threads)
     total = min(len(seq.frames), args.frames or len(seq.frames))
     bar = Progress("fit", total, enabled=None if not args.quiet else False)
     if args.clients == 0:

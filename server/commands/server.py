@@ -54,7 +54,8 @@ def run(args) -> int:
                                insecure=args.insecure)
         shutdown = None
         try:
-            # the actor's size as mocap fit chooses it, on this machine; the FRAMEs carry it to the clients
+            # the actor's size as mocap fit chooses it, on this machine's cores (mocap server has no
+            # --threads); the FRAMEs carry it to the clients
             model, size = actor_model(load_body_model(), seq, options, args, init)
             if args.min_clients > 0:
                 logging.getLogger("server.cluster").info("waiting for %d client(s) on %s", args.min_clients,
