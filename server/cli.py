@@ -19,7 +19,7 @@ ACTION_DESTS = ("calib_command", "config_command", "bench")  # the commands' own
 
 COMMAND_MODULES = (
     "calib", "synth", "fit", "server", "keys", "bench", "segment", "import_video", "voxels", "live", "export",
-    "report", "run", "batch", "config", "demo",
+    "report", "run", "batch", "config", "demo", "sync",
 )
 
 

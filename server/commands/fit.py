@@ -207,16 +207,18 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def add_world_arguments(p) -> None:
-    """--up and --mask-threshold: how a sequence's world and masks are read (fit, voxels, live, server)."""
+def add_world_arguments(p, clean: bool = True) -> None:
+    """--up and --mask-threshold: how a sequence's world and masks are read (fit, voxels, live,
+    server, sync); with ``clean`` also --no-clean-masks."""
     p.add_argument("--up", choices=UP_CHOICES, default="auto",
                    help="the calibration world's up axis (default auto: from the cameras, which stand above "
                         "the floor); fitting runs z up, results are written in the calibration's frame")
     p.add_argument("--mask-threshold", type=count(0, MAX_MASK_THRESHOLD - 1), default=None, metavar="N",
                    help="accept grey or colour images as silhouettes: pixels brighter than N are foreground "
                         "(8-bit images: 0-254; 16-bit: up to 65534; 1-bit masks need none)")
-    p.add_argument("--no-clean-masks", dest="clean_masks", action="store_false",
-                   help="fit the masks as they are (default: blobs the other cameras do not support are dropped)")
+    if clean:
+        p.add_argument("--no-clean-masks", dest="clean_masks", action="store_false",
+                       help="fit the masks as they are (default: blobs the other cameras do not support are dropped)")
 
 
 def actor_model(model, seq, options, args, init: str, threads: int = 0):

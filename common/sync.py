@@ -1,0 +1,196 @@
+"""Frame offsets between cameras, estimated from the silhouettes: which frames were taken together.
+
+Cameras without a shared clock start recording at different moments, and a video can lose a
+frame at its start; frame i of one camera then shows the moment of another's frame i + d.
+The silhouettes say which d: the visual hull of the other cameras at a moment projects onto a
+camera's silhouette of the same moment, and less well onto one taken a frame earlier or later,
+by as much as the actor moved in between. For each camera and each candidate offset d the
+agreement is measured over frames across the take:
+
+- the hull of the other cameras (a ``SYNC_GRID``-cell lattice in the box around the actor,
+  each point inside every other mask that sees it) is projected into the camera;
+- precision: the share of those points that fall inside the camera's mask of frame f + d;
+  recall: the share of that mask within a cell's radius of them; the agreement is their
+  harmonic mean (an F1 score), so a larger mask at another frame is not preferred for its size.
+
+Offsets move one camera at a time: every camera is judged against the others at their offsets
+so far, and the one whose best offset beats its present one most clearly (``margin``: the mean
+frame-by-frame gain over its standard error, above ``PEAK_Z``) takes it; then all are judged
+again, until none moves. A camera off by a few frames makes the others' hull wrong too, so two
+cameras off at once blur each other's peaks until the clearer one is put right. A camera's
+offset is ``resolved`` where its best also beats both neighbouring offsets by ``PEAK_Z``: a view
+along the actor's path (a walk towards the camera) changes too little from frame to frame to
+tell, and says so. Offsets are then stated against the median camera's (most cameras keep 0),
+in the convention of ``mocap import-video --offset``: camera c's frame i + offset_c was taken
+with the others' frame i.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.camera import Studio
+from common.consistency import HULL_EXTENT_M, _count_view, cell_radius_px, footprint, hull_box, image_points
+from common.voxels import silhouette_centre
+
+SYNC_GRID = 64         # lattice points per side of the 3 m box: 4.7 cm cells, under a forearm's width
+SYNC_FRAMES = 24       # frames across the take the agreement is averaged over
+MAX_OFFSET = 5         # frames either way tried by default
+PEAK_Z = 3.0           # standard errors by which the best offset must beat each neighbour, frame by frame
+TOLERANT_VIEWS = 4     # the others' hull lets a point miss one of their masks where this many see it
+
+
+@dataclass(frozen=True)
+class CameraSync:
+    """One camera's estimate: ``offset`` (its frame i + offset was taken with the others' frame
+    i); ``scores`` {offset: mean agreement 0..1} for every offset tried, against the others at
+    their offsets; ``resolved``: whether ``offset`` is the best and beats both neighbouring
+    offsets clearly, frame by frame (``peak``; where not, this view cannot tell the frames
+    apart: the actor moves along its line of sight, or not at all)."""
+
+    camera: str
+    offset: int
+    scores: dict
+    resolved: bool
+
+
+@dataclass(frozen=True)
+class SyncEstimate:
+    """Every camera's ``CameraSync`` in calibration order; ``frames``: the frame indices judged."""
+
+    cameras: tuple
+    frames: tuple
+
+    @property
+    def offsets(self) -> dict:
+        """{camera: offset} for every camera."""
+        return {c.camera: c.offset for c in self.cameras}
+
+    @property
+    def unresolved(self) -> list[str]:
+        """The cameras whose offset could not be told."""
+        return [c.camera for c in self.cameras if not c.resolved]
+
+
+def margin(per_frame: dict, a: int, b: int) -> float:
+    """How clearly offset ``a`` beats offset ``b``: the mean of their frame-by-frame difference in
+    agreement over its standard error (``per_frame`` {offset: (F,) agreements}); inf where every
+    frame gains the same, -inf where none is judged."""
+    gain = np.asarray(per_frame[a]) - np.asarray(per_frame[b])
+    if len(gain) < 2:
+        return -np.inf
+    error = gain.std(ddof=1) / np.sqrt(len(gain))
+    return float(gain.mean() / error) if error > 0 else (np.inf if gain.mean() > 0 else -np.inf)
+
+
+def peak(per_frame: dict) -> tuple[int, bool]:
+    """(the offset of the highest mean agreement, whether it beats both neighbouring offsets by
+    ``PEAK_Z`` standard errors, ``margin``); a tie goes to the offset nearer 0. A best offset at
+    the end of those tried is never sharp: the agreement may rise further beyond it."""
+    means = {d: float(np.mean(a)) if len(a) else 0.0 for d, a in per_frame.items()}
+    best = max(means, key=lambda d: (means[d], -abs(d)))
+    neighbours = (best - 1, best + 1)
+    return best, all(d in per_frame and margin(per_frame, best, d) > PEAK_Z for d in neighbours)
+
+
+def hull_lattice(centre: np.ndarray, grid: int = SYNC_GRID) -> np.ndarray:
+    """(grid^3, 3) lattice points of ``consistency.hull_box(centre)``, metres."""
+    lo, hi = hull_box(centre)
+    axes = [np.linspace(a, b, grid) for a, b in zip(lo, hi)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def others_hull(studio: Studio, masks: np.ndarray, camera: int, points: np.ndarray) -> np.ndarray:
+    """(m, 3) the points (n, 3) seen by at least two of the cameras other than ``camera`` and
+    inside every one of their masks (K, H, W) bool, or all but one where ``TOLERANT_VIEWS`` or
+    more see them: one camera still off (a view that barely changes cannot be synchronised by
+    its own agreement) must not carve the others' hull."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    misses = np.zeros(len(points), dtype=np.int64)
+    views = np.zeros(len(points), dtype=np.int64)
+    for k, (cam, mask) in enumerate(zip(studio, masks)):
+        if k != camera:
+            _count_view(points, cam.R, cam.t, cam.K, cam.dist, cam.has_distortion, cam.width, cam.height,
+                        np.ascontiguousarray(mask), misses, views, 1)
+    return points[(misses <= np.where(views >= TOLERANT_VIEWS, 1, 0)) & (views >= 2)]
+
+
+def agreement(mask: np.ndarray, pixels: np.ndarray, splat: np.ndarray) -> float:
+    """F1 of one camera's ``mask`` (H, W) bool against the hull's projected ``pixels`` (m, 2)
+    (column, row) and their ``splat`` (H, W) bool: 0 where either is empty."""
+    if len(pixels) == 0 or not mask.any():
+        return 0.0
+    precision = float(mask[pixels[:, 1], pixels[:, 0]].mean())
+    recall = float((mask & splat).sum() / mask.sum())
+    return 0.0 if precision + recall == 0 else 2 * precision * recall / (precision + recall)
+
+
+def camera_scores(studio: Studio, masks_at, camera: int, frames: list, shifts: list, candidates: range,
+                  grid: int = SYNC_GRID) -> dict:
+    """{d: (F,) agreements, one per frame judged} of camera ``camera`` for each offset d,
+    over the ``frames`` (indices) where the others' hull is seen, of
+    ``candidates``: the other cameras k at frame f + shifts[k] (their offsets so far), this one
+    at f + d. ``masks_at(i, shifts)`` -> (K, H, W) bool, camera k's mask of frame index
+    i + shifts[k]."""
+    cam = studio[camera]
+    shape = (cam.height, cam.width)
+    cell_m = HULL_EXTENT_M / (grid - 1)
+    agreements = {d: [] for d in candidates}
+    for f in frames:
+        others = masks_at(f, shifts)
+        centre = silhouette_centre(studio, others)
+        if centre is None:
+            continue
+        hull = others_hull(studio, others, camera, hull_lattice(centre, grid))
+        pixels = image_points(cam, hull)
+        if len(pixels) == 0:
+            continue
+        splat = footprint(pixels, shape, cell_radius_px(cam, hull, cell_m), square=True)
+        for d in candidates:
+            own = masks_at(f, [d if k == camera else 0 for k in range(len(studio))])[camera]
+            agreements[d].append(agreement(own[:cam.height, :cam.width], pixels, splat))
+    return {d: np.array(a) for d, a in agreements.items()}
+
+
+def judged_frames(count: int, max_offset: int, frames: int) -> list[int]:
+    """Up to ``frames`` indices evenly across 0..count-1 that stay inside the take whatever
+    offsets within ``max_offset`` the cameras are given. ValueError when none do."""
+    lo, hi = 2 * max_offset, count - 1 - 2 * max_offset  # a camera shifted and its candidate shifted
+    if hi < lo:
+        raise ValueError(f"{count} frames are too few to try offsets of up to {max_offset} frames: "
+                         f"at least {4 * max_offset + 1} are needed")
+    return sorted(set(np.linspace(lo, hi, min(frames, hi - lo + 1)).round().astype(int).tolist()))
+
+
+def estimate_offsets(studio: Studio, masks_at, count: int, max_offset: int = MAX_OFFSET,
+                     frames: int = SYNC_FRAMES, grid: int = SYNC_GRID) -> SyncEstimate:
+    """Every camera's frame offset (see the module docstring).
+
+    studio: the K cameras; masks_at(i, shifts) -> (K, H, W) bool, camera k's mask of frame
+    index i + shifts[k] (the padded stack of ``packing.pad_stack``); count: the frame indices
+    0..count-1 there are; max_offset: the offsets tried either way; ``frames`` indices judged
+    (``judged_frames``).
+    """
+    K = len(studio)
+    judged = judged_frames(count, max_offset, frames)
+    candidates = range(-max_offset, max_offset + 1)
+    shifts = [0] * K
+    for _ in range(K + 1):
+        per_frame = [camera_scores(studio, masks_at, k, judged, shifts, candidates, grid) for k in range(K)]
+        peaks = [peak(p) for p in per_frame]
+        # the camera whose best offset beats its present one most clearly moves, one a round: the
+        # others' hull then holds one camera fewer out of step, and their peaks sharpen
+        moves = [(margin(p, best, shifts[k]), k, best) for k, (p, (best, _)) in enumerate(zip(per_frame, peaks))
+                 if best != shifts[k]]
+        moves = [m for m in moves if m[0] > PEAK_Z]
+        if not moves:
+            break
+        _, k, best = max(moves)
+        shifts[k] = best
+    centre = int(np.median(shifts))  # the median camera keeps 0
+    cameras = tuple(CameraSync(cam.name, shifts[k] - centre,
+                               {d - centre: float(np.mean(a)) if len(a) else 0.0 for d, a in per_frame[k].items()},
+                               peaks[k][1] and peaks[k][0] == shifts[k])
+                    for k, cam in enumerate(studio))
+    return SyncEstimate(cameras, tuple(judged))

@@ -1,0 +1,140 @@
+"""Frame offsets between cameras from the silhouettes (common.sync, mocap sync)."""
+from __future__ import annotations
+
+import json
+import shutil
+from functools import lru_cache
+
+import numpy as np
+import pytest
+
+from common.sequence import load_sequence
+from common.sync import CameraSync, estimate_offsets, judged_frames, peak
+from server.cli import main
+
+from conftest import WALK_CLIP
+
+pytestmark = pytest.mark.timeout(240)
+
+FRAMES = 60
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory, model):
+    """A 60-frame walk, 6 cameras at 320x240, silhouettes as rendered (read-only)."""
+    from common.camera import circle_studio
+    from common.synth import SynthOptions, synthesize
+
+    out = tmp_path_factory.mktemp("sync") / "walk"
+    synthesize(model, circle_studio(6, 320, 240), WALK_CLIP, out,
+               SynthOptions(frames=FRAMES, start=1, step=4, noise="none", surface="skinned", seed=0))
+    return out
+
+
+def shifted_masks(seq, late: dict):
+    """masks_at(i, shifts) of ``seq`` as if camera k (index) had started ``late[k]`` frames late:
+    its frame j shows the others' frame j - late[k]."""
+    @lru_cache(maxsize=None)
+    def frame(i):
+        return seq.raw_silhouettes(seq.frames[min(max(i, 0), len(seq.frames) - 1)])
+
+    def masks_at(i, shifts):
+        return np.stack([frame(i + shifts[k] - late.get(k, 0))[k] for k in range(len(seq.studio))])
+    return masks_at
+
+
+def test_a_late_camera_is_found_and_the_others_kept(walk):
+    seq = load_sequence(walk, clean_masks=False)
+    estimate = estimate_offsets(seq.studio, shifted_masks(seq, {0: 2}), len(seq.frames))
+    assert estimate.cameras[0].resolved and estimate.cameras[0].offset == 2
+    assert all(c.offset == 0 for c in estimate.cameras[1:])
+    assert sum(c.resolved for c in estimate.cameras) >= 3  # the views across the walk tell frames apart
+    # in step, nothing moves: a camera that cannot tell keeps 0 and says so
+    in_step = estimate_offsets(seq.studio, shifted_masks(seq, {}), len(seq.frames))
+    assert in_step.offsets == {c.name: 0 for c in seq.studio}
+    assert [c.camera for c in in_step.cameras if not c.resolved] == in_step.unresolved
+
+
+def test_two_cameras_off_either_way(walk):
+    seq = load_sequence(walk, clean_masks=False)
+    estimate = estimate_offsets(seq.studio, shifted_masks(seq, {0: -3, 3: 2}), len(seq.frames))
+    assert estimate.offsets["cam1"] == -3 and estimate.offsets["cam4"] == 2
+    assert all(c.offset == 0 for k, c in enumerate(estimate.cameras) if k not in (0, 3))
+
+
+def test_a_still_actor_tells_nothing(walk):
+    seq = load_sequence(walk, clean_masks=False)
+    still = seq.raw_silhouettes(seq.frames[0])
+    estimate = estimate_offsets(seq.studio, lambda i, shifts: still, len(seq.frames))
+    assert all(not c.resolved and c.offset == 0 for c in estimate.cameras)
+
+
+def test_the_peak_must_beat_its_neighbours_frame_by_frame():
+    clear = {-1: np.array([0.5, 0.52, 0.51]), 0: np.array([0.6, 0.61, 0.62]), 1: np.array([0.55, 0.56, 0.57])}
+    assert peak(clear) == (0, True)
+    noisy = {-1: np.array([0.5, 0.7, 0.5]), 0: np.array([0.6, 0.6, 0.61]), 1: np.array([0.7, 0.5, 0.5])}
+    assert peak(noisy) == (0, False)
+    at_edge = {0: np.array([0.5, 0.51]), 1: np.array([0.6, 0.62])}  # the last offset tried: it may rise beyond
+    assert peak(at_edge) == (1, False)
+    tie = {-1: np.array([0.6, 0.6]), 0: np.array([0.5, 0.5]), 1: np.array([0.6, 0.6])}
+    assert peak(tie)[0] == -1  # the same score either side: the first found nearest 0
+    assert CameraSync("cam1", 0, {0: 0.5}, False).resolved is False
+
+
+def test_judged_frames_stay_inside_the_take():
+    frames = judged_frames(60, 5, 24)
+    assert frames[0] >= 10 and frames[-1] <= 49 and len(frames) == 24
+    with pytest.raises(ValueError, match="at least 21"):
+        judged_frames(20, 5, 24)
+
+
+def late_copy(walk, tmp_path, camera: str, late: int):
+    """A copy of the walk whose ``camera`` started ``late`` frames late (its files renumbered)."""
+    out = tmp_path / "late"
+    shutil.copytree(walk, out)
+    folder = out / "silhouettes" / camera
+    names = sorted(folder.iterdir())
+    frames = [p.read_bytes() for p in names]
+    for j, path in enumerate(names):
+        path.write_bytes(frames[min(max(j - late, 0), len(frames) - 1)])
+    return out
+
+
+def test_mocap_sync_prints_the_offset_to_import_with(walk, tmp_path, capsys):
+    seq = late_copy(walk, tmp_path, "cam1", 2)
+    assert main(["sync", str(seq)]) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].startswith("cam1  +2  agreement")
+    assert "import again with: --offset cam1=2" in out
+    assert main(["sync", str(seq), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["offsets"]["cam1"] == 2 and report["frame_spacing"] == 1
+    assert all(report["offsets"][c] in (0, None) for c in ("cam2", "cam3", "cam4", "cam5", "cam6"))
+    assert {c for c, o in report["offsets"].items() if o is None} <= set(report["unresolved"])
+
+
+def test_mocap_sync_counts_offsets_in_the_sequences_frames(walk, tmp_path, capsys):
+    seq = late_copy(walk, tmp_path, "cam1", 2)
+    meta = json.loads((seq / "sequence.json").read_text())
+    meta["frames"] = meta["frames"][::2]  # every other frame: cam1 is one step late
+    (seq / "sequence.json").write_text(json.dumps(meta))
+    assert main(["sync", str(seq), "--max-offset", "3", "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["frame_spacing"] == 2 and report["offsets"]["cam1"] == 2
+
+
+def test_mocap_sync_bad_input(walk, tmp_path, capsys):
+    seq = tmp_path / "seq"
+    shutil.copytree(walk, seq)
+    assert main(["sync", str(seq), "--max-offset", "20"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "too few to try offsets of up to 20 frames" in err and "--max-offset" in err
+    meta = json.loads((seq / "sequence.json").read_text())
+    meta["frames"] = [0, 1, 2, 4, *range(5, 40)]
+    (seq / "sequence.json").write_text(json.dumps(meta))
+    assert main(["sync", str(seq)]) == 2
+    err = capsys.readouterr().err
+    assert "sequence.json" in err and "not evenly spaced" in err and "Traceback" not in err
+    shutil.rmtree(seq / "silhouettes")
+    assert main(["sync", str(seq)]) == 2
+    assert "silhouettes" in capsys.readouterr().err
