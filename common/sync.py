@@ -15,7 +15,7 @@ agreement is measured over frames across the take:
 
 Offsets move one camera at a time: every camera is judged against the others at their offsets
 so far, and the one whose best offset beats its present one most clearly (``margin``: the mean
-frame-by-frame gain over its standard error, above ``PEAK_Z``) takes it; then all are judged
+frame-by-frame gain over its standard error, above ``MOVE_Z``) takes it; then all are judged
 again, until none moves. A camera off by a few frames makes the others' hull wrong too, so two
 cameras off at once blur each other's peaks until the clearer one is put right. A camera's
 offset is ``resolved`` where its best also beats both neighbouring offsets by ``PEAK_Z``: a view
@@ -38,6 +38,9 @@ SYNC_GRID = 64         # lattice points per side of the 3 m box: 4.7 cm cells, u
 SYNC_FRAMES = 24       # frames across the take the agreement is averaged over
 MAX_OFFSET = 5         # frames either way tried by default
 PEAK_Z = 3.0           # standard errors by which the best offset must beat each neighbour, frame by frame
+MOVE_Z = 6.0           # ... and by which a camera's best must beat its present offset for it to move: a
+                       # camera put 2-4 frames out of step in a walk beats 0 by 8-21, a camera in step that
+                       # leans to a neighbouring offset by under 4 (tools/sync_trials.py)
 TOLERANT_VIEWS = 4     # the others' hull lets a point miss one of their masks where this many see it
 
 
@@ -183,7 +186,7 @@ def estimate_offsets(studio: Studio, masks_at, count: int, max_offset: int = MAX
         # others' hull then holds one camera fewer out of step, and their peaks sharpen
         moves = [(margin(p, best, shifts[k]), k, best) for k, (p, (best, _)) in enumerate(zip(per_frame, peaks))
                  if best != shifts[k]]
-        moves = [m for m in moves if m[0] > PEAK_Z]
+        moves = [m for m in moves if m[0] > MOVE_Z]
         if not moves:
             break
         _, k, best = max(moves)

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import shutil
-from functools import lru_cache
 
 import numpy as np
 import pytest
@@ -12,7 +11,7 @@ from common.sequence import load_sequence
 from common.sync import CameraSync, estimate_offsets, judged_frames, peak
 from server.cli import main
 
-from conftest import WALK_CLIP
+from conftest import WALK_CLIP, load_tool
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -31,16 +30,8 @@ def walk(tmp_path_factory, model):
     return out
 
 
-def shifted_masks(seq, late: dict):
-    """masks_at(i, shifts) of ``seq`` as if camera k (index) had started ``late[k]`` frames late:
-    its frame j shows the others' frame j - late[k]."""
-    @lru_cache(maxsize=None)
-    def frame(i):
-        return seq.raw_silhouettes(seq.frames[min(max(i, 0), len(seq.frames) - 1)])
-
-    def masks_at(i, shifts):
-        return np.stack([frame(i + shifts[k] - late.get(k, 0))[k] for k in range(len(seq.studio))])
-    return masks_at
+TRIALS = load_tool("sync_trials")  # a camera put out of step in memory or in a copy, as the trials do
+shifted_masks = TRIALS.late_masks
 
 
 def test_a_late_camera_is_found_and_the_others_kept(walk):
@@ -90,14 +81,8 @@ def test_judged_frames_stay_inside_the_take():
 
 def late_copy(walk, tmp_path, camera: str, late: int):
     """A copy of the walk whose ``camera`` started ``late`` frames late (its files renumbered)."""
-    out = tmp_path / "late"
-    shutil.copytree(walk, out)
-    folder = out / "silhouettes" / camera
-    names = sorted(folder.iterdir())
-    frames = [p.read_bytes() for p in names]
-    for j, path in enumerate(names):
-        path.write_bytes(frames[min(max(j - late, 0), len(frames) - 1)])
-    return out
+    TRIALS.late_copy(walk, tmp_path / "late", camera, late)
+    return tmp_path / "late"
 
 
 def test_mocap_sync_prints_the_offset_to_import_with(walk, tmp_path, capsys):

@@ -43,17 +43,18 @@ def late_masks(seq, late: dict):
 
 
 VERDICTS = ("sharp and right", "right, not sharp", "not told", "wrong, not sharp", "wrong and sharp")
+IN_STEP = ("in step given an offset", "in step given an offset, not sharp")
 
 
 def judge(estimate, late: dict) -> list[str]:
-    """A verdict (``VERDICTS``) for each camera put out of step, and "in step given an offset"
-    for each camera in step that was given one (sharp or not)."""
+    """A verdict (``VERDICTS``) for each camera put out of step, and for each camera in step
+    that was given an offset "in step given an offset" (sharp) or "... not sharp"."""
     verdicts = []
     for k, c in enumerate(estimate.cameras):
         truth = late.get(k, 0)
         if k not in late:
             if c.offset:
-                verdicts.append("in step given an offset")
+                verdicts.append(IN_STEP[0] if c.resolved else IN_STEP[1])
         elif c.offset == truth:
             verdicts.append(VERDICTS[0] if c.resolved else VERDICTS[1])
         elif c.offset == 0 and not c.resolved:
@@ -64,6 +65,8 @@ def judge(estimate, late: dict) -> list[str]:
 
 
 def late_copy(src: Path, out: Path, camera: str, late: int) -> None:
+    """A copy of the sequence ``src`` at ``out`` whose ``camera`` started ``late`` frames late: its
+    silhouette files renumbered, the first (or last) frame repeated where none is left."""
     shutil.copytree(src, out)
     folder = out / "silhouettes" / camera
     names = sorted(folder.iterdir())
@@ -91,7 +94,7 @@ def main(argv=None) -> None:
     if args.pairs:
         trials += [{a: n, b: offsets[(i + 1) % len(offsets)]}
                    for a, b in itertools.combinations(range(len(names)), 2) for i, n in enumerate(offsets)]
-    counts = {v: 0 for v in (*VERDICTS, "in step given an offset")}
+    counts = {v: 0 for v in (*VERDICTS, *IN_STEP)}
     t0 = time.perf_counter()
     for late in trials:
         estimate = estimate_offsets(seq.studio, late_masks(seq, late), len(seq.frames))
@@ -102,7 +105,7 @@ def main(argv=None) -> None:
         print(f"{', '.join(f'{names[k]} {n:+d}' for k, n in late.items()):<20} {'; '.join(verdicts):<36} {given}",
               flush=True)
     print(f"{len(trials)} trials, cameras out of step: " + ", ".join(f"{counts[v]} {v}" for v in VERDICTS)
-          + f"; cameras in step given an offset: {counts['in step given an offset']}; "
+          + f"; cameras in step given an offset: {counts[IN_STEP[0]]} sharp, {counts[IN_STEP[1]]} not sharp; "
           f"{(time.perf_counter() - t0) / len(trials):.1f} s a trial")
 
 if __name__ == "__main__":

@@ -151,10 +151,11 @@ def _common_range(frames: dict[str, list[int]], offsets: dict[str, int]) -> tupl
     if cut > MAX_TRIM_FRAMES or cut > MAX_TRIM_FRACTION * longest:
         raise UserError(f"--video: frame counts differ between cameras: {listing()} (more than "
                         f"{MAX_TRIM_FRAMES} frames or {MAX_TRIM_FRACTION:.0%} apart; a truncated file? "
-                        "a late start is --offset)")
+                        "a late start is --offset, which mocap sync finds)")
     warning = None
     if cut:
-        warning = f"recordings differ in length ({listing()} frames); using the frames {lo}..{hi - 1} all cameras have"
+        warning = (f"recordings differ in length ({listing()} frames); using the frames {lo}..{hi - 1} all cameras "
+                   f"have (a camera that started late is out of step: mocap sync finds its --offset)")
     return lo, hi, warning
 
 
