@@ -32,6 +32,7 @@ import numpy as np
 
 from common.camera import Studio
 from common.consistency import HULL_EXTENT_M, _count_view, cell_radius_px, footprint, hull_box, image_points
+from common.packing import pad_stack
 from common.voxels import silhouette_centre
 
 SYNC_GRID = 64         # lattice points per side of the 3 m box: 4.7 cm cells, under a forearm's width
@@ -129,19 +130,23 @@ def agreement(mask: np.ndarray, pixels: np.ndarray, splat: np.ndarray) -> float:
     return 0.0 if precision + recall == 0 else 2 * precision * recall / (precision + recall)
 
 
-def camera_scores(studio: Studio, masks_at, camera: int, frames: list, shifts: list, candidates: range,
+def camera_scores(studio: Studio, mask_of, camera: int, frames: list, shifts: list, candidates: range,
                   grid: int = SYNC_GRID) -> dict:
-    """{d: (F,) agreements, one per frame judged} of camera ``camera`` for each offset d,
-    over the ``frames`` (indices) where the others' hull is seen, of
-    ``candidates``: the other cameras k at frame f + shifts[k] (their offsets so far), this one
-    at f + d. ``masks_at(i, shifts)`` -> (K, H, W) bool, camera k's mask of frame index
-    i + shifts[k]."""
+    """{d: (F,) agreements} of camera ``camera`` at each offset d of ``candidates``: at each of
+    ``frames`` (indices) f, the other cameras k at frame f + shifts[k] (their offsets so far)
+    against this one at f + d. ``mask_of(k, i)`` -> camera k's (h_k, w_k) bool mask of frame
+    index i, or None where it lacks that frame; a frame where a mask is missing, or the others'
+    hull is not seen, is left out (for every d alike)."""
     cam = studio[camera]
     shape = (cam.height, cam.width)
     cell_m = HULL_EXTENT_M / (grid - 1)
     agreements = {d: [] for d in candidates}
     for f in frames:
-        others = masks_at(f, shifts)
+        views = [mask_of(k, f + shifts[k]) for k in range(len(studio))]
+        own = [mask_of(camera, f + d) for d in candidates]
+        if any(v is None for v in views) or any(m is None for m in own):
+            continue
+        others = pad_stack(views)
         centre = silhouette_centre(studio, others)
         if centre is None:
             continue
@@ -150,9 +155,8 @@ def camera_scores(studio: Studio, masks_at, camera: int, frames: list, shifts: l
         if len(pixels) == 0:
             continue
         splat = footprint(pixels, shape, cell_radius_px(cam, hull, cell_m), square=True)
-        for d in candidates:
-            own = masks_at(f, [d if k == camera else 0 for k in range(len(studio))])[camera]
-            agreements[d].append(agreement(own[:cam.height, :cam.width], pixels, splat))
+        for d, mask in zip(candidates, own):
+            agreements[d].append(agreement(mask, pixels, splat))
     return {d: np.array(a) for d, a in agreements.items()}
 
 
@@ -166,13 +170,13 @@ def judged_frames(count: int, max_offset: int, frames: int) -> list[int]:
     return sorted(set(np.linspace(lo, hi, min(frames, hi - lo + 1)).round().astype(int).tolist()))
 
 
-def estimate_offsets(studio: Studio, masks_at, count: int, max_offset: int = MAX_OFFSET,
+def estimate_offsets(studio: Studio, mask_of, count: int, max_offset: int = MAX_OFFSET,
                      frames: int = SYNC_FRAMES, grid: int = SYNC_GRID) -> SyncEstimate:
     """Every camera's frame offset (see the module docstring).
 
-    studio: the K cameras; masks_at(i, shifts) -> (K, H, W) bool, camera k's mask of frame
-    index i + shifts[k] (the padded stack of ``packing.pad_stack``); count: the frame indices
-    0..count-1 there are; max_offset: the offsets tried either way; ``frames`` indices judged
+    studio: the K cameras; mask_of(k, i) -> camera k's (h_k, w_k) bool mask of frame index i,
+    or None where it lacks that frame (``camera_scores``); count: the frame indices 0..count-1
+    there are; max_offset: the offsets tried either way; ``frames`` indices judged
     (``judged_frames``).
     """
     K = len(studio)
@@ -180,7 +184,7 @@ def estimate_offsets(studio: Studio, masks_at, count: int, max_offset: int = MAX
     candidates = range(-max_offset, max_offset + 1)
     shifts = [0] * K
     for _ in range(K + 1):
-        per_frame = [camera_scores(studio, masks_at, k, judged, shifts, candidates, grid) for k in range(K)]
+        per_frame = [camera_scores(studio, mask_of, k, judged, shifts, candidates, grid) for k in range(K)]
         peaks = [peak(p) for p in per_frame]
         # the camera whose best offset beats its present one most clearly moves, one a round: the
         # others' hull then holds one camera fewer out of step, and their peaks sharpen

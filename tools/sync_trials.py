@@ -31,15 +31,18 @@ from common.sequence import load_sequence  # noqa: E402
 from common.sync import estimate_offsets  # noqa: E402
 
 
-def late_masks(seq, late: dict):
-    """masks_at(i, shifts) of ``seq`` as if camera index k started ``late[k]`` frames late."""
+def late_mask_of(seq, late: dict):
+    """mask_of(k, i) (``common.sync.estimate_offsets``) of ``seq`` as if camera index k started
+    ``late[k]`` frames late: its frame i shows the others' frame i - late[k] (the first or last
+    frame where that is outside the take)."""
     @lru_cache(maxsize=None)
     def frame(i):
         return seq.raw_silhouettes(seq.frames[min(max(i, 0), len(seq.frames) - 1)])
 
-    def masks_at(i, shifts):
-        return np.stack([frame(i + shifts[k] - late.get(k, 0))[k] for k in range(len(seq.studio))])
-    return masks_at
+    def mask_of(k, i):
+        cam = seq.studio[k]
+        return frame(i - late.get(k, 0))[k, :cam.height, :cam.width]
+    return mask_of
 
 
 VERDICTS = ("sharp and right", "right, not sharp", "not told", "wrong, not sharp", "wrong and sharp")
@@ -97,7 +100,7 @@ def main(argv=None) -> None:
     counts = {v: 0 for v in (*VERDICTS, *IN_STEP)}
     t0 = time.perf_counter()
     for late in trials:
-        estimate = estimate_offsets(seq.studio, late_masks(seq, late), len(seq.frames))
+        estimate = estimate_offsets(seq.studio, late_mask_of(seq, late), len(seq.frames))
         verdicts = judge(estimate, late)
         for v in verdicts:
             counts[v] += 1

@@ -15,7 +15,6 @@ import numpy as np
 
 from common.argtypes import count
 from common.errors import InputFileError, UserError
-from common.packing import pad_stack
 from common.sequence import load_sequence
 from common.sync import MAX_OFFSET, SYNC_FRAMES, estimate_offsets, judged_frames
 from server.commands.fit import add_world_arguments
@@ -40,13 +39,10 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def frame_spacing(frames: list[int], where: Path) -> int:
-    """The sequence's one distance between frame numbers. InputFileError where it has more."""
-    steps = set(np.diff(frames).tolist())
-    if len(steps) != 1:
-        raise InputFileError(where / "sequence.json", f"frames: not evenly spaced ({', '.join(map(str, sorted(steps)[:5]))} "
-                                                      f"apart): offsets are counted in frames of one spacing")
-    return steps.pop()
+def frame_spacing(frames: list[int]) -> int:
+    """The step of the sequence's frame numbers: their differences' greatest common divisor (a
+    ``--step 10`` import: 10, with frames some camera lacked left out)."""
+    return int(np.gcd.reduce(np.diff(frames))) if len(frames) > 1 else 1
 
 
 def run(args) -> int:
@@ -57,28 +53,29 @@ def run(args) -> int:
         raise UserError(f"{seq.path}: {len(seq.studio)} cameras: a camera is judged against the visual hull of "
                         f"at least two others")
     frames = seq.frames
-    spacing = frame_spacing(frames, seq.path) if len(frames) > 1 else 1
+    spacing = frame_spacing(frames)
+    count = (frames[-1] - frames[0]) // spacing + 1  # indices on the frames' grid, missing ones too
     try:
-        judged_frames(len(frames), args.max_offset, args.frames)
+        judged_frames(count, args.max_offset, args.frames)
     except ValueError as exc:
         raise UserError(f"{seq.path}: {exc} (--max-offset)") from None
-    cache: dict[int, list] = {}
+    present = set(frames)
+    cache: dict[tuple[int, int], np.ndarray] = {}
 
-    def masks_at(i: int, shifts: list) -> np.ndarray:
-        views = []
-        for k, cam in enumerate(seq.studio):
-            frame = frames[i + shifts[k]]
-            if frame not in cache:
-                cache[frame] = [seq.mask(c, frame) for c in seq.studio]
-            views.append(cache[frame][k])
-        return pad_stack(views)
+    def mask_of(k: int, i: int) -> np.ndarray | None:
+        frame = frames[0] + i * spacing
+        if frame not in present or not 0 <= i < count:
+            return None
+        if (k, frame) not in cache:
+            cache[k, frame] = seq.mask(seq.studio[k], frame)
+        return cache[k, frame]
 
-    estimate = estimate_offsets(seq.studio, masks_at, len(frames), args.max_offset, args.frames)
+    estimate = estimate_offsets(seq.studio, mask_of, count, args.max_offset, args.frames)
     # a camera that cannot tell and was never moved has no offset to give
     offsets = {c.camera: c.offset * spacing if c.resolved or c.offset else None for c in estimate.cameras}
     if args.json:
         print(json.dumps({"offsets": offsets, "unresolved": estimate.unresolved, "frame_spacing": spacing,
-                          "frames_judged": [frames[i] for i in estimate.frames],
+                          "frames_judged": [frames[0] + i * spacing for i in estimate.frames],
                           "agreement": {c.camera: {str(d * spacing): round(s, 4) for d, s in c.scores.items()}
                                         for c in estimate.cameras}}, indent=1))
         return 0
