@@ -1,8 +1,9 @@
 """Frame offsets between cameras, estimated from the silhouettes: which frames were taken together.
 
 Cameras without a shared clock start recording at different moments, and a video can lose a
-frame at its start; frame i of one camera then shows the moment of another's frame i + d.
-The silhouettes say which d: the visual hull of the other cameras at a moment projects onto a
+frame at its start; camera c's frame i + d_c then shows the moment of the others' frame i (a
+camera that started recording two frames before the others: d_c = 2; one whose first two
+frames were lost: -2). The silhouettes say which d: the visual hull of the other cameras at a moment projects onto a
 camera's silhouette of the same moment, and less well onto one taken a frame earlier or later,
 by as much as the actor moved in between. For each camera and each candidate offset d the
 agreement is measured over frames across the take:
@@ -20,7 +21,7 @@ again, until none moves. A camera off by a few frames makes the others' hull wro
 cameras off at once blur each other's peaks until the clearer one is put right. A camera's
 offset is ``resolved`` where its best also beats both neighbouring offsets by ``PEAK_Z``: a view
 along the actor's path (a walk towards the camera) changes too little from frame to frame to
-tell, and says so. Offsets are then stated against the median camera's (most cameras keep 0),
+tell, and says so. Offsets are then stated against the offset most cameras share (mostly 0),
 in the convention of ``mocap import-video --offset``: camera c's frame i + offset_c was taken
 with the others' frame i.
 """
@@ -57,11 +58,13 @@ class CameraSync:
     offset: int
     scores: dict
     resolved: bool
+    judged: int = 0  # frames its agreement was measured in (those whose masks all exist)
 
 
 @dataclass(frozen=True)
 class SyncEstimate:
-    """Every camera's ``CameraSync`` in calibration order; ``frames``: the frame indices judged."""
+    """Every camera's ``CameraSync`` in calibration order; ``frames``: the frame indices tried
+    (each camera's ``judged`` says how many of them had every mask needed)."""
 
     cameras: tuple
     frames: tuple
@@ -96,6 +99,12 @@ def peak(per_frame: dict) -> tuple[int, bool]:
     best = max(means, key=lambda d: (means[d], -abs(d)))
     neighbours = (best - 1, best + 1)
     return best, all(d in per_frame and margin(per_frame, best, d) > PEAK_Z for d in neighbours)
+
+
+def most_common(shifts: list[int]) -> int:
+    """The shift most cameras have (a tie: 0 where it is among them, else the one nearest 0)."""
+    counts = {s: shifts.count(s) for s in shifts}
+    return max(counts, key=lambda s: (counts[s], s == 0, -abs(s)))
 
 
 def hull_lattice(centre: np.ndarray, grid: int = SYNC_GRID) -> np.ndarray:
@@ -183,7 +192,8 @@ def estimate_offsets(studio: Studio, mask_of, count: int, max_offset: int = MAX_
     judged = judged_frames(count, max_offset, frames)
     candidates = range(-max_offset, max_offset + 1)
     shifts = [0] * K
-    for _ in range(K + 1):
+    moved = 0
+    while True:
         per_frame = [camera_scores(studio, mask_of, k, judged, shifts, candidates, grid) for k in range(K)]
         peaks = [peak(p) for p in per_frame]
         # the camera whose best offset beats its present one most clearly moves, one a round: the
@@ -191,13 +201,14 @@ def estimate_offsets(studio: Studio, mask_of, count: int, max_offset: int = MAX_
         moves = [(margin(p, best, shifts[k]), k, best) for k, (p, (best, _)) in enumerate(zip(per_frame, peaks))
                  if best != shifts[k]]
         moves = [m for m in moves if m[0] > MOVE_Z]
-        if not moves:
+        if not moves or moved > K:  # every camera once and one more: judged again after the last move
             break
         _, k, best = max(moves)
         shifts[k] = best
-    centre = int(np.median(shifts))  # the median camera keeps 0
+        moved += 1
+    centre = most_common(shifts)  # the offsets stated against the cameras most of which agree
     cameras = tuple(CameraSync(cam.name, shifts[k] - centre,
                                {d - centre: float(np.mean(a)) if len(a) else 0.0 for d, a in per_frame[k].items()},
-                               peaks[k][1] and peaks[k][0] == shifts[k])
+                               peaks[k][1] and peaks[k][0] == shifts[k], min(len(a) for a in per_frame[k].values()))
                     for k, cam in enumerate(studio))
     return SyncEstimate(cameras, tuple(judged))

@@ -34,7 +34,7 @@ TRIALS = load_tool("sync_trials")  # a camera put out of step in memory or in a 
 late_mask_of = TRIALS.late_mask_of
 
 
-def test_a_late_camera_is_found_and_the_others_kept(walk):
+def test_a_camera_out_of_step_is_found_and_the_others_kept(walk):
     seq = load_sequence(walk, clean_masks=False)
     estimate = estimate_offsets(seq.studio, late_mask_of(seq, {0: 2}), len(seq.frames))
     assert estimate.cameras[0].resolved and estimate.cameras[0].offset == 2
@@ -80,7 +80,7 @@ def test_judged_frames_stay_inside_the_take():
 
 
 def late_copy(walk, tmp_path, camera: str, late: int):
-    """A copy of the walk whose ``camera`` started ``late`` frames late (its files renumbered)."""
+    """A copy of the walk whose ``camera`` is out of step by ``late`` (file j holds frame j - late)."""
     TRIALS.late_copy(walk, tmp_path / "late", camera, late)
     return tmp_path / "late"
 
@@ -129,3 +129,38 @@ def test_mocap_sync_with_frames_left_out(walk, tmp_path, capsys):
     assert main(["sync", str(seq), "--json"]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["frame_spacing"] == 1 and report["offsets"]["cam1"] == 2
+
+
+def estimate_of(*cameras):
+    """A SyncEstimate of (name, offset, resolved, judged) cameras, scores peaked at the offset."""
+    from common.sync import SyncEstimate
+
+    return SyncEstimate(tuple(CameraSync(n, o, {d: 0.9 - 0.05 * abs(d - o) for d in range(-3, 4)}, r, j)
+                              for n, o, r, j in cameras), tuple(range(24)))
+
+
+def test_what_sync_prints_to_import_with():
+    from server.commands.sync import report, report_lines
+
+    found = estimate_of(("cam1", 0, True, 24), ("cam2", 2, True, 24), ("cam3", 0, True, 24), ("cam4", 0, False, 24))
+    lines = report_lines(found, 1, {"cam2": -10, "cam3": 1}, 3)
+    # the offset to import with is the import's and the one found together; the others' kept
+    assert lines[-1] == "import again with: --offset cam2=-8 cam3=1"
+    assert report(found, 1, {"cam2": -10}, 3, 0)["import_offsets"] == {"cam1": 0, "cam2": -8, "cam3": 0}
+    # two cameras that tell: either may be the one out of step
+    two = estimate_of(("cam1", 0, True, 24), ("cam2", 0, False, 24), ("cam3", 1, True, 24), ("cam4", 0, False, 24))
+    lines = report_lines(two, 1, {}, 3)
+    assert "only 2 cameras tell their offset" in lines[-2] and lines[-1].startswith("not sharp, check by eye")
+    # the best at the end of the offsets tried, and frames that could not be judged
+    edge = estimate_of(("cam1", 3, False, 24), ("cam2", 0, True, 24), ("cam3", 0, True, 1), ("cam4", 0, True, 24))
+    lines = report_lines(edge, 1, {}, 3)
+    assert "try a larger --max-offset" in lines[0] and "no frame to judge" in lines[2]
+
+
+def test_offsets_are_stated_against_the_most_common():
+    from common.sync import most_common
+
+    assert most_common([0, 0, 0, 0, 2, 2, 2, 2]) == 0
+    assert most_common([0, 0, 0, 1, 2, 3, 4, 5]) == 0
+    assert most_common([3, 3, 3, 0, 1]) == 3
+    assert most_common([2, 2, -1, -1]) == -1

@@ -3,14 +3,15 @@
     python tools/sync_trials.py SEQUENCE [--offsets -3,-1,2,4] [--pairs]
     python tools/sync_trials.py SEQUENCE --late-copy CAM=N --out DIR
 
-Trials: each camera in turn is put N frames late (its frame j shows the others' frame j - N,
-for each N of --offsets; with --pairs also every pair of cameras, the second at the next offset
+Trials: each camera in turn is put N frames out of step (its frame j shows the others' frame
+j - N, as if it had started recording N frames before them: its offset is N; for each N of
+--offsets; with --pairs also every pair of cameras, the second at the next offset
 of the list) and ``common.sync.estimate_offsets`` is run. Each camera out of step gets a verdict
 (``VERDICTS``: its offset found sharp, found but not sharp, not told, or wrong), and a camera in
 step that was given an offset is counted. Prints one line per trial and the counts.
 
---late-copy writes a copy of SEQUENCE with camera CAM's silhouettes renumbered N frames late,
-to fit and compare with the sequence in step.
+--late-copy writes a copy of SEQUENCE with camera CAM's silhouettes renumbered so (file j holds
+frame j - N), to fit and compare with the sequence in step.
 """
 from __future__ import annotations
 
@@ -32,9 +33,9 @@ from common.sync import estimate_offsets  # noqa: E402
 
 
 def late_mask_of(seq, late: dict):
-    """mask_of(k, i) (``common.sync.estimate_offsets``) of ``seq`` as if camera index k started
-    ``late[k]`` frames late: its frame i shows the others' frame i - late[k] (the first or last
-    frame where that is outside the take)."""
+    """mask_of(k, i) (``common.sync.estimate_offsets``) of ``seq`` with camera index k out of
+    step by ``late[k]``: its frame i shows the others' frame i - late[k] (its offset is
+    late[k]; the first or last frame where that is outside the take)."""
     @lru_cache(maxsize=None)
     def frame(i):
         return seq.raw_silhouettes(seq.frames[min(max(i, 0), len(seq.frames) - 1)])
@@ -68,8 +69,9 @@ def judge(estimate, late: dict) -> list[str]:
 
 
 def late_copy(src: Path, out: Path, camera: str, late: int) -> None:
-    """A copy of the sequence ``src`` at ``out`` whose ``camera`` started ``late`` frames late: its
-    silhouette files renumbered, the first (or last) frame repeated where none is left."""
+    """A copy of the sequence ``src`` at ``out`` whose ``camera`` is out of step by ``late``
+    frames (file j holds frame j - late: its offset is late), the first (or last) frame
+    repeated where none is left."""
     shutil.copytree(src, out)
     folder = out / "silhouettes" / camera
     names = sorted(folder.iterdir())
@@ -81,9 +83,9 @@ def late_copy(src: Path, out: Path, camera: str, late: int) -> None:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sequence", type=Path)
-    ap.add_argument("--offsets", default="-3,-1,2,4", help="frames late tried, comma-separated")
+    ap.add_argument("--offsets", default="-3,-1,2,4", help="offsets tried, comma-separated")
     ap.add_argument("--pairs", action="store_true", help="also every pair of cameras out of step")
-    ap.add_argument("--late-copy", metavar="CAM=N", help="write a copy with camera CAM N frames late")
+    ap.add_argument("--late-copy", metavar="CAM=N", help="write a copy with camera CAM out of step by N")
     ap.add_argument("--out", type=Path, help="where --late-copy writes")
     args = ap.parse_args(argv)
     if args.late_copy:

@@ -151,7 +151,7 @@ def _common_range(frames: dict[str, list[int]], offsets: dict[str, int]) -> tupl
     if cut > MAX_TRIM_FRAMES or cut > MAX_TRIM_FRACTION * longest:
         raise UserError(f"--video: frame counts differ between cameras: {listing()} (more than "
                         f"{MAX_TRIM_FRAMES} frames or {MAX_TRIM_FRACTION:.0%} apart; a truncated file? "
-                        "a late start is --offset, which mocap sync finds)")
+                        "a late start is --offset: a first guess, and mocap sync finds the rest)")
     warning = None
     if cut:
         warning = (f"recordings differ in length ({listing()} frames); using the frames {lo}..{hi - 1} all cameras "

@@ -1,9 +1,9 @@
 """``mocap sync``: which frames the cameras took together, from a sequence's silhouettes.
 
 Cameras without a shared clock, or a video that lost its first frames, leave camera c's frame
-i showing the moment of the others' frame i + d. This command estimates every camera's d
+i + d_c showing the moment of the others' frame i. This command estimates every camera's d_c
 (``common.sync.estimate_offsets``) and prints the ``mocap import-video --offset`` that puts
-the frames together. It reads the silhouettes as they are (the multi-view cleaning assumes the
+the frames together: d_c added to the offset the sequence was imported with. It reads the silhouettes as they are (the multi-view cleaning assumes the
 cameras in step) and writes nothing.
 """
 from __future__ import annotations
@@ -16,7 +16,7 @@ import numpy as np
 from common.argtypes import count
 from common.errors import InputFileError, UserError
 from common.sequence import load_sequence
-from common.sync import MAX_OFFSET, SYNC_FRAMES, estimate_offsets, judged_frames
+from common.sync import MAX_OFFSET, SYNC_FRAMES, SyncEstimate, estimate_offsets, judged_frames
 from server.commands.fit import add_world_arguments
 from server.output import add_units_argument
 
@@ -54,55 +54,98 @@ def run(args) -> int:
                         f"at least two others")
     frames = seq.frames
     spacing = frame_spacing(frames)
-    count = (frames[-1] - frames[0]) // spacing + 1  # indices on the frames' grid, missing ones too
+    indices = (frames[-1] - frames[0]) // spacing + 1  # on the frames' grid, missing ones too
     try:
-        judged_frames(count, args.max_offset, args.frames)
+        judged_frames(indices, args.max_offset, args.frames)
     except ValueError as exc:
         raise UserError(f"{seq.path}: {exc} (--max-offset)") from None
     present = set(frames)
-    cache: dict[tuple[int, int], np.ndarray] = {}
+    cache: dict[tuple[int, int], tuple] = {}  # packed bits: a long take's frames near those judged
 
     def mask_of(k: int, i: int) -> np.ndarray | None:
         frame = frames[0] + i * spacing
-        if frame not in present or not 0 <= i < count:
+        if frame not in present or not 0 <= i < indices:
             return None
         if (k, frame) not in cache:
-            cache[k, frame] = seq.mask(seq.studio[k], frame)
-        return cache[k, frame]
+            mask = seq.mask(seq.studio[k], frame)
+            cache[k, frame] = (np.packbits(mask), mask.shape)
+        bits, shape = cache[k, frame]
+        return np.unpackbits(bits, count=shape[0] * shape[1]).reshape(shape).astype(bool)
 
-    estimate = estimate_offsets(seq.studio, mask_of, count, args.max_offset, args.frames)
-    # a camera that cannot tell and was never moved has no offset to give
-    offsets = {c.camera: c.offset * spacing if c.resolved or c.offset else None for c in estimate.cameras}
+    estimate = estimate_offsets(seq.studio, mask_of, indices, args.max_offset, args.frames)
+    imported = {n: int(o) for n, o in seq.meta.get("offsets", {}).items()}
     if args.json:
-        print(json.dumps({"offsets": offsets, "unresolved": estimate.unresolved, "frame_spacing": spacing,
-                          "frames_judged": [frames[0] + i * spacing for i in estimate.frames],
-                          "agreement": {c.camera: {str(d * spacing): round(s, 4) for d, s in c.scores.items()}
-                                        for c in estimate.cameras}}, indent=1))
+        print(json.dumps(report(estimate, spacing, imported, args.max_offset, frames[0]), indent=1))
         return 0
+    for line in report_lines(estimate, spacing, imported, args.max_offset):
+        print(line)
+    return 0
+
+
+MIN_TELLING = 3  # cameras that must tell their offset sharply before one is named: with two, which moved is unknown
+
+
+def offsets_found(estimate: SyncEstimate, spacing: int) -> dict:
+    """{camera: its offset in source frames, or None where it cannot tell and was never moved}."""
+    return {c.camera: c.offset * spacing if c.resolved or c.offset else None for c in estimate.cameras}
+
+
+def report(estimate: SyncEstimate, spacing: int, imported: dict, max_offset: int, first: int) -> dict:
+    """``--json``'s document."""
+    found = offsets_found(estimate, spacing)
+    return {"offsets": found, "unresolved": estimate.unresolved, "frame_spacing": spacing,
+            "import_offsets": {n: imported.get(n, 0) + o for n, o in found.items() if o is not None},
+            "cameras_telling": sum(c.resolved for c in estimate.cameras),
+            "frames_tried": [first + i * spacing for i in estimate.frames],
+            "frames_judged": {c.camera: c.judged for c in estimate.cameras},
+            "agreement": {c.camera: {str(d * spacing): round(s, 4) for d, s in c.scores.items()}
+                          for c in estimate.cameras}}
+
+
+def report_lines(estimate: SyncEstimate, spacing: int, imported: dict, max_offset: int) -> list[str]:
+    """What ``mocap sync`` prints: a line per camera, then what to do."""
+    found = offsets_found(estimate, spacing)
+    telling = sum(c.resolved for c in estimate.cameras)
     width = max(len(c.camera) for c in estimate.cameras)
+    lines = []
     for c in estimate.cameras:
-        if offsets[c.camera] is None:
-            print(f"{c.camera:<{width}}   ?  cannot tell: no offset fits clearly better than its neighbours (the actor "
-                  f"moves little across this view, so its offset also matters little to a fit)")
-            continue
-        at_zero = f" (at 0: {c.scores[0]:.3f})" if c.offset and 0 in c.scores else ""
-        sharp = "" if c.resolved else ", not sharply: its neighbours fit almost as well"
-        print(f"{c.camera:<{width}}  {offsets[c.camera]:+d}  agreement {c.scores[c.offset]:.3f}{at_zero}{sharp}")
-    sharp = {c.camera: offsets[c.camera] for c in estimate.cameras if c.resolved and c.offset}
-    blurred = {c.camera: offsets[c.camera] for c in estimate.cameras if not c.resolved and c.offset}
+        name = f"{c.camera:<{width}}"
+        if c.judged < 2:
+            lines.append(f"{name}   ?  no frame to judge: a frame within {max_offset} of each one tried is missing "
+                         f"(a smaller --max-offset, or fewer frames left out at import)")
+        elif found[c.camera] is None:
+            lines.append(f"{name}   ?  cannot tell: no offset fits clearly better than its neighbours (the actor "
+                         f"moves little across this view, so its offset also matters little to a fit)")
+        else:
+            at_zero = f" (at 0: {c.scores[0]:.3f})" if c.offset and 0 in c.scores else ""
+            why = ""
+            if not c.resolved:
+                why = (f", at the end of the offsets tried: try a larger --max-offset" if abs(c.offset) >= max_offset
+                       else ", not sharply: its neighbours fit almost as well")
+            lines.append(f"{name}  {found[c.camera]:+d}  agreement {c.scores[c.offset]:.3f}{at_zero}{why}")
+    sharp = {c.camera for c in estimate.cameras if c.resolved and c.offset}
+    blurred = {c.camera for c in estimate.cameras if not c.resolved and c.offset}
+    if sharp and telling < MIN_TELLING:  # two cameras apart: either may be the one off
+        blurred, sharp = blurred | sharp, set()
+        lines.append(f"only {telling} cameras tell their offset: which of them is out of step cannot be told")
+
+    def total(names):  # the import's --offset: what it was given and what was found
+        return " ".join(f"{n}={imported.get(n, 0) + found[n]}" for n in found if n in names)
     if sharp:
-        print("import again with: --offset " + " ".join(f"{n}={o}" for n, o in sharp.items())
-              + " (added to any --offset the import was given)")
+        kept = [n for n, o in imported.items() if o and n not in sharp]
+        lines.append("import again with: --offset " + total(sharp)
+                     + "".join(f" {n}={imported[n]}" for n in kept))
     if blurred:
-        print("not sharp, check by eye before using: " + " ".join(f"{n}={o}" for n, o in blurred.items()))
+        lines.append("not sharp, check by eye before using: --offset " + total(blurred))
     if not sharp and not blurred:
         told = [c.camera for c in estimate.cameras if c.resolved]
         if not told:
-            print("no camera's offset could be told: the actor hardly moves in these frames")
+            lines.append("no camera's offset could be told" + (": the actor hardly moves in these frames"
+                                                               if all(c.judged >= 2 for c in estimate.cameras) else ""))
         else:
-            print("the cameras are in step" + (f" (as far as {', '.join(told)} can tell)"
-                                               if len(told) < len(estimate.cameras) else ""))
+            lines.append("the cameras are in step" + (f" (as far as {', '.join(told)} can tell)"
+                                                      if len(told) < len(estimate.cameras) else ""))
     if spacing > 1:
-        print(f"(frames are {spacing} apart: offsets are found to {spacing} frames; import every frame of a stretch "
-              f"with --step 1 for single frames)")
-    return 0
+        lines.append(f"(frames are {spacing} apart: offsets are found to {spacing} frames; import every frame of a "
+                     f"stretch with --step 1 for single frames)")
+    return lines
