@@ -1,6 +1,7 @@
 """Does a wider-basin energy keep tracking on a fast turn? A trial, not part of the fit.
 
     python tools/wide_basin_trial.py SEQUENCE --first 20 --last 60 [--levels -2,0,2,5] [--wide]
+    python tools/wide_basin_trial.py SEQUENCE --frames 30,33,47 --result RESULT [--levels ...]
 
 SEQUENCE must have truth.jsonl. Tracks frames first+1 .. last-1 from the truth of frame
 ``first`` with the TRACKING schedule alone (no loss detection, no refinement), each frame from
@@ -14,6 +15,12 @@ each level a copy of the studio's cameras, so the energy is the sum of the XOR a
 level: the L1 distance between the model's silhouette and a silhouette blurred into as many
 grey steps. A part that misses its silhouette by a few pixels then still pays less the nearer
 it is, where the plain XOR is flat.
+
+With --frames and --result (a ``mocap fit`` result of SEQUENCE), each of those frames is fitted
+alone, from the result's fit of the frame before and from the truth of the frame before: by
+tracking against the real silhouette, and against the blurred one then polished. Prints the
+frame's fit in the result and the truth's energy beside each, so that a fit can be told from
+the truth's basin.
 """
 from __future__ import annotations
 
@@ -29,9 +36,11 @@ from scipy import ndimage
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import json  # noqa: E402
+
 from common.body import forward_kinematics, load_body_model  # noqa: E402
 from common.camera import Studio  # noqa: E402
-from common.fitting import FitOptions, FrameData  # noqa: E402
+from common.fitting import FitOptions, FrameData, full_energy  # noqa: E402
 from common.scoring import joint_errors_mm  # noqa: E402
 from common.search import fit_frame  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
@@ -58,11 +67,37 @@ def blurred_frame(model, studio: Studio, masks: np.ndarray, levels: list[int]) -
     return FrameData(model, Studio(cams, studio.source), level_sets(masks, levels))
 
 
+def frames_alone(seq, model, result: Path, frames: list[int], levels: list[int]) -> None:
+    """``--frames``: each frame fitted from the frame before's fit and truth (module docstring)."""
+    truth = seq.truth()
+    options = FitOptions()
+    records = {r["frame"]: r for r in map(json.loads, (result / "poses.jsonl").read_text().splitlines())}
+
+    def error(params, f):
+        errors = joint_errors_mm(forward_kinematics(model, params).joints[0], truth[f])
+        return f"{errors.mean():.1f} / {errors.max():.1f} mm"
+    for f in frames:
+        masks = seq.silhouettes(f)
+        data = FrameData(model, seq.studio, masks)
+        blurred = blurred_frame(model, seq.studio, masks, levels)
+        fit = np.asarray(records[f]["params"])
+        print(f"frame {f}: the result's fit {full_energy(model, data, fit)} pixels, {error(fit, f)}; "
+              f"the truth {full_energy(model, data, truth[f].params)} pixels")
+        for name, start in (("the fit before", np.asarray(records[f - 1]["params"])),
+                            ("the truth before", truth[f - 1].params)):
+            plain = fit_frame(model, data, start, options)
+            wide = fit_frame(model, data, fit_frame(model, blurred, start, options).params, options)
+            print(f"  from {name}: tracked {plain.energy} pixels, {error(plain.params, f)}; "
+                  f"blurred then polished {wide.energy}, {error(wide.params, f)}", flush=True)
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("sequence", type=Path)
-    ap.add_argument("--first", type=int, required=True, help="frame whose truth starts the tracking")
-    ap.add_argument("--last", type=int, required=True, help="tracking stops before this frame")
+    ap.add_argument("--first", type=int, help="frame whose truth starts the tracking")
+    ap.add_argument("--last", type=int, help="tracking stops before this frame")
+    ap.add_argument("--frames", help="instead: these frames fitted alone (comma-separated), with --result")
+    ap.add_argument("--result", type=Path, help="a mocap fit result of SEQUENCE, for --frames")
     ap.add_argument("--levels", default="-2,0,2,5", help="erosions (<0) and dilations (>0), pixels")
     ap.add_argument("--wide", action="store_true", help="also fit against the blurred silhouette")
     args = ap.parse_args(argv)
@@ -71,6 +106,13 @@ def main(argv=None) -> None:
     model = load_body_model()
     options = FitOptions()
     levels = [int(v) for v in args.levels.split(",")]
+    if args.frames:
+        if args.result is None:
+            ap.error("--frames needs --result")
+        frames_alone(seq, model, args.result, [int(v) for v in args.frames.split(",")], levels)
+        return
+    if args.first is None or args.last is None:
+        ap.error("--first and --last, or --frames and --result")
     start, before = truth[args.first].params, None
     means, off, kept_wide = [], 0, 0
     t0 = time.perf_counter()
