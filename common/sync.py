@@ -40,9 +40,9 @@ SYNC_GRID = 64         # lattice points per side of the 3 m box: 4.7 cm cells, u
 SYNC_FRAMES = 24       # frames across the take the agreement is averaged over
 MAX_OFFSET = 5         # frames either way tried by default
 PEAK_Z = 3.0           # standard errors by which the best offset must beat each neighbour, frame by frame
-MOVE_Z = 6.0           # ... and by which a camera's best must beat its present offset for it to move: a
-                       # camera put 2-4 frames out of step in a walk beats 0 by 8-21, a camera in step that
-                       # leans to a neighbouring offset by under 4 (tools/sync_trials.py)
+MOVE_Z = 6.0           # ... and by which a camera's best must beat its present offset for it to move: at
+                       # PEAK_Z a camera in step that leaned a frame one way was moved; at 6, none in the
+                       # trials (tools/sync_trials.py, docs/accuracy.md)
 TOLERANT_VIEWS = 4     # the others' hull lets a point miss one of their masks where this many see it
 
 
