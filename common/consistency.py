@@ -94,26 +94,33 @@ def hull_box(centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             np.array([centre[0] + half, centre[1] + half, HULL_EXTENT_M]))
 
 
+def hull_lattice(centre: np.ndarray, grid: int = HULL_GRID) -> np.ndarray:
+    """(grid^3, 3) lattice points of ``hull_box(centre)``, metres."""
+    lo, hi = hull_box(centre)
+    axes = [np.linspace(a, b, grid) for a, b in zip(lo, hi)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
 def hull_points(studio: Studio, masks: np.ndarray, centre: np.ndarray) -> np.ndarray:
     """(n, 3) centres of the voxels inside the visual hull, in ``hull_box(centre)``. masks
     (K, H, W) bool in the studio's (distorted) images, padded beyond each camera's own size. A
     voxel outside a camera's image is not carved by it, and one outside HULL_MISSES of the masks
     that see it is still kept where at least three see it."""
-    lo, hi = hull_box(centre)
-    axes = [np.linspace(a, b, HULL_GRID) for a, b in zip(lo, hi)]
-    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    points = hull_lattice(centre)
     return points[carved(studio, masks, points)]
 
 
-def carved(studio: Studio, masks: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(n,) bool: the points (n, 3) inside the visual hull of masks (K, H, W) bool (``hull_points``'s rule)."""
+def carved(studio: Studio, masks: np.ndarray, points: np.ndarray, tolerant_views: int = 3) -> np.ndarray:
+    """(n,) bool: the points (n, 3) inside the visual hull of masks (K, H, W) bool (``hull_points``'s
+    rule: seen by HULL_MIN_VIEWS, inside every mask that sees them, or all but HULL_MISSES where
+    ``tolerant_views`` or more see them)."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     misses = np.zeros(len(points), dtype=np.int64)
     views = np.zeros(len(points), dtype=np.int64)
     for cam, mask in zip(studio, masks):
         _count_view(points, cam.R, cam.t, cam.K, cam.dist, cam.has_distortion, cam.width, cam.height,
-                    mask, misses, views, HULL_MISSES)
-    allowed = np.where(views >= 3, HULL_MISSES, 0)
+                    np.ascontiguousarray(mask), misses, views, HULL_MISSES)
+    allowed = np.where(views >= tolerant_views, HULL_MISSES, 0)
     return (misses <= allowed) & (views >= HULL_MIN_VIEWS)
 
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from common.camera import Studio
-from common.consistency import HULL_EXTENT_M, _count_view, cell_radius_px, footprint, hull_box, image_points
+from common.consistency import HULL_EXTENT_M, carved, cell_radius_px, footprint, hull_lattice, image_points
 from common.packing import pad_stack
 from common.voxels import silhouette_centre
 
@@ -107,26 +107,14 @@ def most_common(shifts: list[int]) -> int:
     return max(counts, key=lambda s: (counts[s], s == 0, -abs(s)))
 
 
-def hull_lattice(centre: np.ndarray, grid: int = SYNC_GRID) -> np.ndarray:
-    """(grid^3, 3) lattice points of ``consistency.hull_box(centre)``, metres."""
-    lo, hi = hull_box(centre)
-    axes = [np.linspace(a, b, grid) for a, b in zip(lo, hi)]
-    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-
-
 def others_hull(studio: Studio, masks: np.ndarray, camera: int, points: np.ndarray) -> np.ndarray:
-    """(m, 3) the points (n, 3) seen by at least two of the cameras other than ``camera`` and
-    inside every one of their masks (K, H, W) bool, or all but one where ``TOLERANT_VIEWS`` or
-    more see them: one camera still off (a view that barely changes cannot be synchronised by
-    its own agreement) must not carve the others' hull."""
-    points = np.ascontiguousarray(points, dtype=np.float64)
-    misses = np.zeros(len(points), dtype=np.int64)
-    views = np.zeros(len(points), dtype=np.int64)
-    for k, (cam, mask) in enumerate(zip(studio, masks)):
-        if k != camera:
-            _count_view(points, cam.R, cam.t, cam.K, cam.dist, cam.has_distortion, cam.width, cam.height,
-                        np.ascontiguousarray(mask), misses, views, 1)
-    return points[(misses <= np.where(views >= TOLERANT_VIEWS, 1, 0)) & (views >= 2)]
+    """(m, 3) the points (n, 3) inside the visual hull (``consistency.carved``) of the masks
+    (K, H, W) bool of every camera but ``camera``, a miss allowed only where ``TOLERANT_VIEWS``
+    or more of them see a point: one camera still off (a view that barely changes cannot be
+    synchronised by its own agreement) must not carve the others' hull."""
+    keep = [k for k in range(len(studio)) if k != camera]
+    others = Studio(tuple(studio[k] for k in keep), studio.source)
+    return points[carved(others, masks[keep], points, TOLERANT_VIEWS)]
 
 
 def agreement(mask: np.ndarray, pixels: np.ndarray, splat: np.ndarray) -> float:
