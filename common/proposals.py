@@ -4,9 +4,8 @@ be, each a pure function of poses and the frame's images.
 - about the start: turned about the vertical (``turned``), tilted ahead (``tilted_ahead``),
   rotated about the pelvis's own axes (``rotated_about_pelvis``), halfway between neighbours
   (``midway``);
-- one limb moved: into its other basins (``limb_alternatives``), to where a neighbouring
-  frame's fit has it (``neighbours_limbs``), an arm to its other twists (``arm_twists``, the
-  solves' choice ``arm_twist_alternative``);
+- one limb moved: into its other basins (``limb_alternatives``), an arm to its other twists
+  (``arm_twists``, the solves' choice ``arm_twist_alternative``);
 - no start at all: the frame's voxels and ellipsoids, standing, head-down and posture starts
   (``voxel_starts``);
 - a search's choice among its fits also weighs how likely a body is upside down
@@ -19,7 +18,7 @@ from dataclasses import replace
 import numpy as np
 
 from common import voxels
-from common.body import (CHAINS, JOINT_NAMES, LIMB_CHAINS, P, PARAM_LIMITS, BodyModel, clip_to_limits,
+from common.body import (CHAINS, JOINT_NAMES, P, PARAM_LIMITS, BodyModel, clip_to_limits,
                          forward_kinematics, matrix_to_rotvec, rest_params, rotvec_to_matrix)
 from common.errors import UserError
 from common.fitting import BASIN_STARTS, FitOptions, distinct_rows, limb_joints, powell, search_limb
@@ -98,46 +97,6 @@ def tilted_ahead(params: np.ndarray, params_before: np.ndarray | None) -> tuple:
     ahead[tilt] = np.clip(ahead[tilt] + TILT_AHEAD_RAD * moved / size, PARAM_LIMITS[tilt, 0], PARAM_LIMITS[tilt, 1])
     return (ahead,)
 
-
-# A limb whose root (shoulder, hip) moved less than this since a neighbouring frame's fit: the
-# body held about still. A seated body's tracked fits move the limbs' roots 5.6 mm a frame at the
-# median; a fit with an arm in the wrong basin has its torso shifted too, 13-26 mm from its
-# neighbours' (the seated body on a chair below). A walk's roots move 31 mm a frame at the median
-STILL_ROOT_M = 0.03
-
-
-def neighbours_limbs(model: BodyModel, params: np.ndarray, neighbours: tuple) -> list[np.ndarray]:
-    """(35,) poses: ``params`` with one limb's angles taken from a neighbouring frame's fit (each
-    of ``neighbours``, (35,) or None) where the limb's root moved less than STILL_ROOT_M between
-    the two fits and the neighbour's angles put the limb's elbow or wrist (knee or ankle)
-    BASIN_SEPARATION_M or more from where it is.
-
-    A body that holds about still does not move a limb a basin away between frames; a fit that
-    did jumped into another basin, which neither the neighbour's whole pose (its torso off in
-    this frame) nor the limb's own search from this frame's torso undoes: a seated body's arm
-    laid along a chair's back, whose silhouette it explains while the truth's arm hides in the
-    lap's. Where the body moves fast, a neighbour's limb is no guide: proposed on every frame,
-    it added frames over 40 mm to the cartwheel (05_06), 13 to 18 and 16 to 18 with two noise
-    seeds (docs/accuracy.md)."""
-    x = np.asarray(params, dtype=np.float64)
-    others = [np.asarray(n, dtype=np.float64) for n in neighbours if n is not None]
-    if not others:
-        return []
-    joints = forward_kinematics(model, np.array([x, *others])).joints  # (1 + N, J, 3)
-    out = []
-    for chain in LIMB_CHAINS:
-        idx, root = list(CHAINS[chain].params), CHAINS[chain].segments[0]  # joint k: where segment k hangs
-        moved = []
-        for k, n in enumerate(others, start=1):
-            if np.linalg.norm(joints[k, root] - joints[0, root]) < STILL_ROOT_M:
-                y = x.copy()
-                y[idx] = n[idx]
-                moved.append(y)
-        if moved:
-            keep = distinct_rows(limb_joints(model, chain, np.array(moved)), len(moved),
-                                 taken=limb_joints(model, chain, x))
-            out += [moved[k] for k in keep]
-    return out
 
 
 LIMB_ALTERNATIVES = 2  # per limb: other basins refitted after a first frame's search

@@ -46,8 +46,8 @@ from common.fitting import (HOP_JOBS, REDETECT_ROUND, ChainResult, Dispatch, Fit
 from common.frame import FrameData
 from common.helping_pool import HelpingPool
 from common.proposals import (ARM_CHAINS, arm_twist_alternative, arm_twist_options, arm_twist_tried, arm_twists,
-                              arm_twists_towards, inversion_cost, limb_alternatives, midway, moved_on,
-                              neighbours_limbs, pelvis_twisted, rotated_about_pelvis, tilted_ahead, turned)
+                              arm_twists_towards, inversion_cost, limb_alternatives, midway,
+                              moved_on, pelvis_twisted, rotated_about_pelvis, tilted_ahead, turned)
 
 # The jobs of one round of starts, fitted side by side (the protocol's FIT_JOB_NAMES): job k is
 # the round's k-th start; a round with more starts goes out in several.
@@ -222,12 +222,7 @@ SEARCH = Schedule((
 # Then the best's pelvis turned alone (``pelvis_twisted``): the worst frames of 05_13, 05_17 and
 # 06_15 (41-45 mm, the right hip the worst joint) had the pelvis turned 0.18-0.24 rad with the
 # spine and hips turned back, which no chain alone undoes.
-# Beside halfway, each limb of either neighbour's fit on the best's torso (``neighbours_limbs``):
-# a seated body's arm laid along a chair's back in frames 0-4 and in the lap from frame 5, frame
-# 4 fitted from frame 5's whole pose came to 6,717 pixels against the arm on the chair's 6,656;
-# frame 5's arm on frame 4's torso to 6,618, in the lap (docs/accuracy.md).
-REFINE = Schedule((Stage(("start", "start_turns", "tilt_ahead")), *POLISHED,
-                   Stage(("midway", "midway_turns", "neighbours_limbs")),
+REFINE = Schedule((Stage(("start", "start_turns", "tilt_ahead")), *POLISHED, Stage(("midway", "midway_turns")),
                    *POLISHED, Stage(("pelvis_twists",)), Stage(("twists",), ("deep",)), Stage(("hops",))))
 REFINE_SEARCH = Schedule((*REFINE.stages[:-2], Stage(("basins", "twists"), ("deep",)), REFINE.stages[-1]))
 # A frame with hops (a pass's first frame; every frame with --refine-hops): the hops' best
@@ -469,10 +464,6 @@ def _midway(ctx, source, spent, own):
     return [] if ctx.start is None or ctx.other is None else [midway(ctx.start, ctx.other)]
 
 
-def _neighbours_limbs(ctx, source, spent, own):
-    return [] if source is None else neighbours_limbs(ctx.model, source.params, (ctx.start, ctx.other))
-
-
 def _starts(ctx, source, spent, own):
     return list(ctx.starts)
 
@@ -580,7 +571,7 @@ def _hops(ctx, source, spent, own):
 
 PROPOSERS = {
     "start": _start, "start_turns": _start_turns, "turns": _best_turns, "tilt_ahead": _tilt_ahead,
-    "moved_on": _moved_on, "midway": _midway, "neighbours_limbs": _neighbours_limbs, "midway_turns": _midway_turns, "pelvis_twists": _pelvis_twists,
+    "moved_on": _moved_on, "midway": _midway, "midway_turns": _midway_turns, "pelvis_twists": _pelvis_twists,
     "starts": _starts,
     "best": _best, "origin": _origin, "again": _again, "redetected": _redetected,
     "rotations": _rotations, "swaps": _swaps, "basins": _basins, "twists": _twists, "hops": _hops,

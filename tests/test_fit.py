@@ -292,59 +292,6 @@ def test_limb_alternatives_find_a_forearm_folded_away(model, small_loaded):
     assert fit_frame(model, data, best, options).energy < fit_frame(model, data, folded, options).energy
 
 
-def test_neighbours_limbs_take_one_limb_at_a_time_where_it_lies_elsewhere(model, small_loaded):
-    """Each limb of a neighbour's fit that lies a basin away while its root held still is
-    proposed on this frame's pose, alone; a limb that lies where it is, a body that moved, or
-    no neighbour proposes nothing."""
-    from common.fitting import BASIN_SEPARATION_M, limb_joints
-    from common.proposals import STILL_ROOT_M, neighbours_limbs
-
-    seq, truth = small_loaded
-    x = truth[seq.frames[1]].params
-    neighbour = x.copy()
-    neighbour[P["l_elbow"]] = PARAM_LIMITS[P["l_elbow"], 1]  # the forearm folded away
-    neighbour[P["r_knee"]] += 0.05                            # the knee as good as where it is
-    moved = limb_joints(model, "left_arm", neighbour) - limb_joints(model, "left_arm", x)
-    assert np.linalg.norm(moved, axis=-1).max() > BASIN_SEPARATION_M
-    proposed = neighbours_limbs(model, x, (neighbour, None))
-    assert len(proposed) == 1
-    arm = list(CHAINS["left_arm"].params)
-    expected = x.copy()
-    expected[arm] = neighbour[arm]
-    np.testing.assert_array_equal(proposed[0], expected)
-    assert len(neighbours_limbs(model, x, (neighbour, neighbour))) == 1  # the same limb once
-    walked = neighbour.copy()
-    walked[P["root_x"]] += 2 * STILL_ROOT_M  # the body moved on: its limbs are no guide
-    assert neighbours_limbs(model, x, (walked, None)) == []
-    assert neighbours_limbs(model, x, (None, None)) == []
-    assert neighbours_limbs(model, x, (x, None)) == []
-
-
-def test_a_limb_fitted_into_another_basin_is_put_back_from_a_neighbours_fit(model, small_loaded):
-    """A forearm fitted folded away, the rest of the body right: the limb's own solves keep it
-    folded (measured: 281 pixels, the wrist 427 mm off). A neighbour that held still with the
-    arm where the next frame's truth has it: that arm on this frame's torso, fitted, puts it
-    back (221 pixels, 11 mm)."""
-    from common.search import Stage
-
-    seq, truth = small_loaded
-    f, g = seq.frames[1], seq.frames[2]
-    true = truth[f].params
-    folded = true.copy()
-    folded[P["l_elbow"]] = PARAM_LIMITS[P["l_elbow"], 1]
-    data = FrameData(model, seq.studio, seq.silhouettes(f))
-    options = FitOptions(turn_hypotheses=0, redetect_limbs=False)
-    wrong = fit_frame(model, data, folded, options)
-    wrist = JOINT_NAMES.index("l_wrist")
-    assert joint_errors_mm(model, wrong.params, truth[f])[wrist] > 80.0
-    neighbour = wrong.params.copy()
-    arm = list(CHAINS["left_arm"].params)
-    neighbour[arm] = truth[g].params[arm]
-    put_back = one_stage(model, data, Stage(("neighbours_limbs",)), wrong, options=options, start=neighbour)
-    assert put_back.energy < wrong.energy
-    assert joint_errors_mm(model, put_back.params, truth[f])[wrist] < 40.0
-
-
 def test_a_first_frames_limb_search_refines_one_grid_point_per_basin(model, small_loaded, monkeypatch):
     """A first frame's re-detection (no tracked limb) fits Powell from REDETECT_STARTS_FIRST_FRAME
     grid points, each in a basin of its own: the grid's best points crowd one basin."""
