@@ -15,10 +15,10 @@ they stand apart from the actor and still.
 A static prop beside the actor (a box, a stool) is an object in every view: its blob is
 supported, and a body fitted by silhouettes alone can be drawn onto it (a box larger than a
 crouching actor's hull explains more foreground than the actor). ``static_props`` looks at the
-visual hull in frames across the take: a separate 3D component whose share of occupied cells
-hardly varies, while another component stays apart from it, is a prop, and ``supported_masks``
-removes the pixels it covers that the rest of the hull (the actor) does not. A chair the actor
-sits on touches the actor's hull and stays.
+visual hull in frames across the take: a separate 3D component that stays where it is while
+another component apart from it moves is a prop, and ``supported_masks`` removes the pixels it
+covers that the rest of the hull (the actor) does not. A chair the actor sits on touches the
+actor's hull and stays.
 """
 from __future__ import annotations
 
@@ -48,10 +48,14 @@ MIN_SUPPORT_OF_BEST = 0.5     # or when it is supported at least half as much as
                               # blob (noise speckles that touch the actor join its blob and dilute its share)
 PROP_SAMPLES = 8             # frames, evenly across the take, in which the hull's components are compared
 PROP_MIN_VOLUME_M3 = 0.01    # steady components smaller than this are not props (noise)
-PROP_SPREAD = 0.04           # a component is static when the share of its cells occupied varies by at most this
-                             # over the samples (a box: 0.01-0.02, with or without Cheung noise, which takes
-                             # 7% of its cells in every frame alike; a crouching, kneeling or lying actor over
-                             # 20 frames: 0.11-0.21)
+PROP_GROW_CELLS = 2          # a component's shift: how far the centroid of the cells occupied within this many
+                             # cells of it moves over the samples (the largest distance from their mean)
+PROP_SHIFT_RATIO = 0.5       # a component is static when it shifts by at most this share of the component that
+                             # shifts most (the actor). Noise moves a box's centroid by 3-9 mm; the posture takes'
+                             # actors over 20 frames shift by 14-149 mm; the largest ratio of a box to its
+                             # actor was 0.35 (8.5 / 21.6 mm), a crouching actor over 8 frames 0.31 (3.3 /
+                             # 10.5 mm) (tools/posture_takes_accuracy.py's takes, two seeds)
+ACTOR_MIN_SHIFT_M = 0.005    # ... and that component shifts at least this much: where nothing moves, no prop
 PROP_MIN_HELD = 0.8          # ... and at least this share of its cells is occupied in every sample
 ACTOR_MIN_VOLUME_M3 = 0.03   # props are removed only where every sample keeps a component this large apart
                              # from them (a person's hull is 0.06-0.08 m^3): a take where nothing moves, the
@@ -232,7 +236,11 @@ def static_props(studio: Studio, samples: list, centre: np.ndarray | None) -> St
     one's silhouettes around ``centre`` (3,), metres (None: no props). The hull is carved on one
     lattice of HULL_GRID cells per side for all samples, so its cells compare across frames; its
     steady part (cells occupied in half the samples or more) is split into components, and a
-    component is static when the share of its cells occupied hardly varies over the samples."""
+    component is static when it holds its cells and its centroid stays where it is while the
+    component that moves most moves (PROP_SHIFT_RATIO). The share of its cells occupied
+    was the test before: silhouette noise varies it as much as a kneeling actor's slight
+    moves do (a box 0.017-0.066 over the samples, actors from 0.067), while it hardly moves the
+    centroid of a box's 150 cells."""
     if centre is None or len(samples) < 2:
         return None
     step = HULL_EXTENT_M / HULL_GRID
@@ -244,13 +252,24 @@ def static_props(studio: Studio, samples: list, centre: np.ndarray | None) -> St
     connected = np.ones((3, 3, 3), dtype=bool)
     labels, count = ndimage.label(occupied.mean(axis=0) >= 0.5, connected)
     sizes = np.bincount(labels.ravel(), minlength=count + 1)
-    props = np.zeros(shape, dtype=bool)
+    components, shifts, holds = [], [], []
     for label in range(1, count + 1):
         if sizes[label] * step ** 3 < PROP_MIN_VOLUME_M3:
             continue
         component = labels == label
-        held = occupied[:, component].sum(axis=1) / sizes[label]
-        if held.min() >= PROP_MIN_HELD and held.max() - held.min() <= PROP_SPREAD:
+        components.append(component)
+        holds.append((occupied[:, component].sum(axis=1) / sizes[label]).min())
+        near = ndimage.binary_dilation(component, connected, iterations=PROP_GROW_CELLS)
+        cells = [np.argwhere(sample & near) for sample in occupied]
+        if min(len(c) for c in cells) == 0:
+            shifts.append(np.inf)  # gone from a sample: not static
+            continue
+        centroids = np.array([c.mean(axis=0) for c in cells]) * step
+        shifts.append(np.linalg.norm(centroids - centroids.mean(axis=0), axis=1).max())
+    props = np.zeros(shape, dtype=bool)
+    moving = max(shifts, default=0.0)
+    for component, shift, held in zip(components, shifts, holds):
+        if held >= PROP_MIN_HELD and moving >= ACTOR_MIN_SHIFT_M and shift <= PROP_SHIFT_RATIO * moving:
             props |= component
     if not props.any():
         return None
