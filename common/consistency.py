@@ -50,12 +50,16 @@ PROP_SAMPLES = 8             # frames, evenly across the take, in which the hull
 PROP_MIN_VOLUME_M3 = 0.01    # steady components smaller than this are not props (noise)
 PROP_GROW_CELLS = 2          # a component's shift: how far the centroid of the cells occupied within this many
                              # cells of it moves over the samples (the largest distance from their mean)
-PROP_SHIFT_RATIO = 0.5       # a component is static when it shifts by at most this share of the component that
-                             # shifts most (the actor). Noise moves a box's centroid by 3-9 mm; the posture takes'
-                             # actors over 20 frames shift by 14-149 mm; the largest ratio of a box to its
-                             # actor was 0.35 (8.5 / 21.6 mm), a crouching actor over 8 frames 0.31 (3.3 /
-                             # 10.5 mm) (tools/posture_takes_accuracy.py's takes, two seeds)
-ACTOR_MIN_SHIFT_M = 0.005    # ... and that component shifts at least this much: where nothing moves, no prop
+PROP_SHIFT_RATIO = 0.5       # a component is static when it shifts by at most this share of the component of
+                             # ACTOR_MIN_VOLUME_M3 or more that shifts most (the actor), and its occupied share
+                             # varies no more than the actor's. Noise moves a box's centroid by 3-9 mm over
+                             # 8 frames; the posture takes' actors over 20 frames shift by 17-149 mm (a crouch
+                             # over 8 frames without noise: 8.7 mm); the largest ratio of a box to its actor was
+                             # 0.40 (7.6 / 19.0 mm, kneeling), and no box's share varied more than its actor's
+                             # (0.054 against 0.067 at the closest) (tools/posture_takes_accuracy.py's takes,
+                             # two seeds)
+ACTOR_MIN_SHIFT_M = 0.005    # ... and the actor shifts at least this much (a take whose frames are all alike:
+                             # no prop; under silhouette noise, the ratio and the share decide)
 PROP_MIN_HELD = 0.8          # ... and at least this share of its cells is occupied in every sample
 ACTOR_MIN_VOLUME_M3 = 0.03   # props are removed only where every sample keeps a component this large apart
                              # from them (a person's hull is 0.06-0.08 m^3): a take where nothing moves, the
@@ -237,9 +241,10 @@ def static_props(studio: Studio, samples: list, centre: np.ndarray | None) -> St
     lattice of HULL_GRID cells per side for all samples, so its cells compare across frames; its
     steady part (cells occupied in half the samples or more) is split into components, and a
     component is static when it holds its cells and its centroid stays where it is while the
-    component that moves most moves (PROP_SHIFT_RATIO). The share of its cells occupied
-    was the test before: silhouette noise varies it as much as a kneeling actor's slight
-    moves do (a box 0.017-0.066 over the samples, actors from 0.067), while it hardly moves the
+    actor's (the component of an actor's size that moves most) moves, and the share of its
+    cells occupied varies no more than the actor's (PROP_SHIFT_RATIO). That share alone was
+    the test before: silhouette noise varies it as much as a kneeling actor's slight moves do
+    (a box 0.017-0.066 over the samples, actors from 0.067), while it hardly moves the
     centroid of a box's 150 cells."""
     if centre is None or len(samples) < 2:
         return None
@@ -252,25 +257,29 @@ def static_props(studio: Studio, samples: list, centre: np.ndarray | None) -> St
     connected = np.ones((3, 3, 3), dtype=bool)
     labels, count = ndimage.label(occupied.mean(axis=0) >= 0.5, connected)
     sizes = np.bincount(labels.ravel(), minlength=count + 1)
-    components, shifts, holds = [], [], []
+    steady = []  # (component, its least share of cells held, its occupied share's spread, its shift, metres)
     for label in range(1, count + 1):
         if sizes[label] * step ** 3 < PROP_MIN_VOLUME_M3:
             continue
         component = labels == label
-        components.append(component)
-        holds.append((occupied[:, component].sum(axis=1) / sizes[label]).min())
-        near = ndimage.binary_dilation(component, connected, iterations=PROP_GROW_CELLS)
-        cells = [np.argwhere(sample & near) for sample in occupied]
-        if min(len(c) for c in cells) == 0:
-            shifts.append(np.inf)  # gone from a sample: not static
-            continue
-        centroids = np.array([c.mean(axis=0) for c in cells]) * step
-        shifts.append(np.linalg.norm(centroids - centroids.mean(axis=0), axis=1).max())
+        held = occupied[:, component].sum(axis=1) / sizes[label]
+        # the cells around it, not another component's: a box beside the actor would move with its limbs
+        around = ndimage.binary_dilation(component, connected, iterations=PROP_GROW_CELLS) & ((labels == 0) | component)
+        occupied_around = [np.argwhere(sample & around) for sample in occupied]
+        shift = np.inf  # gone from a sample: not static
+        if min(len(c) for c in occupied_around) > 0:
+            centroids = np.array([c.mean(axis=0) for c in occupied_around]) * step
+            shift = float(np.linalg.norm(centroids - centroids.mean(axis=0), axis=1).max())
+        steady.append((component, held.min(), held.max() - held.min(), shift))
+    # the actor: the component of an actor's size that moves most (a vanished one has no centroid to compare)
+    actors = [(shift, spread) for component, _, spread, shift in steady
+              if component.sum() * step ** 3 >= ACTOR_MIN_VOLUME_M3 and np.isfinite(shift)]
+    actor_shift, actor_spread = max(actors, default=(0.0, 0.0))
     props = np.zeros(shape, dtype=bool)
-    moving = max(shifts, default=0.0)
-    for component, shift, held in zip(components, shifts, holds):
-        if held >= PROP_MIN_HELD and moving >= ACTOR_MIN_SHIFT_M and shift <= PROP_SHIFT_RATIO * moving:
-            props |= component
+    if actor_shift >= ACTOR_MIN_SHIFT_M:
+        for component, least_held, spread, shift in steady:
+            if least_held >= PROP_MIN_HELD and shift <= PROP_SHIFT_RATIO * actor_shift and spread <= actor_spread:
+                props |= component
     if not props.any():
         return None
     apart = occupied & ~ndimage.binary_dilation(props, connected)
