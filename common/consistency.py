@@ -257,12 +257,12 @@ def static_props(studio: Studio, samples: list, centre: np.ndarray | None) -> St
     connected = np.ones((3, 3, 3), dtype=bool)
     labels, count = ndimage.label(occupied.mean(axis=0) >= 0.5, connected)
     sizes = np.bincount(labels.ravel(), minlength=count + 1)
-    steady = []  # (component, its least share of cells held, its occupied share's spread, its shift, metres)
+    steady = []  # (component, its volume m^3, least share of cells held, occupied share's spread, shift m)
     for label in range(1, count + 1):
         if sizes[label] * step ** 3 < PROP_MIN_VOLUME_M3:
             continue
         component = labels == label
-        held = occupied[:, component].sum(axis=1) / sizes[label]
+        held = occupied[:, component].sum(axis=1) / sizes[label]  # (samples,)
         # the cells around it, not another component's: a box beside the actor would move with its limbs
         around = ndimage.binary_dilation(component, connected, iterations=PROP_GROW_CELLS) & ((labels == 0) | component)
         occupied_around = [np.argwhere(sample & around) for sample in occupied]
@@ -270,14 +270,14 @@ def static_props(studio: Studio, samples: list, centre: np.ndarray | None) -> St
         if min(len(c) for c in occupied_around) > 0:
             centroids = np.array([c.mean(axis=0) for c in occupied_around]) * step
             shift = float(np.linalg.norm(centroids - centroids.mean(axis=0), axis=1).max())
-        steady.append((component, held.min(), held.max() - held.min(), shift))
+        steady.append((component, sizes[label] * step ** 3, held.min(), held.max() - held.min(), shift))
     # the actor: the component of an actor's size that moves most (a vanished one has no centroid to compare)
-    actors = [(shift, spread) for component, _, spread, shift in steady
-              if component.sum() * step ** 3 >= ACTOR_MIN_VOLUME_M3 and np.isfinite(shift)]
+    actors = [(shift, spread) for _, volume, _, spread, shift in steady
+              if volume >= ACTOR_MIN_VOLUME_M3 and np.isfinite(shift)]
     actor_shift, actor_spread = max(actors, default=(0.0, 0.0))
     props = np.zeros(shape, dtype=bool)
     if actor_shift >= ACTOR_MIN_SHIFT_M:
-        for component, least_held, spread, shift in steady:
+        for component, _, least_held, spread, shift in steady:
             if least_held >= PROP_MIN_HELD and shift <= PROP_SHIFT_RATIO * actor_shift and spread <= actor_spread:
                 props |= component
     if not props.any():

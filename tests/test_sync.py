@@ -146,7 +146,7 @@ def test_what_sync_prints_to_import_with():
     lines = report_lines(found, 1, {"cam2": -10, "cam3": 1}, 3)
     # the offset to import with is the import's and the one found together; the others' kept
     assert lines[-1] == "import again with: --offset cam2=-8 cam3=1"
-    assert report(found, 1, {"cam2": -10}, 3, 0)["import_offsets"] == {"cam1": 0, "cam2": -8, "cam3": 0}
+    assert report(found, 1, {"cam2": -10}, 0)["import_offsets"] == {"cam1": 0, "cam2": -8, "cam3": 0}
     # two cameras that tell: either may be the one out of step
     two = estimate_of(("cam1", 0, True, 24), ("cam2", 0, False, 24), ("cam3", 1, True, 24), ("cam4", 0, False, 24))
     lines = report_lines(two, 1, {}, 3)

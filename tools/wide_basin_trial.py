@@ -36,14 +36,13 @@ from scipy import ndimage
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-import json  # noqa: E402
-
 from common.body import forward_kinematics, load_body_model  # noqa: E402
 from common.camera import Studio  # noqa: E402
 from common.fitting import FitOptions, FrameData, full_energy  # noqa: E402
 from common.scoring import joint_errors_mm  # noqa: E402
 from common.search import fit_frame  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
+from server.results import load_records  # noqa: E402
 
 OFF_MM = 40.0  # a frame with a joint this far off counts as off (issue 27's line)
 
@@ -71,7 +70,7 @@ def frames_alone(seq, model, result: Path, frames: list[int], levels: list[int])
     """``--frames``: each frame fitted from the frame before's fit and truth (module docstring)."""
     truth = seq.truth()
     options = FitOptions()
-    records = {r["frame"]: r for r in map(json.loads, (result / "poses.jsonl").read_text().splitlines())}
+    records = {r["frame"]: r for r in load_records(result)}
 
     def error(params, f):
         errors = joint_errors_mm(forward_kinematics(model, params).joints[0], truth[f])

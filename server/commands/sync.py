@@ -3,8 +3,8 @@
 Cameras without a shared clock, or a video that lost its first frames, leave camera c's frame
 i + d_c showing the moment of the others' frame i. This command estimates every camera's d_c
 (``common.sync.estimate_offsets``) and prints the ``mocap import-video --offset`` that puts
-the frames together: d_c added to the offset the sequence was imported with. It reads the silhouettes as they are (the multi-view cleaning assumes the
-cameras in step) and writes nothing.
+the frames together: d_c added to the offset the sequence was imported with. It reads the
+silhouettes as they are (the multi-view cleaning assumes the cameras in step) and writes nothing.
 """
 from __future__ import annotations
 
@@ -75,7 +75,7 @@ def run(args) -> int:
     estimate = estimate_offsets(seq.studio, mask_of, indices, args.max_offset, args.frames)
     imported = {n: int(o) for n, o in seq.meta.get("offsets", {}).items()}
     if args.json:
-        print(json.dumps(report(estimate, spacing, imported, args.max_offset, frames[0]), indent=1))
+        print(json.dumps(report(estimate, spacing, imported, frames[0]), indent=1))
         return 0
     for line in report_lines(estimate, spacing, imported, args.max_offset):
         print(line)
@@ -90,7 +90,7 @@ def offsets_found(estimate: SyncEstimate, spacing: int) -> dict:
     return {c.camera: c.offset * spacing if c.resolved or c.offset else None for c in estimate.cameras}
 
 
-def report(estimate: SyncEstimate, spacing: int, imported: dict, max_offset: int, first: int) -> dict:
+def report(estimate: SyncEstimate, spacing: int, imported: dict, first: int) -> dict:
     """``--json``'s document."""
     found = offsets_found(estimate, spacing)
     return {"offsets": found, "unresolved": estimate.unresolved, "frame_spacing": spacing,
