@@ -5,8 +5,8 @@ frame at its start; camera c's frame i + d_c then shows the moment of the others
 camera that started recording two frames before the others: d_c = 2; one whose first two
 frames were lost: -2). The silhouettes say which d: the visual hull of the other cameras at a
 moment projects onto a camera's silhouette of the same moment, and less well onto one taken a
-frame earlier or later, by as much as the actor moved in between. For each camera and each candidate offset d the
-agreement is measured over frames across the take:
+frame earlier or later, by as much as the actor moved in between. For each camera and each
+candidate offset d the agreement is measured over frames across the take:
 
 - the hull of the other cameras (a ``SYNC_GRID``-cell lattice in the box around the actor,
   each point inside every other mask that sees it) is projected into the camera;
