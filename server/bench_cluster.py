@@ -227,13 +227,15 @@ def bench_cluster(sequence, frames: int | None = None, clients: int = DEFAULT_CL
 def rounds_per_frame(processes: list[dict], frames: int) -> dict:
     """Where a distributed run's wall time went, per frame, from its server's timing: rounds
     (dispatched to all results checked) against their jobs' CPU seconds, and the server alone
-    between rounds (nothing out with the clients)."""
+    between rounds (nothing out with the clients), the rounds of short jobs it kept included."""
     server = next(p for p in processes if p["role"] == "server")
     frames = max(frames, 1)
     return {"rounds_per_frame": server["rounds"] / frames, "jobs_per_frame": server["jobs"] / frames,
             "round_seconds_per_frame": server["round_seconds"] / frames,
             "round_job_cpu_seconds_per_frame": server["round_job_cpu_seconds"] / frames,
-            "server_alone_seconds_per_frame": server["between_rounds_seconds"] / frames}
+            "server_alone_seconds_per_frame": server["between_rounds_seconds"] / frames,
+            "short_rounds_per_frame": server["short_rounds"] / frames,
+            "short_jobs_per_frame": server["short_jobs"] / frames}
 
 
 DEFAULT_HOPS = 20
@@ -299,7 +301,8 @@ def format_table(r: dict) -> str:
     lines += [f"distributed, per frame: {d['rounds_per_frame']:.1f} rounds of {d['jobs_per_frame']:.1f} jobs in all, "
               f"{d['round_seconds_per_frame']:.3f} s for {d['round_job_cpu_seconds_per_frame']:.3f} s of the jobs' CPU "
               f"({d['round_job_cpu_seconds_per_frame'] / r['shared_cores']:.3f} on {r['shared_cores']} cores); "
-              f"the server alone between rounds {d['server_alone_seconds_per_frame']:.3f} s"]
+              f"the server alone between rounds {d['server_alone_seconds_per_frame']:.3f} s, "
+              f"{d['short_rounds_per_frame']:.1f} rounds of {d['short_jobs_per_frame']:.1f} short jobs kept in them"]
     lines += ["", f"{'process'.ljust(16)} {'compute':>8} {'waiting':>8} {'transfer':>8}  s/frame"]
     for mode in ("single", "distributed"):
         for p in r["processes"][mode]:

@@ -12,6 +12,10 @@ chain is queued and no client is free, the server solves it itself after the hea
 server is worker zero, and with no clients at all this is the single-process mode.
 The limbs are solved Jacobi-style, so who solves a chain never changes its result. A
 refinement's hops (``common.fitting.hop_fit``) go out the same way, a few side by side.
+A round whose jobs take less CPU than handing a job to a client costs (measured: each kind of
+job's CPU seconds against the round trips less the clients' solves) stays on the server and
+runs on its own cores (``short_rounds``): a polishing round's limb solves of 2-3 ms would
+otherwise wait twice as long for two messages and the wake-ups on both sides.
 
 Reliability (zguide's Paranoid Pirate, adapted):
  - heartbeats both ways every ``heartbeat_interval``; a client silent for ``HEARTBEAT_LIVENESS``
@@ -77,7 +81,9 @@ from common.errors import UserError
 from common.fitting import (
     HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, redetects,
 )
-from common.search import FIT_JOBS, job_options, job_starts, solve_job
+from common.helping_pool import HelpingPool
+from common.search import FIT_JOBS, job_options, job_starts, solve_job, solve_locally
+from server.session import backend_threads, usable_cores
 from server.trust import check_bind, check_result, default_bind, server_keys
 from common.packing import packbits_masks
 from common.protocol import (
@@ -94,6 +100,11 @@ CLIENT_TIMEOUT = 10.0  # seconds a chain (or hop) may take on a client at most (
 DEADLINE_FACTOR = 4.0
 DEADLINE_FLOOR = 0.5  # seconds: a deadline no shorter, whatever the median (scheduling, network)
 SOLVE_TIMES_KEPT = 64  # measured solves per kind of job, the most recent; their median sets the deadline
+# A round stays on the server (its own cores) where every job's median CPU seconds are under this
+# many times the median hand-over (a result's round trip less the client's solve): 2-3 ms limb
+# solves against 4-6 ms hand-overs on 2 shared cores (`python -m server.bench_cluster`), the
+# 14 ms re-detections and 30 ms whole fits go out.
+SHORT_JOB_FACTOR = 1.0
 RECEIVE_HWM = 100  # messages queued per peer at most; a client sends a few between the server's reads
 MAX_SLEEP = 1.0  # seconds the broker sleeps at most; it wakes for messages, commands and deadlines
 SHUTDOWN_GRACE = 1.0  # seconds to wait for clients to acknowledge SHUTDOWN
@@ -153,6 +164,7 @@ class _Claim:
     client_id: str
     seconds: float                 # its round trip
     kind: tuple
+    handover: float                # the round trip less the client's solve
 
 
 @dataclass
@@ -251,7 +263,12 @@ class ClusterSolver:
         # jobs' CPU seconds, and the server alone between one round's end and the next's start
         # (torso, head, proposals; a new frame's masks)
         self._rounds = {"rounds": 0, "jobs": 0, "round_seconds": 0.0, "round_job_cpu_seconds": 0.0,
-                        "between_rounds_seconds": 0.0}
+                        "between_rounds_seconds": 0.0, "short_rounds": 0, "short_jobs": 0}
+        self._job_cpu: dict[tuple, deque] = defaultdict(lambda: deque(maxlen=SOLVE_TIMES_KEPT))  # kind -> s
+        self._handovers: deque = deque(maxlen=SOLVE_TIMES_KEPT)  # seconds, round trip less the solve
+        threads = backend_threads(usable_cores(), options)  # one where the energy is bound to a GL context
+        self._pool = HelpingPool(threads, "cluster-server") if threads > 1 else None
+        self._here = None  # the frame's dispatch on the server's own cores (common.search.solve_locally)
         self._last_round_end: float | None = None
         self._start_wall = self._start_cpu = None
         self._data: FrameData | None = None
@@ -331,6 +348,7 @@ class ClusterSolver:
             self._start_wall, self._start_cpu = t0, time.process_time()
         self._data, self._current_frame = data, int(frame)
         self._frame_options = options
+        self._here = solve_locally(data.model, data, options, int(frame), self._pool)
         msg = Frame(session=self.session, frame=int(frame), cameras=camera_specs(data.studio),
                     silhouettes=packbits_masks(data.masks), previous_params=np.asarray(start).tolist(),
                     body_scale=data.model.scale, body_fingerprint=data.model.fingerprint)
@@ -344,6 +362,10 @@ class ClusterSolver:
         opts = job_options(options, self._frame_options, len(chains))
         rnd = _Round(self._current_frame, int(iteration), chains, dict(zip(chains, job_starts(params, len(chains)))),
                      dict(zip(chains, opts)), {c: o.solve_settings() for c, o in zip(chains, opts)})
+        with self._lock:
+            short = self._short({rnd.kind(c) for c in chains})
+        if short:
+            return self._solve_short(rnd, params, options)
         rnd.pending.extend(rnd.chains)
         with self._lock:
             rnd.posted = time.perf_counter()
@@ -353,10 +375,33 @@ class ClusterSolver:
         self._post(("round", rnd))
         return lambda: self._collect(rnd)
 
+    def _short(self, kinds: set) -> bool:
+        """Whether jobs of ``kinds`` cost less CPU than a hand-over to a client (SHORT_JOB_FACTOR;
+        both measured; the lock held)."""
+        if self._pool is None or not self._handovers or not all(self._job_cpu[k] for k in kinds):
+            return False
+        handover = float(np.median(self._handovers))
+        return all(float(np.median(self._job_cpu[k])) < SHORT_JOB_FACTOR * handover for k in kinds)
+
+    def _solve_short(self, rnd: _Round, params, options) -> Callable[[], list]:
+        """``rnd``'s jobs solved on the server's own cores, none sent (the same results)."""
+        collect = self._here(rnd.chains, params, rnd.iteration, options)
+
+        def collected() -> list:
+            results = collect()
+            with self._lock:
+                self._rounds["short_rounds"] += 1
+                self._rounds["short_jobs"] += len(results)
+                for chain, result in zip(rnd.chains, results):
+                    self._job_cpu[rnd.kind(chain)].append(result.cpu_seconds)
+            return results
+
+        return collected
+
     def timing(self) -> dict:
         """Per-process compute / waiting / transfer seconds; the server's rounds (how many, their
-        jobs, their wall seconds and their jobs' CPU seconds) and its seconds alone between them;
-        and the drop and failure counters."""
+        jobs, their wall seconds and their jobs' CPU seconds), its seconds alone between them and
+        the rounds it kept (short_rounds, short_jobs); and the drop and failure counters."""
         with self._lock:
             now = time.perf_counter()
             wall = now - self._start_wall if self._start_wall is not None else 0.0
@@ -411,6 +456,8 @@ class ClusterSolver:
                     self._lock.wait(0.05)
         self._post(("stop",))
         self._thread.join(timeout=5.0)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
         self._teardown()
 
     # ------------------------------------------------------------------ caller's thread
@@ -463,6 +510,7 @@ class ClusterSolver:
                 self._server["local_compute_seconds"] += seconds
                 self._counts["local_chains"] += 1
                 self._measured(rnd.kind(chain), seconds)
+                self._job_cpu[rnd.kind(chain)].append(result.cpu_seconds)
                 rnd.local.discard(chain)
                 rnd.results.setdefault(chain, result)
                 self._lock.notify_all()
@@ -509,6 +557,8 @@ class ClusterSolver:
             if problem is None:
                 stats.accepted += 1
                 self._measured(claim.kind, claim.seconds)
+                self._job_cpu[claim.kind].append(claim.result.cpu_seconds)
+                self._handovers.append(claim.handover)
                 rnd.results.setdefault(chain, claim.result)
             else:
                 stats.rejected += 1
@@ -740,11 +790,12 @@ class ClusterSolver:
                        peer.identity)
             return
         seconds = time.monotonic() - req.sent
-        stats.transfer_seconds += max(seconds - msg.wall_seconds, 0.0)
+        handover = max(seconds - msg.wall_seconds, 0.0)
+        stats.transfer_seconds += handover
         if msg.chain in rnd.results or msg.chain in rnd.claims:
             self._drop("duplicate", f"{msg.chain} of frame {msg.frame} arrived twice", peer.identity)
             return
-        rnd.claims[msg.chain] = _Claim(_chain_result(msg), peer.identity, peer.client_id, seconds, req.kind)
+        rnd.claims[msg.chain] = _Claim(_chain_result(msg), peer.identity, peer.client_id, seconds, req.kind, handover)
         if msg.chain in rnd.pending:
             rnd.pending.remove(msg.chain)
             rnd.resent.discard(msg.chain)

@@ -52,8 +52,10 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     whole_fits = sum(r["whole_fits"] for r in records(tmp_path))
     assert limb_solves >= len(LIMB_CHAINS) and whole_fits >= 3 * EQUAL_FRAMES  # the start and its two turns
     # every job was done by a client or by the server, most by clients where there are some; the
-    # server may also solve one job of a kind nothing has measured, which a client took a while over
-    done = sum(p["chains"] for p in clients) + timing["local_chains"]
+    # server may also solve one job of a kind nothing has measured, which a client took a while
+    # over, and keeps the rounds of jobs shorter than a hand-over (short_jobs)
+    server = next(p for p in timing["processes"] if p["role"] == "server")
+    done = sum(p["chains"] for p in clients) + timing["local_chains"] + server["short_jobs"]
     assert limb_solves + whole_fits <= done <= limb_solves + whole_fits + timing["backup_chains"]
     if n >= len(LIMB_CHAINS):
         assert timing["local_chains"] <= whole_fits + timing["backup_chains"]
@@ -62,11 +64,38 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
     for p in timing["processes"]:
         for k in ("compute_seconds", "waiting_seconds", "transfer_seconds"):
             assert p[k] >= 0.0
-    server = timing["processes"][0]  # its rounds: every job was in one, and each took time and CPU
-    assert server["rounds"] >= 2 * EQUAL_FRAMES and server["jobs"] >= limb_solves + whole_fits
+    # its rounds, sent or kept: every job was in one, and each took time and CPU
+    assert server["rounds"] + server["short_rounds"] >= 2 * EQUAL_FRAMES
+    assert server["jobs"] + server["short_jobs"] >= limb_solves + whole_fits
     assert server["round_seconds"] > 0.0 and server["round_job_cpu_seconds"] > 0.0
     assert server["between_rounds_seconds"] > 0.0  # torso and head, and each new frame
     assert all(w.dropped == {} for w in workers)
+
+
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("factor", [0.0, 1e9])
+def test_short_rounds_stay_on_the_server(monkeypatch, model, seq_path, reference, tmp_path, factor):
+    """Rounds whose jobs cost less CPU than a hand-over run on the server's own cores, with the
+    same poses: none where nothing counts as short, every round of a kind once measured where
+    everything does (the clients then solve only the first jobs of each kind)."""
+    from server import cluster
+
+    monkeypatch.setattr(cluster, "SHORT_JOB_FACTOR", factor)
+    options = FitOptions(refine_passes=0)
+    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    try:
+        with thread_workers(model, solver.endpoint, 2):
+            solver.wait_for_clients(2, timeout=10)
+            summary = run_fit(model, load_sequence(seq_path), tmp_path, options, solver, max_frames=EQUAL_FRAMES)
+    finally:
+        solver.close(shutdown="done")
+    assert np.abs(poses(tmp_path) - reference[:EQUAL_FRAMES]).max() <= TOLERANCE
+    server = next(p for p in summary["timing"]["processes"] if p["role"] == "server")
+    sent = sum(p["chains"] for p in summary["timing"]["processes"] if p["role"] == "client")
+    if factor == 0.0:
+        assert server["short_rounds"] == server["short_jobs"] == 0 and server["rounds"] > 0
+    else:
+        assert server["short_rounds"] > server["rounds"] and server["short_jobs"] > sent
 
 
 @pytest.mark.timeout(300)
