@@ -23,7 +23,7 @@ from pathlib import Path
 from common.errors import UserError
 from server.output import write_text
 from server.project import TakeFailed, find_takes, frames_done, run_take
-from server.session import THREADS_ENV, usable_cores
+from server.threads import THREADS_ENV, usable_cores
 
 BATCH_FILE = "batch.json"
 INDEX_FILE = "index.html"

@@ -31,7 +31,8 @@ from common.sequence import load_sequence
 from common.argtypes import count
 from server.local_cluster import LocalCluster
 from server.results import load_records
-from server.session import LocalSolver, run_fit, usable_cores
+from server.session import LocalSolver, run_fit
+from server.threads import usable_cores
 
 PAPER_TABLE2 = {  # seconds per frame, sequence A; 1.8 GHz Xeon + GeForce3 per machine
     "single_xor_seconds_per_frame": 7.98,
@@ -227,7 +228,7 @@ def bench_cluster(sequence, frames: int | None = None, clients: int = DEFAULT_CL
 def rounds_per_frame(processes: list[dict], frames: int) -> dict:
     """Where a distributed run's wall time went, per frame, from its server's timing: rounds
     (dispatched to all results checked) against their jobs' CPU seconds, and the server alone
-    between rounds (nothing out with the clients), the rounds of short jobs it kept included."""
+    between rounds (nothing out with the clients), and the rounds of short jobs it kept."""
     server = next(p for p in processes if p["role"] == "server")
     frames = max(frames, 1)
     return {"rounds_per_frame": server["rounds"] / frames, "jobs_per_frame": server["jobs"] / frames,
@@ -235,7 +236,8 @@ def rounds_per_frame(processes: list[dict], frames: int) -> dict:
             "round_job_cpu_seconds_per_frame": server["round_job_cpu_seconds"] / frames,
             "server_alone_seconds_per_frame": server["between_rounds_seconds"] / frames,
             "short_rounds_per_frame": server["short_rounds"] / frames,
-            "short_jobs_per_frame": server["short_jobs"] / frames}
+            "short_jobs_per_frame": server["short_jobs"] / frames,
+            "short_round_seconds_per_frame": server["short_round_seconds"] / frames}
 
 
 DEFAULT_HOPS = 20
@@ -302,7 +304,8 @@ def format_table(r: dict) -> str:
               f"{d['round_seconds_per_frame']:.3f} s for {d['round_job_cpu_seconds_per_frame']:.3f} s of the jobs' CPU "
               f"({d['round_job_cpu_seconds_per_frame'] / r['shared_cores']:.3f} on {r['shared_cores']} cores); "
               f"the server alone between rounds {d['server_alone_seconds_per_frame']:.3f} s, "
-              f"{d['short_rounds_per_frame']:.1f} rounds of {d['short_jobs_per_frame']:.1f} short jobs kept in them"]
+              f"{d['short_rounds_per_frame']:.1f} rounds of {d['short_jobs_per_frame']:.1f} short jobs kept "
+              f"({d['short_round_seconds_per_frame']:.3f} s)"]
     lines += ["", f"{'process'.ljust(16)} {'compute':>8} {'waiting':>8} {'transfer':>8}  s/frame"]
     for mode in ("single", "distributed"):
         for p in r["processes"][mode]:

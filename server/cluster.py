@@ -12,10 +12,12 @@ chain is queued and no client is free, the server solves it itself after the hea
 server is worker zero, and with no clients at all this is the single-process mode.
 The limbs are solved Jacobi-style, so who solves a chain never changes its result. A
 refinement's hops (``common.fitting.hop_fit``) go out the same way, a few side by side.
-A round whose jobs take less CPU than handing a job to a client costs (measured: each kind of
-job's CPU seconds against the round trips less the clients' solves) stays on the server and
-runs on its own cores (``short_rounds``): a polishing round's limb solves of 2-3 ms would
-otherwise wait twice as long for two messages and the wake-ups on both sides.
+A round that the server's own cores (``threads``) would solve sooner than the clients stays on
+the server (``short_rounds``): its jobs' CPU seconds over those cores against one job's plus a
+hand-over, each kind of job's CPU seconds and the hand-overs (a result's round trip less the
+client's solve) measured as the run goes. A polishing round's four limb solves of about 3 ms
+would otherwise wait longer for the messages and the wake-ups on both sides. The seconds
+clients report decide only where jobs run, never a result.
 
 Reliability (zguide's Paranoid Pirate, adapted):
  - heartbeats both ways every ``heartbeat_interval``; a client silent for ``HEARTBEAT_LIVENESS``
@@ -83,7 +85,7 @@ from common.fitting import (
 )
 from common.helping_pool import HelpingPool
 from common.search import FIT_JOBS, job_options, job_starts, solve_job, solve_locally
-from server.session import backend_threads, usable_cores
+from server.threads import resolve_threads
 from server.trust import check_bind, check_result, default_bind, server_keys
 from common.packing import packbits_masks
 from common.protocol import (
@@ -100,10 +102,12 @@ CLIENT_TIMEOUT = 10.0  # seconds a chain (or hop) may take on a client at most (
 DEADLINE_FACTOR = 4.0
 DEADLINE_FLOOR = 0.5  # seconds: a deadline no shorter, whatever the median (scheduling, network)
 SOLVE_TIMES_KEPT = 64  # measured solves per kind of job, the most recent; their median sets the deadline
-# A round stays on the server (its own cores) where every job's median CPU seconds are under this
-# many times the median hand-over (a result's round trip less the client's solve): 2-3 ms limb
-# solves against 4-6 ms hand-overs on 2 shared cores (`python -m server.bench_cluster`), the
-# 14 ms re-detections and 30 ms whole fits go out.
+# A round stays on the server where its jobs, ceil(jobs / threads) one after another on the
+# server's own threads, take less than one job plus this many median hand-overs (a result's
+# round trip less the client's solve), each job at its kind's median CPU seconds. On 2 cores
+# shared with 4 clients (`python -m server.bench_cluster`, docs/accuracy.md): polishing rounds
+# of 4 limb solves of about 3 ms stay against 4-6 ms hand-overs; 4 re-detections of 14 ms and
+# 5 whole fits of 30 ms go out.
 SHORT_JOB_FACTOR = 1.0
 RECEIVE_HWM = 100  # messages queued per peer at most; a client sends a few between the server's reads
 MAX_SLEEP = 1.0  # seconds the broker sleeps at most; it wakes for messages, commands and deadlines
@@ -165,6 +169,7 @@ class _Claim:
     seconds: float                 # its round trip
     kind: tuple
     handover: float                # the round trip less the client's solve
+    cpu: float                     # the CPU seconds it reports, at most its solve's and round trip's
 
 
 @dataclass
@@ -228,7 +233,9 @@ class ClusterSolver:
 
     def __init__(self, options: FitOptions, bind: str | None = None,
                  heartbeat_interval: float = HEARTBEAT_INTERVAL, client_timeout: float = CLIENT_TIMEOUT,
-                 curve_keys: Path | None = None, insecure: bool = False):
+                 curve_keys: Path | None = None, insecure: bool = False, threads: int = 0):
+        """``threads``: the server's own, for the rounds it keeps (``resolve_threads``: 0 is
+        $MOCAP_THREADS or every usable core; one keeps none)."""
         bind = default_bind(curve_keys) if bind is None else bind
         if check_bind(bind, curve_keys, insecure):
             log.warning("INSECURE: %s bound without CURVE: any host that reaches it can join and send results",
@@ -263,11 +270,12 @@ class ClusterSolver:
         # jobs' CPU seconds, and the server alone between one round's end and the next's start
         # (torso, head, proposals; a new frame's masks)
         self._rounds = {"rounds": 0, "jobs": 0, "round_seconds": 0.0, "round_job_cpu_seconds": 0.0,
-                        "between_rounds_seconds": 0.0, "short_rounds": 0, "short_jobs": 0}
+                        "between_rounds_seconds": 0.0, "short_rounds": 0, "short_jobs": 0,
+                        "short_round_seconds": 0.0}
         self._job_cpu: dict[tuple, deque] = defaultdict(lambda: deque(maxlen=SOLVE_TIMES_KEPT))  # kind -> s
         self._handovers: deque = deque(maxlen=SOLVE_TIMES_KEPT)  # seconds, round trip less the solve
-        threads = backend_threads(usable_cores(), options)  # one where the energy is bound to a GL context
-        self._pool = HelpingPool(threads, "cluster-server") if threads > 1 else None
+        self._threads = resolve_threads(threads, options)  # one where the energy is bound to a GL context
+        self._pool: HelpingPool | None = None  # made once the socket is bound
         self._here = None  # the frame's dispatch on the server's own cores (common.search.solve_locally)
         self._last_round_end: float | None = None
         self._start_wall = self._start_cpu = None
@@ -308,6 +316,8 @@ class ClusterSolver:
         except BaseException:
             self._teardown()
             raise
+        if self._threads > 1:
+            self._pool = HelpingPool(self._threads, "cluster-server")
         self._thread = threading.Thread(target=self._broker, name="cluster-broker", daemon=True)
         self._thread.start()
         log.info("listening on %s, session %s", self.endpoint, self.session)
@@ -363,7 +373,7 @@ class ClusterSolver:
         rnd = _Round(self._current_frame, int(iteration), chains, dict(zip(chains, job_starts(params, len(chains)))),
                      dict(zip(chains, opts)), {c: o.solve_settings() for c, o in zip(chains, opts)})
         with self._lock:
-            short = self._short({rnd.kind(c) for c in chains})
+            short = self._short([rnd.kind(c) for c in chains])
         if short:
             return self._solve_short(rnd, params, options)
         rnd.pending.extend(rnd.chains)
@@ -375,16 +385,18 @@ class ClusterSolver:
         self._post(("round", rnd))
         return lambda: self._collect(rnd)
 
-    def _short(self, kinds: set) -> bool:
-        """Whether jobs of ``kinds`` cost less CPU than a hand-over to a client (SHORT_JOB_FACTOR;
-        both measured; the lock held)."""
+    def _short(self, kinds: list) -> bool:
+        """Whether a round of jobs of ``kinds`` (one per job) is solved sooner on the server's
+        threads than by the clients (SHORT_JOB_FACTOR; measured; the lock held)."""
         if self._pool is None or not self._handovers or not all(self._job_cpu[k] for k in kinds):
             return False
-        handover = float(np.median(self._handovers))
-        return all(float(np.median(self._job_cpu[k])) < SHORT_JOB_FACTOR * handover for k in kinds)
+        job = max(float(np.median(self._job_cpu[k])) for k in set(kinds))
+        here = -(-len(kinds) // self._threads) * job
+        return here < job + SHORT_JOB_FACTOR * float(np.median(self._handovers))
 
     def _solve_short(self, rnd: _Round, params, options) -> Callable[[], list]:
         """``rnd``'s jobs solved on the server's own cores, none sent (the same results)."""
+        t0 = time.perf_counter()
         collect = self._here(rnd.chains, params, rnd.iteration, options)
 
         def collected() -> list:
@@ -392,6 +404,7 @@ class ClusterSolver:
             with self._lock:
                 self._rounds["short_rounds"] += 1
                 self._rounds["short_jobs"] += len(results)
+                self._rounds["short_round_seconds"] += time.perf_counter() - t0
                 for chain, result in zip(rnd.chains, results):
                     self._job_cpu[rnd.kind(chain)].append(result.cpu_seconds)
             return results
@@ -401,7 +414,8 @@ class ClusterSolver:
     def timing(self) -> dict:
         """Per-process compute / waiting / transfer seconds; the server's rounds (how many, their
         jobs, their wall seconds and their jobs' CPU seconds), its seconds alone between them and
-        the rounds it kept (short_rounds, short_jobs); and the drop and failure counters."""
+        the rounds it kept (short_rounds, short_jobs, short_round_seconds); and the drop and
+        failure counters."""
         with self._lock:
             now = time.perf_counter()
             wall = now - self._start_wall if self._start_wall is not None else 0.0
@@ -557,7 +571,7 @@ class ClusterSolver:
             if problem is None:
                 stats.accepted += 1
                 self._measured(claim.kind, claim.seconds)
-                self._job_cpu[claim.kind].append(claim.result.cpu_seconds)
+                self._job_cpu[claim.kind].append(claim.cpu)
                 self._handovers.append(claim.handover)
                 rnd.results.setdefault(chain, claim.result)
             else:
@@ -792,10 +806,12 @@ class ClusterSolver:
         seconds = time.monotonic() - req.sent
         handover = max(seconds - msg.wall_seconds, 0.0)
         stats.transfer_seconds += handover
+        cpu = min(msg.cpu_seconds, msg.wall_seconds, seconds)  # what it says decides only where jobs run
         if msg.chain in rnd.results or msg.chain in rnd.claims:
             self._drop("duplicate", f"{msg.chain} of frame {msg.frame} arrived twice", peer.identity)
             return
-        rnd.claims[msg.chain] = _Claim(_chain_result(msg), peer.identity, peer.client_id, seconds, req.kind, handover)
+        rnd.claims[msg.chain] = _Claim(_chain_result(msg), peer.identity, peer.client_id, seconds, req.kind, handover,
+                                       cpu)
         if msg.chain in rnd.pending:
             rnd.pending.remove(msg.chain)
             rnd.resent.discard(msg.chain)
@@ -902,11 +918,12 @@ class ClusterSolver:
             request = self._next_request
             self._next_request += 1
             self._send_frame(peer)
+            sent = time.monotonic()  # before the message: its round trip includes sending it
             self._send(ident, Solve(session=self.session, frame=rnd.frame, iteration=rnd.iteration,
                                     request=request, params=rnd.starts[chain].tolist(), chains=(chain,),
                                     options=rnd.wire_options[chain]))
             peer.request = request
-            rnd.requests[request] = _Request(ident, chain, time.monotonic(), rnd.kind(chain))
+            rnd.requests[request] = _Request(ident, chain, sent, rnd.kind(chain))
 
     def _teardown(self) -> None:
         for name in ("_wake_tx", "_wake_rx", "monitor", "sock"):

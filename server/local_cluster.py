@@ -52,16 +52,16 @@ class LocalCluster:
 
     def __init__(self, options: FitOptions, clients: int,
                  heartbeat_interval: float = HEARTBEAT_INTERVAL, client_timeout: float = CLIENT_TIMEOUT,
-                 client_args: tuple[str, ...] = ()):
-        self.options, self.n = options, clients
+                 client_args: tuple[str, ...] = (), threads: int = 0):
+        self.options, self.n, self.threads = options, clients, threads
         self.heartbeat_interval, self.client_timeout = heartbeat_interval, client_timeout
         self.client_args = client_args
         self.solver: ClusterSolver | None = None
         self.procs: list[subprocess.Popen] = []
 
     def __enter__(self) -> ClusterSolver:
-        self.solver = ClusterSolver(self.options, bind=LOCAL_BIND,
-                                    heartbeat_interval=self.heartbeat_interval, client_timeout=self.client_timeout)
+        self.solver = ClusterSolver(self.options, bind=LOCAL_BIND, heartbeat_interval=self.heartbeat_interval,
+                                    client_timeout=self.client_timeout, threads=self.threads)
         try:
             env = dict(os.environ)
             env["PYTHONPATH"] = os.pathsep.join(p for p in (str(_project_root()), env.get("PYTHONPATH")) if p)

@@ -25,7 +25,6 @@ Result folder (``server.results``):
 from __future__ import annotations
 
 import json
-import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -48,6 +47,7 @@ from common.search import (FIT_JOBS, LIMBS_LOST, WIDE, VARIANTS, Context, descen
                            tracking_lost, LIMB_LOSS_ENERGY_RATIO)
 from common.sequence import Sequence
 from server.output import write_text
+from server.threads import backend_threads
 from server.results import (POSES_FILE, SUMMARY_FILE, prepare_result_folder, read_done_frames,
                             rewrite_complete)
 
@@ -80,33 +80,6 @@ class Solver(Protocol):
     def close(self) -> None: ...
 
 
-def usable_cores() -> int:
-    """The CPU cores this process may run on."""
-    return max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1))
-
-
-# Threads of a single-process fit when not told (``--threads 0``): this variable where set (a
-# batch's workers, one take per core, set it to 1), else every usable core.
-THREADS_ENV = "MOCAP_THREADS"
-# Backends whose energy is bound to one thread's GL context
-SINGLE_THREAD_BACKENDS = ("gl", "coarse-to-fine")
-
-
-def backend_threads(threads: int, options: FitOptions) -> int:
-    """``threads`` (at least 1), or 1 for the backends bound to one GL context."""
-    return 1 if options.energy in SINGLE_THREAD_BACKENDS else max(1, int(threads))
-
-
-def resolve_threads(threads: int, options: FitOptions) -> int:
-    """The threads a single-process fit runs: ``threads``, or where 0 $MOCAP_THREADS or every
-    usable core; 1 for the GL backends."""
-    if threads <= 0:
-        value = os.environ.get(THREADS_ENV, "")
-        try:
-            threads = int(value) if value else usable_cores()
-        except ValueError:
-            raise UserError(f"${THREADS_ENV}: expected a whole number of threads, got {value!r}") from None
-    return backend_threads(threads, options)
 
 
 class LocalSolver:

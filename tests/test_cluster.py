@@ -75,14 +75,15 @@ def test_same_poses_as_single_process(n, model, seq_path, reference, tmp_path):
 @pytest.mark.timeout(60)
 @pytest.mark.parametrize("factor", [0.0, 1e9])
 def test_short_rounds_stay_on_the_server(monkeypatch, model, seq_path, reference, tmp_path, factor):
-    """Rounds whose jobs cost less CPU than a hand-over run on the server's own cores, with the
-    same poses: none where nothing counts as short, every round of a kind once measured where
-    everything does (the clients then solve only the first jobs of each kind)."""
+    """Rounds the server's own threads solve sooner than the clients stay on the server, with
+    the same poses: none where a hand-over counts for nothing, every round of a kind once
+    measured where it counts for everything (the clients then solve only the first jobs of
+    each kind)."""
     from server import cluster
 
     monkeypatch.setattr(cluster, "SHORT_JOB_FACTOR", factor)
     options = FitOptions(refine_passes=0)
-    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT, threads=2)
     try:
         with thread_workers(model, solver.endpoint, 2):
             solver.wait_for_clients(2, timeout=10)
@@ -96,6 +97,36 @@ def test_short_rounds_stay_on_the_server(monkeypatch, model, seq_path, reference
         assert server["short_rounds"] == server["short_jobs"] == 0 and server["rounds"] > 0
     else:
         assert server["short_rounds"] > server["rounds"] and server["short_jobs"] > sent
+        assert server["short_round_seconds"] > 0.0
+
+
+@pytest.mark.timeout(30)
+def test_a_round_stays_where_it_is_solved_sooner():
+    """The rule, from measured seconds: a round stays where its jobs over the server's threads
+    take less than one job and a hand-over; nothing stays before both are measured, with one
+    thread, or where a round mixes in a kind nothing has measured."""
+    from collections import deque
+
+    limb, fit, new = ("limb", ()), ("fit", ()), ("search", ())
+    for threads, kinds, expected in [
+        (2, [limb] * 4, True),        # 2 x 3 ms against 3 + 5 ms
+        (2, [fit] * 5, False),        # 3 x 30 ms against 30 + 5 ms
+        (2, [limb] * 8, False),       # 4 x 3 ms against 3 + 5 ms
+        (4, [limb] * 8, True),        # 2 x 3 ms against 3 + 5 ms
+        (2, [limb, limb, fit], False),  # the longest kind counts: 2 x 30 against 30 + 5
+        (2, [limb, new], False),      # a kind not yet measured goes out
+        (1, [limb] * 4, False),       # one thread keeps nothing
+    ]:
+        solver = ClusterSolver(FitOptions(), bind=LOCAL_BIND, threads=threads)
+        try:
+            with solver._lock:
+                solver._job_cpu[limb].extend([0.002, 0.003, 0.004])
+                solver._job_cpu[fit].extend([0.030])
+                assert not solver._short([limb] * 4)  # no hand-over measured yet
+                solver._handovers.extend([0.004, 0.005, 0.009])
+                assert solver._short(kinds) == expected, (threads, kinds)
+        finally:
+            solver.close()
 
 
 @pytest.mark.timeout(300)
@@ -278,7 +309,7 @@ def test_chunked_refinement_same_poses_for_threads_and_clients(model, seq_path, 
 
 def test_thread_count_from_the_environment(monkeypatch):
     from common.errors import UserError
-    from server.session import THREADS_ENV, resolve_threads, usable_cores
+    from server.threads import THREADS_ENV, resolve_threads, usable_cores
 
     monkeypatch.delenv(THREADS_ENV, raising=False)
     assert resolve_threads(0, FitOptions()) == usable_cores()
@@ -365,9 +396,9 @@ def test_fit_table_shows_the_servers_rounds_per_frame():
 
     server = {"name": "server", "compute_seconds": 2.0, "waiting_seconds": 1.0, "transfer_seconds": 0.1, "chains": 3,
               "rounds": 40, "jobs": 170, "round_seconds": 2.4, "round_job_cpu_seconds": 4.0,
-              "between_rounds_seconds": 0.2}
+              "between_rounds_seconds": 0.2, "short_rounds": 18}
     client = {"name": "local-1", "compute_seconds": 1.0, "waiting_seconds": 0.5, "transfer_seconds": 0.2, "chains": 9}
     rows = dict(_cluster_rows({"frames_fitted_this_run": 10, "timing": {"processes": [server, client]}}))
     assert rows["rounds"] == ("4.0 a frame, 0.240 s for 0.400 s of their jobs' CPU; the server alone between "
-                              "them 0.020 s/frame")
+                              "them 0.020 s/frame, 1.8 rounds of short jobs kept")
     assert rows["local-1 compute/wait/transfer"] == "0.100 / 0.050 / 0.020 s/frame, 9 chains"

@@ -36,8 +36,8 @@ from common.scoring import silhouette_disagreement, size_score  # noqa: E402
 from common.search import WIDE, run_schedule  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
 from common.voxels import silhouette_centre  # noqa: E402
-from server.session import (ACTOR_SCALES, LocalSolver, context, fit_at_scale, frame_data, run_fit,  # noqa: E402
-                            usable_cores)
+from server.session import ACTOR_SCALES, LocalSolver, context, fit_at_scale, frame_data, run_fit  # noqa: E402
+from server.threads import usable_cores  # noqa: E402
 
 RULER_STEP = 0.25     # the sequence's world units (metres) per ruler segment
 RULER_LENGTH = 2.5    # ... the ruler's length

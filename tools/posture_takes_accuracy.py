@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from common.argtypes import OneLineParser, count  # noqa: E402
 from server.benchmarks import write_json  # noqa: E402
-from server.session import usable_cores  # noqa: E402
+from server.threads import usable_cores  # noqa: E402
 
 # (posture, prop): the takes of docs/accuracy.md's real-like studio table
 TAKES = (("seated", None), ("crouching", None), ("kneeling", None), ("kneeling_one", None),

@@ -27,7 +27,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from server.benchmarks import MAX_ERROR_TARGET_MM, shared_clips, write_json  # noqa: E402
-from server.session import usable_cores  # noqa: E402
+from server.threads import usable_cores  # noqa: E402
 
 
 def fit_clip(clip: Path, frames: int, work: Path, preset: str, init: str, fit_args: tuple = (),

@@ -20,8 +20,9 @@ from server.progress import Progress
 from server.output import (add_overwrite_argument, add_units_argument, check_folder_target, next_steps,
                            replace_file, shell_word)
 from server.results import MOTION_FILE, RESULT_FILES, earlier_actor_scale, load_records
-from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, resolve_threads, run_fit,
+from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, run_fit,
                             tracking_error_note, xor_sides)
+from server.threads import resolve_threads
 
 INIT_CHOICES = ("auto", "truth", "standing")
 
@@ -187,7 +188,8 @@ def _cluster_rows(summary: dict) -> list:
         if p.get("rounds"):
             rows.append(("rounds", f"{p['rounds'] / frames:.1f} a frame, {p['round_seconds'] / frames:.3f} s for "
                                    f"{p['round_job_cpu_seconds'] / frames:.3f} s of their jobs' CPU; the server "
-                                   f"alone between them {p['between_rounds_seconds'] / frames:.3f} s/frame"))
+                                   f"alone between them {p['between_rounds_seconds'] / frames:.3f} s/frame, "
+                                   f"{p.get('short_rounds', 0) / frames:.1f} rounds of short jobs kept"))
     if "dropped" in timing:
         dropped = sum(timing["dropped"].values())
         rows.append(("dropped / resent / lost", f"{dropped} messages / {timing['resent']} chains / "
@@ -199,8 +201,8 @@ def register(sub) -> None:
     p = sub.add_parser("fit", help="fit the body model to a sequence")
     add_fit_arguments(p)
     p.add_argument("--threads", type=count(0), default=0,
-                   help="single process: fit this many starts and limbs at once (default 0: every core, "
-                        "or $MOCAP_THREADS); the poses are the same for any number")
+                   help="fit this many starts and limbs at once (default 0: every core, or $MOCAP_THREADS); with "
+                        "--clients, the server's threads for the rounds it keeps; the poses are the same for any number")
     p.add_argument("--clients", type=count(0), default=0,
                    help="start N local limb clients and a server on 127.0.0.1 (default 0: one process)")
     add_cluster_arguments(p, server=False)
@@ -291,7 +293,7 @@ def run(args) -> int:
     else:
         # SIGTERM unwinds like Ctrl-C, so the local clients are stopped either way
         with terminate_on_sigterm(), LocalCluster(options, args.clients, heartbeat_interval=args.heartbeat,
-                                                  client_timeout=args.client_timeout) as solver:
+                                                  client_timeout=args.client_timeout, threads=args.threads) as solver:
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
                               max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)
     finish(model, seq, args, summary)
