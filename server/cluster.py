@@ -57,7 +57,7 @@ Threads: a broker thread owns the socket and does all I/O, heartbeats and time-o
 caller's thread queues work, checks results and waits for them (or solves a chain itself), so
 the clients hear from the server while it fits the torso and head.
 
-One module of about 850 lines: ``ClusterSolver`` is one state machine whose broker thread and
+One module of about 930 lines: ``ClusterSolver`` is one state machine whose broker thread and
 caller thread share its lock and round state; what it trusts is ``server.trust``, the local
 cluster ``server.local_cluster``.
 """
