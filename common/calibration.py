@@ -297,7 +297,7 @@ def load_calibration(path, units: str | None = None, fmt: str | None = None,
     guessed = [c.name for c in studio if c.size_guessed]
     if guessed and fmt != "json":  # our JSON marks its guesses, and says so when shown
         lines.append(f"{path}: no image size for {', '.join(guessed)}; guessed as twice the principal point "
-                     "(pass --size WxH, or take the size from the images)")
+                     "(pass --size WxH or --size-from CAMERA=PATH; import-video takes it from the videos)")
     lines += _units_lines(studio, source, units, declared)
     for line in lines:
         warn(line)

@@ -585,7 +585,7 @@ def plot_energy(result: ResultData) -> bytes:
         bx.set_yticks(y, chains, fontsize=8)
         bx.invert_yaxis()
         bx.legend(fontsize=7, loc="lower right")
-    bx.set_xlabel("energy in the chain's windows (pixels, mean per frame)")
+    bx.set_xlabel("energy in the chain's windows, its solves summed (pixels, mean per frame)")
     bx.set_title("Per chain")
     bx.grid(alpha=0.3, axis="x")
     return _png(fig)

@@ -148,15 +148,19 @@ SOLVES_PER_ITERATION = ("torso", "left_arm", "right_arm", "left_leg", "right_leg
 
 
 def chain_totals(chains: list[ChainResult]) -> dict:
-    """Per chain over a frame's iterations: evaluations and seconds summed, energy first -> last."""
+    """Per chain over a frame's solves: evaluations, seconds and the energies before and after
+    each solve summed. A solve's two energies are of its own window (a re-detection's, of the
+    whole images), so only the pair of sums compares: their difference is what the chain's
+    solves gained."""
     out: dict = {}
     for c in chains:
-        t = out.setdefault(c.chain, {"evaluations": 0, "energy_before": c.energy_before, "energy": c.energy,
+        t = out.setdefault(c.chain, {"evaluations": 0, "energy_before": 0, "energy": 0,
                                      "cpu_seconds": 0.0, "wall_seconds": 0.0})
         t["evaluations"] += c.evaluations
         t["cpu_seconds"] += c.cpu_seconds
         t["wall_seconds"] += c.wall_seconds
-        t["energy"] = c.energy
+        t["energy_before"] += c.energy_before
+        t["energy"] += c.energy
     return out
 
 def silhouette_centre(data: FrameData) -> np.ndarray:

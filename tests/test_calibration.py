@@ -617,7 +617,7 @@ def test_easymocap_as_write_intri_writes_it(tmp_path, capsys):
     assert [(c.width, c.height) for c in studio] == [(1921, 1083), (1929, 1077), (1937, 1071)]  # 2 x (960.3, 541.7) ...
     assert all(c.size_guessed for c in studio)
     assert warnings == [f"{folder}: no image size for 1, 2, 3; guessed as twice the principal point "
-                        "(pass --size WxH, or take the size from the images)"]
+                        "(pass --size WxH or --size-from CAMERA=PATH; import-video takes it from the videos)"]
     rc, stdout, err = cli(capsys, "calib", "show", folder)
     assert rc == 0 and err.count("\n") == 1 and err.startswith("warning: ") and "1, 2, 3" in err
     assert "1921x1083*" in stdout and "* size guessed as twice the principal point: 1, 2, 3" in stdout

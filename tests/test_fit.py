@@ -1489,3 +1489,23 @@ def test_a_size_at_the_search_s_end_is_warned(model, small_loaded, tmp_path, mon
     else:
         assert err.count("\n") == 1 and f"actor size {scale:.2f} is the {edge} the size search tries" in err
         assert "--actor-height" in err and "calib show" in err
+
+
+def test_chain_totals_compare_each_solve_with_itself():
+    """A chain's solves in a frame report energies of different windows (a limb's 128x128
+    window, a re-detection's whole images): the record sums each side, so after never exceeds
+    before where every solve gained (first-before against last-after read a window's 8,904
+    against the whole images' 23,764)."""
+    from common.fitting import ChainResult
+    from server.session import chain_totals
+
+    x = np.zeros(35)
+    solves = [ChainResult("left_arm", x, 8904, 8800, 40, 2, 0.01, 0.01),      # its window
+              ChainResult("left_arm", x, 8790, 8790, 30, 1, 0.01, 0.01),      # its window, moved on
+              ChainResult("left_arm", x, 23790, 23764, 90, 0, 0.02, 0.02),    # re-detected: whole images
+              ChainResult("right_leg", x, 5000, 4900, 10, 1, 0.005, 0.004)]
+    totals = chain_totals(solves)
+    assert totals["left_arm"]["energy_before"] == 8904 + 8790 + 23790
+    assert totals["left_arm"]["energy"] == 8800 + 8790 + 23764
+    assert totals["left_arm"]["evaluations"] == 160 and totals["right_leg"]["energy"] == 4900
+    assert all(t["energy"] <= t["energy_before"] for t in totals.values())

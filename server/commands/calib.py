@@ -120,7 +120,7 @@ def run_show(args) -> int:
     studio = _load(args)
     fmt = args.input_format or detect_format(args.input)
     print(f"{args.input}: {len(studio)} cameras ({fmt}; positions in metres)")
-    print(studio_table(studio))
+    print(studio_table(studio, resolve_world(studio, args.up)))
     guessed = [c.name for c in studio if c.size_guessed]
     if guessed:
         print(f"* size guessed as twice the principal point: {', '.join(guessed)} "
@@ -136,18 +136,24 @@ def world_line(studio: Studio, up: str) -> str:
     if warning:
         print_warning(warning)
     how = "found from the cameras" if up == "auto" else "as given"
-    return f"up axis: {world.up} ({how}); fitting turns it to +z and writes results in this frame"
+    return (f"up axis: {world.up} ({how}); fitting turns it to +z; poses.jsonl and the CSV, C3D, JSON lines "
+            "and keypoints3d exports keep this frame (every format's axes: docs/exports.md)")
 
 
-def studio_table(studio: Studio) -> str:
+def studio_table(studio: Studio, world=None) -> str:
     """One line per camera: name, image size (``*``: guessed), focal lengths (px), centre position (m),
-    distortion."""
-    rows = [("camera", "size", "fx", "fy", "x", "y", "z", "distortion")]
+    distortion; with ``world`` (a ``common.world.WorldFrame``), also the centre's height above the
+    floor along its up axis and its distance from the world's origin (m)."""
+    rows = [("camera", "size", "fx", "fy", "x", "y", "z", "distortion")
+            + (("height", "from origin") if world is not None else ())]
     for c in studio:
         x, y, z = c.center
         size = f"{c.width}x{c.height}" + ("*" if c.size_guessed else "")
-        rows.append((c.name, size, f"{c.K[0, 0]:.1f}", f"{c.K[1, 1]:.1f}",
-                     f"{x:.3f}", f"{y:.3f}", f"{z:.3f}", "yes" if c.has_distortion else "no"))
+        row = (c.name, size, f"{c.K[0, 0]:.1f}", f"{c.K[1, 1]:.1f}",
+               f"{x:.3f}", f"{y:.3f}", f"{z:.3f}", "yes" if c.has_distortion else "no")
+        if world is not None:
+            row += (f"{world.points_to_fit(c.center)[2]:.3f}", f"{np.linalg.norm(c.center):.3f}")
+        rows.append(row)
     widths = np.max([[len(cell) for cell in row] for row in rows], axis=0)
     left = {0, 1, 7}  # text columns; numbers right-aligned
     return "\n".join("  ".join(cell.ljust(w) if i in left else cell.rjust(w)
