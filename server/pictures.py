@@ -436,7 +436,8 @@ def overlay_strip(result: ResultData, painter: ModelPainter, frame: int, cameras
             pic = pic[y0:y1, x0:x1]
         if height:  # a crop is the camera's shape to a pixel: every frame's tile the same size
             pic = fit_height(pic, height, round(height * cam.width / cam.height) if crop else None)
-        pics.append(_caption(pic, f"{cam.name}  frame {frame}  XOR {xor[cam.name]} px"))
+        drawn = "mesh" if painter.gl else "ellipsoids"
+        pics.append(_caption(pic, f"{cam.name}  frame {frame}  {drawn} XOR {xor[cam.name]} px"))
     return hstack(pics), xor
 
 

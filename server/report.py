@@ -219,7 +219,9 @@ def build_report(result: ResultData, frames=None, cameras=None) -> str:
                           f'<figcaption>frame {f}: XOR {sum(xor.values())} px over these cameras</figcaption></figure>')
         overlay_html = (f'<p class="legend">{_swatch(AGREE)} silhouette and model {_swatch(MISSED)} silhouette the '
                         f'model misses {_swatch(EXTRA)} model outside the silhouette {_swatch((15, 15, 15))} model '
-                        f'outline</p>' + "\n".join(strips))
+                        f'outline. The model is drawn on the masks as recorded (its mesh where OpenGL runs); the '
+                        f'fit\'s XOR (the table above, poses.jsonl) counts its ellipsoids on the undistorted masks, '
+                        f'so the pixel counts differ.</p>' + "\n".join(strips))
     else:
         overlay_html = '<p class="note">The sequence folder was not found, so there are no overlays ' \
                        '(run <code>mocap report RESULT --sequence SEQ</code>).</p>'

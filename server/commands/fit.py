@@ -143,7 +143,7 @@ def print_summary(summary: dict, out, result: Path | None = None) -> None:
                            + (" (chosen from the first frame; --actor-height sets it)"
                               if summary.get("actor_size_seconds") else "")),
             ("wall time", wall_time_note(summary)),
-            ("s/frame (median)", f"{summary['seconds_per_frame']:.3f}" if summary["seconds_per_frame"] else "-"),
+            ("tracking s/frame (median)", f"{summary['seconds_per_frame']:.3f}" if summary["seconds_per_frame"] else "-"),
             ("evaluations/frame", f"{summary['evaluations_per_frame']:.0f}" if summary["evaluations_per_frame"] else "-")]
     refined = bool(summary.get("refinement_passes"))
     if refined:
