@@ -426,6 +426,7 @@ def overlay_strip(result: ResultData, painter: ModelPainter, frame: int, cameras
     cams = tuple(seq.studio[c] for c in cameras)
     sil = seq.silhouettes(frame)
     masks = painter.silhouettes(result.motion.params[i], cams)
+    drawn = "mesh" if painter.gl else "ellipsoids"  # known once it has drawn
     pics, xor = [], {}
     for c, cam, model_mask in zip(cameras, cams, masks):
         own = sil[c, :cam.height, :cam.width]  # cameras of different sizes: a padded stack
@@ -436,7 +437,6 @@ def overlay_strip(result: ResultData, painter: ModelPainter, frame: int, cameras
             pic = pic[y0:y1, x0:x1]
         if height:  # a crop is the camera's shape to a pixel: every frame's tile the same size
             pic = fit_height(pic, height, round(height * cam.width / cam.height) if crop else None)
-        drawn = "mesh" if painter.gl else "ellipsoids"
         pics.append(_caption(pic, f"{cam.name}  frame {frame}  {drawn} XOR {xor[cam.name]} px"))
     return hstack(pics), xor
 

@@ -80,8 +80,6 @@ class Solver(Protocol):
     def close(self) -> None: ...
 
 
-
-
 class LocalSolver:
     """Single-process mode: the same jobs, run here, ``threads`` at once (the same poses for
     any number: ``common.search.solve_locally``)."""
@@ -162,6 +160,7 @@ def chain_totals(chains: list[ChainResult]) -> dict:
         t["energy_before"] += c.energy_before
         t["energy"] += c.energy
     return out
+
 
 def silhouette_centre(data: FrameData) -> np.ndarray:
     """(3,) where the rays through the silhouettes' centroids meet (the actor, roughly)."""

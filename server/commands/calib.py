@@ -26,7 +26,7 @@ from common.calibration import (
 )
 from common.camera import Studio
 from common.errors import UserError, print_warning
-from common.world import UP_CHOICES, below_floor_warning, resolve_world
+from common.world import UP_CHOICES, WorldFrame, below_floor_warning, resolve_world
 from server.frame_sources import FrameSource
 from server.output import (add_overwrite_argument, add_units_argument, check_file_target, check_folder_target,
                            replace_file, staged_folder)
@@ -112,7 +112,7 @@ def run_convert(args) -> int:
     for line in warnings:
         print_warning(line)
     print(f"wrote {len(studio)} cameras to {args.output} ({fmt})")
-    print(world_line(studio, args.up))
+    print(world_line(studio, resolve_world(studio, args.up), args.up))
     return 0
 
 
@@ -120,18 +120,19 @@ def run_show(args) -> int:
     studio = _load(args)
     fmt = args.input_format or detect_format(args.input)
     print(f"{args.input}: {len(studio)} cameras ({fmt}; positions in metres)")
-    print(studio_table(studio, resolve_world(studio, args.up)))
+    world = resolve_world(studio, args.up)
+    print(studio_table(studio, world))
     guessed = [c.name for c in studio if c.size_guessed]
     if guessed:
         print(f"* size guessed as twice the principal point: {', '.join(guessed)} "
               "(pass --size WxH or --size-from CAMERA=PATH)")
-    print(world_line(studio, args.up))
+    print(world_line(studio, world, args.up))
     return 0
 
 
-def world_line(studio: Studio, up: str) -> str:
-    """'up axis: -z (found from the cameras)'; a warning on stderr naming cameras below the floor."""
-    world = resolve_world(studio, up)
+def world_line(studio: Studio, world: WorldFrame, up: str) -> str:
+    """'up axis: -z (found from the cameras)' of ``world``, resolved from ``up`` ("auto": found);
+    a warning on stderr naming cameras below the floor."""
     warning = below_floor_warning(studio, world)
     if warning:
         print_warning(warning)
@@ -140,9 +141,9 @@ def world_line(studio: Studio, up: str) -> str:
             "and keypoints3d exports keep this frame (every format's axes: docs/exports.md)")
 
 
-def studio_table(studio: Studio, world=None) -> str:
+def studio_table(studio: Studio, world: WorldFrame | None = None) -> str:
     """One line per camera: name, image size (``*``: guessed), focal lengths (px), centre position (m),
-    distortion; with ``world`` (a ``common.world.WorldFrame``), also the centre's height above the
+    distortion; with ``world``, also the centre's height above the
     floor along its up axis and its distance from the world's origin (m)."""
     rows = [("camera", "size", "fx", "fy", "x", "y", "z", "distortion")
             + (("height", "from origin") if world is not None else ())]
