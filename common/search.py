@@ -43,9 +43,7 @@ import numpy as np
 from common.body import CHAINS, LIMB_CHAINS, MIRROR_SIGNS, BodyModel, clip_to_limits, swap_sides
 from common.fitting import (HOP_JOBS, REDETECT_ROUND, ChainResult, Dispatch, FitOptions, FrameResult, fit_rounds,
                             full_energy, hop, hop_fit, merge_chains, solve_chain)
-from common.cma import cma_minimise
 from common.frame import FrameData
-from common.objective import with_spine_prior
 from common.helping_pool import HelpingPool
 from common.proposals import (ARM_CHAINS, arm_twist_alternative, arm_twist_options, arm_twist_tried, arm_twists,
                               arm_twists_towards, inversion_cost, limb_alternatives, midway,
@@ -187,14 +185,9 @@ class Schedule:
     budget: int | None = None
 
 
-import os as _os
-_WHERE = _os.environ.get("MOCAP_CMA_WHERE", "track")
-_CMA_T = (Stage(("cma",), ("polish",)),) if "track" in _WHERE else ()
-_CMA_R = (Stage(("cma_fit",)),) if "refine" in _WHERE else ()
 POLISHED = (Stage(("again",), ("polish",)), Stage(("redetected",)))
-TRACKING = Schedule((Stage(("start", "start_turns", "tilt_ahead", "moved_on")), *POLISHED, *_CMA_T))
-_CMA_L = (Stage(("cma",), ("polish",)),) if "lost" in _WHERE else ()
-LIMBS_LOST = Schedule((Stage(("start", "start_turns"), ("every",)), Stage(("again",), ("polish",)), *_CMA_L))
+TRACKING = Schedule((Stage(("start", "start_turns", "tilt_ahead", "moved_on")), *POLISHED))
+LIMBS_LOST = Schedule((Stage(("start", "start_turns"), ("every",)), Stage(("again",), ("polish",))))
 # The lowest wide fits fitted again from their result while that still lowers the energy (each
 # fit re-detects the limbs from a better torso). The lowest fit is not always the one that refits
 # lowest: 06_08's first frame has a start a quarter turn off that fits to 17,513 and refits to
@@ -230,7 +223,7 @@ SEARCH = Schedule((
 # 06_15 (41-45 mm, the right hip the worst joint) had the pelvis turned 0.18-0.24 rad with the
 # spine and hips turned back, which no chain alone undoes.
 REFINE = Schedule((Stage(("start", "start_turns", "tilt_ahead")), *POLISHED, Stage(("midway", "midway_turns")),
-                   *POLISHED, Stage(("pelvis_twists",)), *_CMA_R, Stage(("twists",), ("deep",)), Stage(("hops",))))
+                   *POLISHED, Stage(("pelvis_twists",)), Stage(("twists",), ("deep",)), Stage(("hops",))))
 REFINE_SEARCH = Schedule((*REFINE.stages[:-2], Stage(("basins", "twists"), ("deep",)), REFINE.stages[-1]))
 # A frame with hops (a pass's first frame; every frame with --refine-hops): the hops' best
 # turned, its pelvis turned alone and its arms' other twists tried, as the fits before them
@@ -568,37 +561,6 @@ def _twists(ctx, source, spent, own):
     return [y for y in alternatives if y is not None]
 
 
-CMA_SIGMA = 1.0            # the first step, in units of CMA_SCALE_M / CMA_SCALE_RAD
-CMA_SCALE_M = 0.03         # root position, m
-CMA_SCALE_RAD = 0.1        # angles, rad
-CMA_MAX_EVALS = 10_000     # whole-image evaluations of one adaptation
-CMA_SEED = 7               # mixed with the frame number: the same samples on any machine
-
-
-def _cma(ctx, source, spent, own):
-    """The best moved by CMA-ES over all 35 parameters on the whole images (``common.cma``)."""
-    if source is None:
-        return []
-    import os
-    budget = int(os.environ.get("MOCAP_CMA_EVALS", CMA_MAX_EVALS))
-    if budget <= 0:
-        return []
-    objective = with_spine_prior(ctx.frame.whole_image_energy(), ctx.options.spine_twist_prior)
-    scale = np.where(np.arange(len(source.params)) < 3, CMA_SCALE_M, CMA_SCALE_RAD)
-    found = cma_minimise(objective, source.params, scale, CMA_SIGMA, budget,
-                         np.random.default_rng((CMA_SEED, ctx.frame_number)))
-    spent.evaluations += found.evaluations
-    return [found.params] if found.energy < objective(np.asarray(source.params)[None])[0] else []
-
-
-def _cma_fit(ctx, source, spent, own):
-    """The CMA-ES result as a fit of its own (its energy the full energy)."""
-    moved = _cma(ctx, source, spent, own)
-    if not moved:
-        return []
-    return [FrameResult(moved[0], full_energy(ctx.model, ctx.frame, moved[0]), 1, 0, ())]
-
-
 def _hops(ctx, source, spent, own):
     """Basin hopping from the fit (``hop_fit``), as one fit whose energy is the full energy."""
     if source is None or ctx.hops < 1:
@@ -612,7 +574,7 @@ PROPOSERS = {
     "moved_on": _moved_on, "midway": _midway, "midway_turns": _midway_turns, "pelvis_twists": _pelvis_twists,
     "starts": _starts,
     "best": _best, "origin": _origin, "again": _again, "redetected": _redetected,
-    "rotations": _rotations, "swaps": _swaps, "basins": _basins, "twists": _twists, "hops": _hops, "cma": _cma, "cma_fit": _cma_fit,
+    "rotations": _rotations, "swaps": _swaps, "basins": _basins, "twists": _twists, "hops": _hops,
 }
 
 
