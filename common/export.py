@@ -52,6 +52,12 @@ FORMATS = ("glb", "mot", "trc", "keypoints3d", "bvh", "c3d", "json", "csv")
 SUFFIXES = {"glb": ".glb", "mot": ".mot", "trc": ".trc", "keypoints3d": "_keypoints3d", "bvh": ".bvh", "c3d": ".c3d",
             "json": ".jsonl", "csv": ".csv"}
 FOLDER_FORMATS = ("keypoints3d",)
+ALL_FORMATS = "all"  # a name for every one of FORMATS
+
+
+def named_formats(names) -> list[str]:
+    """The formats ``names`` (FORMATS or ALL_FORMATS) stand for, in order, each once."""
+    return list(dict.fromkeys(FORMATS if ALL_FORMATS in names else names))
 EXPORT_STEM = "motion"  # RESULT/motion.<suffix>: where mocap export writes by default
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from common.errors import InputFileError
-from common.export import FORMATS
+from common.export import ALL_FORMATS, FORMATS
 from common.fitting import ENERGY_BACKENDS, FitOptions
 from common.segmentation import METHODS
 from common.world import UP_CHOICES
@@ -125,8 +125,10 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("fit", "clean_masks", True, bool, "drop silhouette blobs the other cameras do not support"),
     Setting("fit", "threads", 0, int, "single process: starts and limbs fitted at once (0: every core); "
             "the poses are the same for any number", _at_least(0), "an integer >= 0"),
-    Setting("export", "formats", ["bvh", "trc", "csv"], list, "formats written into the result folder",
-            lambda v: all(f in FORMATS for f in v), "a list of " + ", ".join(FORMATS)),
+    Setting("export", "formats", ["bvh", "trc", "csv"], list, "formats written into the result folder "
+            "([\"all\"]: every one, as mocap export --format all)",
+            lambda v: all(f in FORMATS or f == ALL_FORMATS for f in v), "a list of " + ", ".join(FORMATS)
+            + f", or [\"{ALL_FORMATS}\"]"),
     Setting("report", "enabled", True, bool, "write report.html and pictures"),
     Setting("report", "gif", True, bool, "also the animated sequence.gif (the slowest picture)"),
 )

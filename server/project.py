@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from common.errors import WARNING_PREFIX, UserError
-from common.export import export_name
+from common.export import export_name, named_formats
 from server.config import CONFIG_FILE, Config, load_config
 from server.output import write_text
 from server.results import DERIVED_FILES, MOTION_FILE, RUN_FILE
@@ -264,7 +264,7 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
                       also_writes=(result / RUN_FILE, result / MOTION_FILE),
                       # mocap fit --overwrite drops what was made from the result it replaces
                       clears=tuple(result / name for name in DERIVED_FILES)))
-    formats = config.get("export", "formats")
+    formats = named_formats(config.get("export", "formats"))
     steps.append(Step("export", tuple(("export", str(result), "--format", f, "--overwrite", "--quiet") for f in formats),
                       (result / "poses.jsonl",), tuple(result / export_name(f) for f in formats),
                       {"formats": formats}))

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from common.errors import UserError
+from common.export import FORMATS
 from server.cli import main
 from server.config import load_config
 from server.project import find_takes, plan_take, run_take
@@ -188,10 +189,19 @@ def test_run_redoes_only_what_changed(project, capsys):
     assert [s["status"] for s in changed["steps"]] == ["up to date", "done", "up to date"]
     assert (take / "result" / "motion.jsonl").is_file()
     assert (take / "result" / "poses.jsonl").stat().st_mtime_ns == fitted
+    # exported again by hand to the same bytes: still the run's own export, replaced by a refit
+    assert main(["export", str(take / "result"), "--format", "csv", "--quiet"]) == 0
     (take / "Config.toml").write_text("[fit]\nframes = 2\n")
     refit = run_take(take)
     assert [s["status"] for s in refit["steps"]] == ["done"] * 3
     assert len(poses(take)) == 2
+
+
+def test_all_export_formats_in_a_config(project):
+    take = project / "walk_a"
+    (take / "Config.toml").write_text("[export]\nformats = ['all']\n")
+    (export,) = [s for s in plan_take(take).steps if s.name == "export"]
+    assert [c[c.index("--format") + 1] for c in export.commands] == list(FORMATS)
 
 
 def test_a_takes_fit_settings_reach_its_fit_command(project):

@@ -415,11 +415,16 @@ def test_mocap_export_all_formats_json(tmp_path, result_dir, capsys):
         assert d["frames"] == FRAMES and d["fps"] == 25.0
     assert len(list((out / "motion_keypoints3d").iterdir())) == FRAMES
     assert not list(out.glob(".*"))  # no partial files left
-    # again: every target holds what would be written, which loses nothing; at another frame rate
-    # the timed files would change, and every target is checked before the first is written, so
-    # nothing is replaced without --overwrite
-    assert cli_main(["export", str(result_dir), "--format", "all", "--out", str(out), "--fps", "25", "--quiet"]) == 0
+    # again: every target holds what would be written, which loses nothing, and is left as it
+    # is, its modification time too (mocap run tells its own exports from edited ones by it); at
+    # another frame rate the timed files would change, and every target is checked before the
+    # first is written, so nothing is replaced without --overwrite
     before = {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    assert cli_main(["export", str(result_dir), "--format", "all", "--out", str(out), "--fps", "25", "--json"]) == 0
+    assert all(d["unchanged"] for d in json.loads(capsys.readouterr().out))
+    assert before == {p.name: p.stat().st_mtime_ns for p in out.iterdir()}
+    assert cli_main(["export", str(result_dir), "--format", "csv", "--out", str(out / "motion.csv"), "--fps", "25"]) == 0
+    assert "holds this export already" in capsys.readouterr().out
     assert cli_main(["export", str(result_dir), "--format", "all", "--out", str(out), "--fps", "30"]) == 2
     assert "--overwrite" in capsys.readouterr().err
     assert before == {p.name: p.stat().st_mtime_ns for p in out.iterdir()}

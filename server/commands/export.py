@@ -8,8 +8,8 @@ One format writes ``--out`` (default ``RESULT/motion.<ext>``; keypoints3d is a f
 or ``all`` write into the folder ``--out`` (default RESULT). The frame rate comes from the
 sequence (summary.json names it; ``--sequence`` when it moved) or ``--fps``. Every target is
 checked before the first is written (existing ones only with ``--overwrite``, or where they
-hold what would be written: the fit's own motion.bvh), and each is written beside its name and
-renamed over it. Axis conventions: docs/exports.md.
+hold what would be written: the fit's own motion.bvh, then left as they are, their modification
+times too), and each is written beside its name and renamed over it. Axis conventions: docs/exports.md.
 """
 from __future__ import annotations
 
@@ -20,7 +20,8 @@ from pathlib import Path
 
 from common.errors import UserError
 from common.export import (
-    BVH_RESTS, DEFAULT_BVH_REST, FOLDER_FORMATS, FORMATS, SUFFIXES, export_motion, export_name,
+    ALL_FORMATS as ALL, BVH_RESTS, DEFAULT_BVH_REST, FOLDER_FORMATS, FORMATS, SUFFIXES, export_motion, export_name,
+    named_formats,
 )
 from common.argtypes import real
 from server.output import (
@@ -29,8 +30,6 @@ from server.output import (
 from server.pictures import load_result
 
 FILE_SUFFIXES = {suffix for suffix in SUFFIXES.values() if suffix.startswith(".")}  # the formats written as files
-
-ALL = "all"
 
 
 def format_list(text: str) -> list[str]:
@@ -103,7 +102,7 @@ def _size(path: Path) -> int:
 
 
 def run(args) -> int:
-    formats = list(dict.fromkeys(FORMATS if ALL in args.format else args.format))
+    formats = named_formats(args.format)
     several = ALL in args.format or len(formats) > 1
     given = args.out is not None  # else the targets are defaults, which errors name without --out
     result = load_result(args.result, args.sequence, args.fps)
@@ -118,19 +117,24 @@ def run(args) -> int:
         targets = [(f, folder / export_name(f)) for f in formats]
     else:
         targets = [(formats[0], args.out or args.result / export_name(formats[0]))]
+    unchanged = set()  # targets that hold this export already: left as they are, their times too
     for fmt, path in targets:  # every target checked before the first is written
-        if fmt in FOLDER_FORMATS:
-            if not path.parent.is_dir():  # as for a file: no folders made on the way
-                raise UserError(f"--out {path}: folder {path.parent} does not exist")
-            check_folder_target(path, ("*",), overwrite=args.overwrite or _unchanged(fmt, path, motion, args.rest),
-                                what="export", given=given)
+        if fmt in FOLDER_FORMATS and not path.parent.is_dir():  # as for a file: no folders made on the way
+            raise UserError(f"--out {path}: folder {path.parent} does not exist")
+        if _unchanged(fmt, path, motion, args.rest):
+            unchanged.add(path)
+        elif fmt in FOLDER_FORMATS:
+            check_folder_target(path, ("*",), overwrite=args.overwrite, what="export", given=given)
         else:
-            check_file_target(path, args.overwrite or _unchanged(fmt, path, motion, args.rest), given=given)
+            check_file_target(path, args.overwrite, given=given)
     written = []
     for fmt, path in targets:
-        _write(fmt, path, motion, args.rest)
+        # rewritten, the same bytes would get a new modification time, and mocap run would then
+        # take an export its own step made for one edited by hand
+        if path not in unchanged:
+            _write(fmt, path, motion, args.rest)
         entry = {"format": fmt, "path": str(path), "frames": len(motion.frames), "fps": motion.fps, "rate": motion.rate,
-                 "bytes": _size(path)}
+                 "bytes": _size(path), "unchanged": path in unchanged}
         if fmt == "bvh":
             entry["rest"] = args.rest
         written.append(entry)
@@ -138,5 +142,7 @@ def run(args) -> int:
         print(json.dumps(written if several else written[0], indent=1))
     elif not args.quiet:
         for w in written:
-            print(f"wrote {w['path']} ({w['format']}, {w['frames']} frames at {w['rate']:g} fps)")
+            done = "left" if w["unchanged"] else "wrote"
+            print(f"{done} {w['path']} ({w['format']}, {w['frames']} frames at {w['rate']:g} fps)"
+                  + (": it holds this export already" if w["unchanged"] else ""))
     return 0
