@@ -2,7 +2,8 @@
 
 Layout (see docs/CONTRIBUTING.md)::
 
-    SEQUENCE/calibration.json                     (or EasyMocap's intri.yml + extri.yml; not both)
+    SEQUENCE/calibration.json                     (or EasyMocap's intri.yml + extri.yml; not both;
+                                                   or a calibration file given, ``calibration``)
     SEQUENCE/sequence.json                        {"frames": [...], "fps": 30.0, "cameras": [...]}
     SEQUENCE/silhouettes/<camera>/<frame:06d>.png (or EasyMocap / ZJU-MoCap mask/ or masks/)
     SEQUENCE/images/<camera>/<frame:06d>.png
@@ -202,10 +203,12 @@ class Sequence:
     """A sequence folder opened for reading.
 
     mask_threshold: None to accept only binary masks, else grey level > threshold is silhouette.
+    calibration: a calibration file (any format) or EasyMocap folder to use instead of the
+    sequence's own (a project's, for a sequence that holds none); None: the sequence's own.
     """
 
     def __init__(self, path, units: str | None = None, mask_threshold: int | None = None, up: str = "auto",
-                 clean_masks: bool = True):
+                 clean_masks: bool = True, calibration=None):
         self.path = Path(path)
         if not self.path.is_dir():
             raise InputFileError(self.path, "not a sequence folder (does not exist)")
@@ -214,14 +217,18 @@ class Sequence:
             raise UserError(f"mask threshold: expected a whole grey level 0..{MAX_MASK_THRESHOLD - 1}, "
                             f"got {mask_threshold!r}")
         self.mask_threshold = mask_threshold
-        calibration = self.path / "calibration.json"
+        # a calibration given (a project's, for sequences that hold none) is read in any format
+        self.calibration = Path(calibration) if calibration is not None else None
+        own = self.path / "calibration.json"
         easymocap = all((self.path / n).is_file() for n in EASYMOCAP_FILES)
-        if easymocap and calibration.exists():
-            refuse_calibrations(self.path, [calibration.name, " + ".join(EASYMOCAP_FILES)], "keep one")
-        if easymocap:
-            self.user_studio: Studio = load_calibration(self.path, units, fmt="easymocap")
+        if self.calibration is not None:
+            self.user_studio: Studio = load_calibration(self.calibration, units)
+        elif easymocap and own.exists():
+            refuse_calibrations(self.path, [own.name, " + ".join(EASYMOCAP_FILES)], "keep one")
+        elif easymocap:
+            self.user_studio = load_calibration(self.path, units, fmt="easymocap")
         else:
-            self.user_studio = load_calibration(calibration, units)
+            self.user_studio = load_calibration(own, units)
         self.mask_folder = next((self.path / f for f in MASK_FOLDERS if (self.path / f).is_dir()), None)
         self._files: dict[tuple[Path, str], dict[int, Path]] = {}
         if any(c.size_guessed for c in self.user_studio):  # EasyMocap's write_intri writes no sizes
@@ -463,5 +470,5 @@ def write_sequence_meta(path, frames, fps: float, cameras: list[str], **extra) -
 
 
 def load_sequence(path, units: str | None = None, mask_threshold: int | None = None, up: str = "auto",
-                  clean_masks: bool = True) -> Sequence:
-    return Sequence(path, units, mask_threshold, up, clean_masks)
+                  clean_masks: bool = True, calibration=None) -> Sequence:
+    return Sequence(path, units, mask_threshold, up, clean_masks, calibration)

@@ -152,7 +152,8 @@ def load_result(result_dir, sequence_dir=None, fps: float | None = None) -> Resu
     seq_path = _sequence_path(result_dir, summary, sequence_dir)
     up = records[0].get("world_up", "+z")  # the frame the fit ran in
     cleaned = bool(summary.get("masks_cleaned", True))
-    sequence = load_sequence(seq_path, up=up, clean_masks=cleaned) if seq_path is not None else None
+    sequence = (load_sequence(seq_path, up=up, clean_masks=cleaned, calibration=summary.get("calibration"))
+                if seq_path is not None else None)
     if fps is None:
         if sequence is None:
             recorded = _recorded_sequence(result_dir, summary) or "(not recorded)"

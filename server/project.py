@@ -208,12 +208,15 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     imports = {name: _sources(take / name) for name in SOURCE_FOLDERS}
     source_kind = next((k for k, v in imports.items() if v), None)
     recordings, calibration = {}, None
+    calibration_file = None  # a ready sequence's: its own, or the take's or project's where it holds none
     if (take / "sequence.json").is_file() or ((take / "silhouettes").exists() and source_kind is None):
         sequence = take
+        if not holds_calibration(take):
+            calibration_file = find_calibration(take, config)
         if (take / "images").is_dir() and (not (take / "silhouettes").exists()
                                            or _read_record(take, "segment") is not None):
             # not the sequence's own sequence.json: segment adds its record there and keeps the rest
-            steps.append(_segment_step(sequence, config, also_writes=()))
+            steps.append(_segment_step(sequence, config, also_writes=(), calibration=calibration_file))
     elif source_kind is None:
         raise UserError(f"{take}: not a take (no videos/, images/, sequence.json or silhouettes/)")
     else:
@@ -258,7 +261,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     command += [] if fit["clean_masks"] else ["--no-clean-masks"]
     command += ["--refine-search"] if fit["refine_search"] else []
     command += ["--track-moved-on"] if fit["track_moved_on"] else []
-    calibration_file = sequence / "calibration.json"
+    command += ["--calibration", str(calibration_file)] if calibration_file else []
+    calibration_file = calibration_file or sequence / "calibration.json"
     steps.append(Step("fit", (tuple(command),), (calibration_file, sequence / "silhouettes", sequence / "sequence.json"),
                       (result / "poses.jsonl", result / "summary.json"), {"fit": fit, "calibration": calib_settings},
                       also_writes=(result / RUN_FILE, result / MOTION_FILE),
@@ -276,12 +280,19 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     return TakePlan(take, sequence, result, tuple(steps), recordings, calibration, calib_settings["units"])
 
 
-def _segment_step(sequence: Path, config: Config, also_writes: tuple[Path, ...]) -> Step:
-    """``also_writes``: the sequence.json that the segmentation's record goes into, where an import made it."""
+def _segment_step(sequence: Path, config: Config, also_writes: tuple[Path, ...], calibration: Path | None = None) -> Step:
+    """``also_writes``: the sequence.json that the segmentation's record goes into, where an import
+    made it; ``calibration``: where the sequence holds none of its own."""
+    given = ("--calibration", str(calibration)) if calibration else ()
     return Step("segment", (("segment", str(sequence), "--method", config.get("segmentation", "method"),
-                             "--overwrite"),),
-                (sequence / "images", sequence / "background"), (sequence / "silhouettes",),
-                {"segmentation": config.section("segmentation")}, also_writes=also_writes)
+                             "--overwrite", *given),),
+                (sequence / "images", sequence / "background", *([calibration] if calibration else [])),
+                (sequence / "silhouettes",), {"segmentation": config.section("segmentation")}, also_writes=also_writes)
+
+
+def holds_calibration(sequence: Path) -> bool:
+    """Whether a sequence folder holds its own calibration (calibration.json, or EasyMocap's two files)."""
+    return (sequence / "calibration.json").is_file() or all((sequence / n).is_file() for n in EASYMOCAP_FILES)
 
 
 def check_recordings(plan: TakePlan) -> None:

@@ -303,9 +303,15 @@ def track(model: BodyModel, data: FrameData, frame: int, start: np.ndarray, befo
 
 def run_settings(model: BodyModel, seq: Sequence, options: FitOptions, init: str) -> dict:
     """What decides a run's poses: written to run.json, and what ``--resume`` must match."""
-    return {"sequence": str(seq.path.resolve()), "init": init, "world_up": seq.world.up,
+    return {"sequence": str(seq.path.resolve()), **sequence_calibration(seq), "init": init, "world_up": seq.world.up,
             "masks_cleaned": seq.clean_masks, "mask_threshold": seq.mask_threshold,
             "actor_scale": model_scale(model), "options": options.to_wire()}
+
+
+def sequence_calibration(seq: Sequence) -> dict:
+    """{"calibration": path} where the sequence was read with a calibration not its own (what
+    the result's readers must read it with again), else {}."""
+    return {"calibration": str(seq.calibration.resolve())} if seq.calibration is not None else {}
 
 
 def frame_data(model: BodyModel, seq: Sequence, frame: int) -> FrameData:
@@ -604,7 +610,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     records = [r | {"fit_quality": q} for r, q in zip(records, quality)]
     rewrite_complete(poses_path, records)
     summary = {
-        "sequence": str(seq.path.resolve()),
+        "sequence": str(seq.path.resolve()), **sequence_calibration(seq),
         "world_up": seq.world.up,
         "masks_cleaned": seq.clean_masks,
         # the volume of the static props removed from the masks (common.consistency), m^3; 0 without

@@ -197,6 +197,31 @@ def test_run_redoes_only_what_changed(project, capsys):
     assert len(poses(take)) == 2
 
 
+def test_a_ready_sequence_without_a_calibration_takes_the_projects(tmp_path, model, small_studio, capsys):
+    root = tmp_path / "project"
+    root.mkdir()
+    (root / "Config.toml").write_text(QUICK_CONFIG)
+    take = make_take(root / "nocal", model, small_studio, frames=1)
+    (take / "calibration.json").rename(root / "calibration.json")
+    fit = next(s for s in plan_take(take).steps if s.name == "fit")
+    assert root / "calibration.json" in fit.inputs
+    assert fit.commands[0][fit.commands[0].index("--calibration") + 1] == str(root / "calibration.json")
+    assert run_take(take)["status"] == "done"
+    assert json.loads((take / "result" / "run.json").read_text())["calibration"] == str(root / "calibration.json")
+    # the result's readers read the sequence with it again
+    assert main(["export", str(take / "result"), "--format", "c3d", "--quiet"]) == 0
+    # its own calibration, where it has one, is the one used
+    shutil.copy(root / "calibration.json", take / "calibration.json")
+    fit = next(s for s in plan_take(take).steps if s.name == "fit")
+    assert "--calibration" not in fit.commands[0] and take / "calibration.json" in fit.inputs
+    # neither: one line naming where it looked
+    (take / "calibration.json").unlink()
+    (root / "calibration.json").unlink()
+    capsys.readouterr()
+    assert main(["run", str(take)]) == 2
+    assert "no calibration" in refusal(capsys)
+
+
 def test_all_export_formats_in_a_config(project):
     take = project / "walk_a"
     (take / "Config.toml").write_text("[export]\nformats = ['all']\n")

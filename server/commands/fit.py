@@ -209,12 +209,21 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+def add_calibration_argument(p) -> None:
+    """--calibration: a calibration file for a sequence that holds none (segment and every
+    command of ``add_world_arguments``)."""
+    p.add_argument("--calibration", type=Path, default=None, metavar="FILE",
+                   help="the calibration to use, in any format mocap calib reads (default: the sequence's own "
+                        "calibration.json, or intri.yml + extri.yml)")
+
+
 def add_world_arguments(p, clean: bool = True) -> None:
-    """--up and --mask-threshold: how a sequence's world and masks are read (fit, voxels, live,
-    server, sync); with ``clean`` also --no-clean-masks."""
+    """--up, --calibration and --mask-threshold: how a sequence's world and masks are read (fit,
+    voxels, live, server, sync); with ``clean`` also --no-clean-masks."""
     p.add_argument("--up", choices=UP_CHOICES, default="auto",
                    help="the calibration world's up axis (default auto: from the cameras, which stand above "
                         "the floor); fitting runs z up, results are written in the calibration's frame")
+    add_calibration_argument(p)
     p.add_argument("--mask-threshold", type=count(0, MAX_MASK_THRESHOLD - 1), default=None, metavar="N",
                    help="accept grey or colour images as silhouettes: pixels brighter than N are foreground "
                         "(8-bit images: 0-254; 16-bit: up to 65534; 1-bit masks need none)")
@@ -277,7 +286,7 @@ def run(args) -> int:
     warn_if_software_gl(args.energy)
     base = load_body_model()
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
-                        clean_masks=args.clean_masks)
+                        clean_masks=args.clean_masks, calibration=args.calibration)
     options = options_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
     model, size = actor_model(base, seq, options, args, init, args.threads)

@@ -73,7 +73,7 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
-                        clean_masks=args.clean_masks)
+                        clean_masks=args.clean_masks, calibration=args.calibration)
     frames = (seq.frames[:args.frames] if args.frames else seq.frames) * args.repeat
     acquire, segment = _sources(seq, args.method)
     grid = SpotGrid.build(seq.studio, grid=args.grid, q=args.q)

@@ -16,6 +16,7 @@ from common.errors import InputFileError
 from common.segmentation import METHODS, load_params, make_segmenter, params_dict
 from common.sequence import (IMAGE_SUFFIXES, MASK_FOLDERS, check_size, frame_files, image_size, load_sequence, read_image,
                              write_mask_png, write_sequence_meta)
+from server.commands.fit import add_calibration_argument
 from server.output import add_overwrite_argument, check_folder_target, staged_folder, write_text
 
 
@@ -30,6 +31,7 @@ def register(subparsers) -> None:
                         help="background subtraction method (default: cheung)")
     parser.add_argument("--params", metavar="FILE.toml",
                         help="method parameters as flat TOML keys over the defaults")
+    add_calibration_argument(parser)
     add_overwrite_argument(parser)
     parser.set_defaults(func=run)
 
@@ -42,7 +44,7 @@ def _read_rgb(path: Path, camera) -> np.ndarray:
 
 def run(args) -> int:
     params = load_params(args.method, args.params)
-    seq = load_sequence(args.sequence)
+    seq = load_sequence(args.sequence, calibration=args.calibration)
     root = seq.path
     # Check every folder and file before writing anything.
     background_files = {}

@@ -43,7 +43,7 @@ def run(args) -> int:
     check_folder_target(args.out, RESULT_FILES, resume=args.resume, overwrite=args.overwrite)
     warn_if_software_gl(args.energy)
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
-                        clean_masks=args.clean_masks)
+                        clean_masks=args.clean_masks, calibration=args.calibration)
     options = options_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
     with terminate_on_sigterm():

@@ -46,7 +46,8 @@ def frame_spacing(frames: list[int]) -> int:
 
 
 def run(args) -> int:
-    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold, clean_masks=False)
+    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold, clean_masks=False,
+                        calibration=args.calibration)
     if not seq.has_silhouettes:
         raise InputFileError(seq.path / "silhouettes", "missing: make silhouettes first (mocap segment)")
     if len(seq.studio) < 3:

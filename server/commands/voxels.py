@@ -65,7 +65,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     check_folder_target(args.out, (SUMMARY, "voxels", "pictures"), overwrite=args.overwrite, what="reconstruction")
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
-                        clean_masks=args.clean_masks)
+                        clean_masks=args.clean_masks, calibration=args.calibration)
     if not seq.has_silhouettes:
         raise InputFileError(seq.path / "silhouettes", "missing: make silhouettes first (mocap segment)")
     bounds = None if args.bounds is None else np.array(args.bounds).reshape(2, 3)
