@@ -19,10 +19,10 @@ EXIT_REFUSED = 3
 
 def build_parser() -> argparse.ArgumentParser:
     from client.worker import RECONNECT_MAX, RECONNECT_MIN
-    from common.argtypes import OneLineParser, count, non_negative, seconds
+    from common.argtypes import OneLineParser, count, non_negative, seconds, zmq_address
 
     p = OneLineParser(prog="mocap client", description="Limb-fitting client of a mocap server.")
-    p.add_argument("--connect", required=True, help="server address, e.g. tcp://HOST:5555")
+    p.add_argument("--connect", type=zmq_address, required=True, help="server address, e.g. tcp://HOST:5555")
     p.add_argument("--id", dest="client_id", default=None, help="name in the server's logs and timing "
                                                               "(default HOST-PID)")
     p.add_argument("--curve-keys", default=None, metavar="DIR",
@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format=f"{name}: %(message)s")
     from common.body import load_body_model
     from common.objective import compile_kernels
-    from client.worker import REFUSED, CurveKeys, Worker
+    from client.worker import CurveKeys, Worker, refusal
 
     try:
         curve = CurveKeys.load(args.curve_keys) if args.curve_keys else None
@@ -70,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mocap client: error: {args.connect}: {exc}", file=sys.stderr)
         return EXIT_USAGE
     if outcome == "refused":
-        print(f"mocap client: error: {args.connect}: {REFUSED}", file=sys.stderr)
+        print(f"mocap client: error: {args.connect}: {refusal(curve)}", file=sys.stderr)
         return EXIT_REFUSED
     logging.getLogger("client").info("%s after %d chains", outcome, worker.solved)
     return EXIT_OK

@@ -64,7 +64,14 @@ HANDSHAKE_REFUSALS = 3  # refused connections before giving up: a key problem, n
 HANDSHAKE_EVENTS = (zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL
                     | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL)
 REFUSED = ("server refused the CURVE handshake: is this client's key in the server's clients/ folder, "
-           "and the server key right?")
+           "and the server key right? (a server without --curve-keys refuses CURVE clients too)")
+REFUSED_NO_KEYS = ("server refused the handshake: it asks for CURVE keys; give this client --curve-keys "
+                   "FOLDER (the folder mocap keys made for it)")
+
+
+def refusal(curve) -> str:
+    """Why a handshake failed, as far as a client with (or without) ``curve`` keys can tell."""
+    return REFUSED if curve is not None else REFUSED_NO_KEYS
 
 # energy backends this client can try (a failing one is reported as an ERROR, and the server
 # then solves those chains itself)
@@ -93,7 +100,8 @@ class CurveKeys:
         """``DIR/client.key_secret`` (this client) and ``DIR/server.key`` (the server's public key)."""
         for name in ("client.key_secret", "server.key"):
             if not os.path.isfile(os.path.join(directory, name)):  # zmq would say only "Invalid certificate file"
-                where = f"no {name} there" if os.path.isdir(directory) else "no such folder"
+                where = (f"no {name} there" if os.path.isdir(directory)
+                         else "a file, not a folder" if os.path.exists(directory) else "no such folder")
                 raise ValueError(f"{where}; give the folder mocap keys made for this client (for-NAME/)")
         public, secret = zmq.auth.load_certificate(os.path.join(directory, "client.key_secret"))
         server, _ = zmq.auth.load_certificate(os.path.join(directory, "server.key"))
@@ -185,10 +193,11 @@ class Worker:
                 if self.session:
                     backoff = self.reconnect_min  # we had a session: a fresh loss, start over
                 if outcome == "refused":
-                    log.warning("%s Retrying in %.1f s", REFUSED, backoff)
-                else:
-                    log.warning("server %s silent for %.1f s; reconnecting in %.1f s", self.connect,
-                                HEARTBEAT_LIVENESS * self.heartbeat_interval, backoff)
+                    log.warning("%s Retrying in %.1f s", refusal(self.curve), backoff)
+                else:  # never heard from: nothing may be listening there
+                    log.warning("server %s silent for %.1f s%s; reconnecting in %.1f s", self.connect,
+                                HEARTBEAT_LIVENESS * self.heartbeat_interval,
+                                "" if self.sessions else " (no answer yet: is a server running there?)", backoff)
                 self.session = ""
                 self._frames.clear()
                 if self._stop.wait(backoff) or self._parent_gone():

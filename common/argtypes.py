@@ -82,3 +82,25 @@ def seconds(text: str) -> float:
 def non_negative(text: str) -> float:
     """A finite number >= 0 (a weight, a range, a distance)."""
     return real(0.0)(text)
+
+
+ADDRESS_SCHEMES = ("tcp", "ipc", "inproc")  # the ZeroMQ transports a cluster may use
+MAX_PORT = 65535
+
+
+def zmq_address(text: str) -> str:
+    """A ZeroMQ endpoint: tcp://HOST:PORT (PORT 1-65535, or * for a free one when binding),
+    ipc://PATH or inproc://NAME. ZeroMQ itself takes port 99999 as 34463 (modulo 2^16) and
+    says only "Invalid argument" for an address without its scheme."""
+    scheme, sep, rest = text.partition("://")
+    if not sep or scheme not in ADDRESS_SCHEMES:
+        raise argparse.ArgumentTypeError(f"expected tcp://HOST:PORT (or ipc://PATH), got {text!r}")
+    if scheme == "tcp":
+        host, colon, port = rest.rpartition(":")
+        if not colon or not host:
+            raise argparse.ArgumentTypeError(f"expected tcp://HOST:PORT, got {text!r}")
+        if port != "*" and not (port.isdigit() and 1 <= int(port) <= MAX_PORT):
+            raise argparse.ArgumentTypeError(f"{text}: the port must be 1-{MAX_PORT}, got {port!r}")
+    elif not rest:
+        raise argparse.ArgumentTypeError(f"expected {scheme}://NAME, got {text!r}")
+    return text

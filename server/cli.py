@@ -83,8 +83,9 @@ def main(argv: list[str] | None = None) -> int:
         # SystemError ("returned a result with an exception set") whose context is the interrupt
         if not _interrupted(exc):
             raise
-        kept = (f"; the frames fitted are kept in {args.out}, and the same command with --resume continues"
-                if args.command in ("fit", "server") else "")
+        from server.results import stopped_note
+
+        kept = f"; {stopped_note(args.out)}" if args.command in ("fit", "server") else ""
         print(f"mocap {name}: interrupted{kept}", file=sys.stderr)
         return 130
 

@@ -764,6 +764,12 @@ class ClusterSolver:
     def _register(self, ident: bytes, msg: Register, now: float) -> None:
         if ident in self._peers:
             self._forget(ident, "registered again")
+        elif any(p.client_id == msg.client_id for p in self._peers.values()):
+            # a client that reconnected before its old connection timed out, or two clients given
+            # one --id: the figures are kept per id, and a refused result stops every connection of it
+            log.warning("client %s registered from a second connection while the first is connected: if two "
+                        "clients share this --id, their figures are counted as one and a ban stops both",
+                        msg.client_id)
         self._peers[ident] = _Peer(ident, msg.client_id, now + HEARTBEAT_LIVENESS * self.heartbeat_interval)
         stats = self._stats.setdefault(msg.client_id, _ClientStats(first_seen=time.perf_counter()))
         stats.last_seen = time.perf_counter()

@@ -113,7 +113,7 @@ def stop_processes(procs: list, timeout: float) -> None:
 def add_cluster_arguments(p, server: bool) -> None:
     """Command-line flags of the cluster: ``mocap server`` (server=True) or ``mocap fit --clients``."""
     if server:
-        p.add_argument("--bind", default=None, metavar="ADDRESS",
+        p.add_argument("--bind", type=argtypes.zmq_address, default=None, metavar="ADDRESS",
                        help=f"ROUTER address (default: {LOOPBACK_BIND}, this machine's clients only; with "
                             f"--curve-keys {NETWORK_BIND}, every interface); without --curve-keys only a loopback "
                             "or ipc:// address, unless --insecure")

@@ -43,6 +43,11 @@ def shell_word(path) -> str:
     return shlex.quote(str(path))
 
 
+def counted(n: int, noun: str) -> str:
+    """"1 client", "4 clients": a count with its noun (plural by an s)."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
 def next_steps(*commands: str) -> str:
     """The line a command ends with: what to run next, so that a new user sees the way on."""
     return "next: " + "; ".join(commands)

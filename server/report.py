@@ -29,7 +29,7 @@ import numpy as np
 
 from common.body import JOINT_NAMES
 from common.export import FORMATS, SUFFIXES, frame_step
-from server.output import write_text
+from server.output import counted, write_text
 from server.pictures import (
     BONES, AGREE, EXTRA, GIF_NAME, MISSED, PICTURES_DIR, VIDEO_NAME, ModelPainter, ResultData, camera_indices,
     default_cameras, default_frames, fit_height, worst_frame, load_result, make_plots, model_views, overlay_strip,
@@ -108,7 +108,7 @@ def summary_rows(result: ResultData) -> list[tuple[str, str]]:
     rate = f"{m.fps:g} fps" + (f", one frame in {step} fitted: {m.rate:g} fps" if step > 1 else "")
     rows = [("frames", f"{len(m.frames)} ({m.frames[0]}..{m.frames[-1]})"), ("frame rate", rate)]
     if "mode" in s:
-        rows.append(("mode", f"{s['mode']} ({s.get('clients', 0)} clients)"))
+        rows.append(("mode", f"{s['mode']} ({counted(s.get('clients', 0), 'client')})"))
     if "energy_backend" in s:
         rows.append(("energy backend", s["energy_backend"]))
     refined = bool(s.get("refinement_passes"))

@@ -32,6 +32,15 @@ def frames_text(frames) -> str:
     return f"{min(frames)}..{max(frames)}" + (f", one in {step}" if step > 1 else "")
 
 
+def stopped_note(out_dir: Path) -> str:
+    """What a fit stopped by a signal leaves: where its frames are and how to go on, or that it
+    stopped before its first frame (a server waiting for its clients)."""
+    poses = Path(out_dir) / POSES_FILE
+    if poses.is_file() and poses.stat().st_size > 0:
+        return f"the frames fitted are kept in {out_dir}, and the same command with --resume continues"
+    return f"stopped before its first frame was fitted; nothing is in {out_dir}"
+
+
 def read_done_frames(path: Path) -> list[dict]:
     """The records of an existing poses.jsonl.
 

@@ -122,6 +122,11 @@ def server_keys(directory: Path) -> tuple[bytes, bytes, Path]:
         if (directory / "client.key_secret").is_file():
             raise UserError(f"--curve-keys {directory}: a client's key folder (no server.key_secret); give the "
                             "server the folder mocap keys made")
+        if directory.is_dir() and any(directory.glob("*.key")):  # the allow-list mocap keys made inside
+            raise UserError(f"--curve-keys {directory}: holds client keys but no server.key_secret: the clients/ "
+                            f"allow-list? Give the folder mocap keys made ({shell_word(directory.parent)}, if so)")
+        if directory.is_file():
+            raise UserError(f"--curve-keys {directory}: is a file; give the folder mocap keys made")
         where = "no such folder" if not directory.is_dir() else f"{secret_file} is missing"
         raise UserError(f"--curve-keys {directory}: {where}; make the keys with: mocap keys {shell_word(directory)}")
     try:

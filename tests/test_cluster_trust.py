@@ -243,7 +243,11 @@ def test_mocap_server_without_bind_binds_where_it_may(seq_path, tmp_path, capsys
 @pytest.mark.parametrize("folder, said", [("missing", "no such folder; make the keys with: mocap keys {keys}"),
                                           ("empty", "{keys}/server.key_secret is missing; make the keys with: "
                                                     "mocap keys {keys}"),
-                                          ("client", "a client's key folder")])
+                                          ("client", "a client's key folder"),
+                                          # following "make the keys with" there would nest a second set
+                                          ("allow-list", "holds client keys but no server.key_secret: the clients/ "
+                                                         "allow-list? Give the folder mocap keys made ({made}, if so)"),
+                                          ("file", "is a file")])
 def test_mocap_server_says_a_key_folder_lacks_the_server_key(seq_path, tmp_path, capsys, folder, said):
     from server.cli import main
 
@@ -252,10 +256,15 @@ def test_mocap_server_says_a_key_folder_lacks_the_server_key(seq_path, tmp_path,
         keys.mkdir()
     elif folder == "client":
         keys = create_curve_keys(tmp_path / "made") / "for-client"
+    elif folder == "allow-list":
+        keys = create_curve_keys(tmp_path / "made") / "clients"
+    elif folder == "file":
+        keys = create_curve_keys(tmp_path / "made") / "server.key"
     assert main(["server", str(seq_path), "--out", str(tmp_path / "out"), "--curve-keys", str(keys)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Invalid certificate" not in err, err
-    assert err.startswith(f"mocap server: error: --curve-keys {keys}: ") and said.format(keys=keys) in err, err
+    assert err.startswith(f"mocap server: error: --curve-keys {keys}: ") and said.format(
+        keys=keys, made=tmp_path / "made") in err, err
     assert not (tmp_path / "out").exists()
 
 
@@ -347,6 +356,39 @@ def test_mocap_keys_writes_private_secret_keys(tmp_path):
 
     assert main(["keys", str(tmp_path / "k")]) == 0
     assert set(secret_modes(tmp_path / "k").values()) == {0o600}
+
+
+@pytest.mark.parametrize("inside", ["", "clients", "for-client"])
+def test_mocap_keys_refuses_a_folder_that_holds_keys(tmp_path, capsys, inside):
+    from server.cli import main
+
+    create_curve_keys(tmp_path / "k")
+    folder = tmp_path / "k" / inside
+    before = sorted(p.relative_to(tmp_path) for p in (tmp_path / "k").rglob("*"))
+    assert main(["keys", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "already holds keys" in err, err
+    assert sorted(p.relative_to(tmp_path) for p in (tmp_path / "k").rglob("*")) == before
+
+
+@pytest.mark.parametrize("address, said", [("tcp://127.0.0.1:99999", "the port must be 1-65535"),
+                                           ("127.0.0.1:5555", "expected tcp://HOST:PORT"),
+                                           ("tcp://127.0.0.1", "expected tcp://HOST:PORT"),
+                                           ("udp://127.0.0.1:5555", "expected tcp://HOST:PORT")])
+def test_server_and_client_refuse_a_bad_address(seq_path, tmp_path, capsys, address, said):
+    """ZeroMQ would bind port 99999 as 34463 and say only "Invalid argument" without the scheme."""
+    from client.__main__ import main as client
+    from server.cli import main
+
+    assert main(["server", str(seq_path), "--out", str(tmp_path / "out"), "--bind", address]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--bind" in err and said in err, err
+    with pytest.raises(SystemExit) as exit_info:
+        client(["--connect", address])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--connect" in err and said in err, err
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.timeout(90)

@@ -1458,6 +1458,11 @@ def test_ctrl_c_inside_a_compiled_loop_says_interrupted(small_sequence, tmp_path
 
     monkeypatch.setattr(fit_command, "run", stopped)
     assert fit(small_sequence, tmp_path / "r") == 130
+    assert capsys.readouterr().err.strip() == ("mocap fit: interrupted; stopped before its first frame was fitted; "
+                                               f"nothing is in {tmp_path / 'r'}")
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "poses.jsonl").write_text('{"frame": 0}\n')  # a frame written before the stop
+    assert fit(small_sequence, tmp_path / "r") == 130
     assert capsys.readouterr().err.strip() == (f"mocap fit: interrupted; the frames fitted are kept in {tmp_path / 'r'}, "
                                                "and the same command with --resume continues")
 

@@ -17,7 +17,7 @@ from common.argtypes import count, non_negative, real
 from server.local_cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.config import MAX_ACTOR_HEIGHT, MIN_ACTOR_HEIGHT, PRESETS
 from server.progress import Progress
-from server.output import (add_overwrite_argument, add_units_argument, check_folder_target, next_steps,
+from server.output import (add_overwrite_argument, add_units_argument, check_folder_target, counted, next_steps,
                            replace_file, shell_word)
 from server.results import MOTION_FILE, RESULT_FILES, earlier_actor_scale, load_records
 from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, run_fit,
@@ -135,7 +135,7 @@ def finish(model, seq, args, summary: dict) -> None:
 
 def print_summary(summary: dict, out, result: Path | None = None) -> None:
     """The summary table of a fit; ``result``: its folder, for the commands the table names."""
-    rows = [("frames", summary["frames"]), ("mode", f"{summary['mode']} ({summary['clients']} clients"
+    rows = [("frames", summary["frames"]), ("mode", f"{summary['mode']} ({counted(summary['clients'], 'client')}"
                      + (f", {summary['threads']} threads)" if summary.get("threads", 1) > 1 else ")")),
             ("energy", summary["energy_backend"]),
             ("world up", summary.get("world_up", "+z")),
@@ -193,7 +193,7 @@ def _cluster_rows(summary: dict) -> list:
     if "dropped" in timing:
         dropped = sum(timing["dropped"].values())
         rows.append(("dropped / resent / lost", f"{dropped} messages / {timing['resent']} chains / "
-                                                f"{timing['lost_clients']} clients"))
+                                                f"{counted(timing['lost_clients'], 'client')}"))
     return rows
 
 

@@ -19,7 +19,7 @@ from server.commands.fit import (actor_model, add_fit_arguments, check_resume_or
                                  options_from_args, warn_if_software_gl)
 from server.output import check_folder_target
 from server.progress import Progress
-from server.results import RESULT_FILES
+from server.results import RESULT_FILES, stopped_note
 from server.session import run_fit
 
 EXIT_TERMINATED = 143  # 128 + SIGTERM
@@ -68,8 +68,7 @@ def run(args) -> int:
             finish(model, seq, args, summary)  # results on disk before the clients are released
             shutdown = "run finished"
         except Terminated:
-            print(f"mocap server: terminated; the frames done are in {args.out}, continue with --resume",
-                  file=sys.stderr)
+            print(f"mocap server: terminated; {stopped_note(args.out)}", file=sys.stderr)
             return EXIT_TERMINATED
         finally:
             solver.close(shutdown=shutdown)
