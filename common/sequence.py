@@ -294,6 +294,10 @@ class Sequence:
                                  f"missing: no silhouettes ({folders}/ folders); make them with mocap segment")
         files = self._camera_files(folder, camera)
         if frame not in files:
+            if not (folder / camera).is_dir():  # an empty silhouettes/ says more than its first file
+                held = sorted(p.name for p in folder.iterdir() if p.is_dir()) if folder.is_dir() else []
+                raise InputFileError(folder / camera, f"missing: no folder for camera {camera} "
+                                     + (f"(holds {', '.join(held)})" if held else f"({folder.name}/ holds no camera folder)"))
             raise InputFileError(expected_path(folder / camera, files, frame),
                                  f"missing: frame {frame} of camera {camera}")
         return files[frame]

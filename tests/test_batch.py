@@ -220,6 +220,9 @@ def test_a_ready_sequence_without_a_calibration_takes_the_projects(tmp_path, mod
     capsys.readouterr()
     assert main(["run", str(take)]) == 2
     assert "no calibration" in refusal(capsys)
+    assert main(["run", str(take), "--json"]) == 2  # a script reading stdout gets JSON either way
+    said = json.loads(capsys.readouterr().out)
+    assert said["status"] == "failed" and "no calibration" in said["error"]
 
 
 def test_all_export_formats_in_a_config(project):

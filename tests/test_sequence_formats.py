@@ -260,8 +260,13 @@ def test_check_files_unreadable_and_absent_folders(tmp_path):
     seq = load_sequence(root)
     with pytest.raises(InputFileError, match=r"cam1/000000.png: not a readable image"):
         seq.check_files([0])
-    with pytest.raises(InputFileError, match=r"images/cam1/000000.png: missing: frame 0 of camera cam1"):
+    # no images/ at all: said of the folder, not of its first file
+    with pytest.raises(InputFileError, match=r"images/cam1: missing: no folder for camera cam1 \(images/ holds no "
+                                             r"camera folder\)"):
         seq.check_files([0], masks=False, images=True)
+    (root / "images" / "cam2").mkdir(parents=True)
+    with pytest.raises(InputFileError, match=r"images/cam1: missing: no folder for camera cam1 \(holds cam2\)"):
+        load_sequence(root).check_files([0], masks=False, images=True)
     (tmp_path / "bare").mkdir()
     bare, _ = _root(tmp_path / "bare")
     write_sequence_meta(bare, [0], 30.0, studio.names)

@@ -13,6 +13,8 @@ import json
 import sys
 from pathlib import Path
 
+from common.argtypes import one_line
+from common.errors import UserError
 from server.project import TakeFailed, run_take
 
 
@@ -35,8 +37,14 @@ def run(args) -> int:
 
     try:
         done = run_take(args.take, progress, overwrite=args.overwrite)
-    except TakeFailed as exc:  # the error's one line is the command's last; its whole output is in the log
-        progress(exc.steps[-1]["step"], f"full log: {exc.log}")
+    except UserError as exc:  # the error's one line is the command's last; its whole output is in the log
+        failed = isinstance(exc, TakeFailed)
+        if failed:
+            progress(exc.steps[-1]["step"], f"full log: {exc.log}")
+        if args.json:  # a script reading stdout gets JSON either way (the error line goes to stderr too)
+            print(json.dumps({"name": args.take.name, "path": str(args.take), "status": "failed",
+                              "error": one_line(str(exc)),
+                              **({"steps": exc.steps, "log": str(exc.log)} if failed else {})}, indent=1))
         raise
     if args.json:
         print(json.dumps(done, indent=1))
