@@ -14,7 +14,8 @@ clip (mean and worst joint error, frames with a joint over 40 mm, seconds per fr
 writes them as JSON.
 
 ``--start N`` synthesises each clip from source frame N instead of 1 (every 4th source frame is
-one frame at 30 fps), skipping the clips too short to give ``--frames`` frames from there:
+one frame at 30 fps), skipping the clips too short to give ``--frames`` frames from there (from
+frame 1 a short clip gives the frames it has):
 ``--start 401`` fits the 100 frames after those of the default run, motion that no setting
 was ever tried on.
 """
@@ -98,7 +99,10 @@ def main(argv=None) -> int:
     if args.start < 1:
         print(f"--start: must be 1 or more, got {args.start}", file=sys.stderr)
         return 2
-    long_enough = [c for c in clips if source_frames(c) >= args.start + SOURCE_STEP * (args.frames - 1) + 1]
+    # from the start, a short clip gives the frames it has (06_08: 86); from later, those it lacks
+    # would be another clip's count
+    long_enough = [c for c in clips
+                   if args.start == 1 or source_frames(c) >= args.start + SOURCE_STEP * (args.frames - 1) + 1]
     if len(long_enough) < len(clips):
         print(f"skipped, shorter than {args.frames} frames from source frame {args.start}: "
               f"{', '.join(c.stem for c in clips if c not in long_enough)}", file=sys.stderr)

@@ -262,8 +262,8 @@ def run(args) -> int:
     fps = args.fps or sources[names[0]].fps
     if fps is None:
         fps = DEFAULT_FPS
-        print_warning(f"the recordings do not say their frame rate: {DEFAULT_FPS:g} fps taken (--fps sets it; "
-                      "exports play at it)")
+        print_warning(f"the recordings do not say their frame rate: {DEFAULT_FPS:g} fps taken (--fps sets it, "
+                      "[import] fps in a project's Config.toml; exports play at it)")
     # the whole sequence is built beside OUT and moved in at the end: a failed import leaves OUT as it was
     with staged_folder(out, merge=True) as staged:
         for n in names:
