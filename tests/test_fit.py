@@ -641,6 +641,16 @@ def test_tracking_lost_is_a_jump_over_the_recent_median():
     assert not tracking_lost([5000] * 9 + [1000, 1000, 1000], 1400)  # the last ten frames count
 
 
+def test_a_frame_stands_out_over_both_neighbours_mean():
+    from common.search import STANDING_OUT_RATIO, standing_out
+
+    assert standing_out([1000, 1000, 1200, 1000, 1000]) == [2]
+    assert standing_out([1000, 1000, 1070, 1000, 1000]) == []  # the masks' noise
+    assert standing_out([1300, 1000, 1000, 1300]) == []  # the first and the last have one neighbour
+    assert standing_out([1000, 1100, 1200, 1300]) == []  # a rise, not a frame apart
+    assert standing_out([1000, 1100, 1000], ratio=1.05) == [1] and STANDING_OUT_RATIO > 1.0
+
+
 @pytest.fixture(scope="module")
 def five_frames(tmp_path_factory, model):
     from common.camera import circle_studio

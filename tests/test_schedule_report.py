@@ -36,10 +36,17 @@ def params(out: Path) -> list:
     return [json.loads(line)["params"] for line in (out / "poses.jsonl").read_text().splitlines()]
 
 
-def test_every_tracked_and_refined_frame_is_counted_once(small_sequence, tmp_path, saved_search):
+def test_every_tracked_and_refined_frame_is_counted_once(small_sequence, tmp_path, saved_search, monkeypatch):
     """3 frames, the first from the truth's pose: each tracked once (TRACKING); the backward pass
-    refines its first frame (2) by REFINE_SEARCH with hops, frames 1 and 0 by REFINE; the fits
-    and re-detection's grids spend evaluations; the poses are those of the same fit unwatched."""
+    refines its first frame (2) by REFINE_SEARCH with hops, frames 1 and 0 by REFINE, and frame
+    1 once more by REFINE where it stands out of its neighbours; the fits and re-detection's
+    grids spend evaluations; the poses are those of the same fit unwatched."""
+    import server.session as session
+
+    standing_out = []  # each run's frames that stood out after the passes
+    found = session.standing_out
+    monkeypatch.setattr(session, "standing_out", lambda energies: standing_out.append(found(energies)) or
+                        standing_out[-1])
     watcher = Watcher()
     watcher.install()
     try:
@@ -51,7 +58,8 @@ def test_every_tracked_and_refined_frame_is_counted_once(small_sequence, tmp_pat
     assert params(tmp_path / "watched") == params(tmp_path / "plain")
     report = watcher.report()
     assert sum(report["winners"]["TRACKING"].values()) == 3
-    assert sum(report["winners"]["REFINE"].values()) == 2
+    assert standing_out[0] in ([], [1]) and standing_out[1] == standing_out[0]
+    assert sum(report["winners"]["REFINE"].values()) == 2 + len(standing_out[0])
     assert sum(report["winners"]["REFINE_SEARCH+AFTER_HOPS"].values()) == 1
     tracking = [r for r in report["stages"] if r["schedule"] == "TRACKING"]
     assert tracking[0]["proposers"].startswith("start+start_turns") and tracking[0]["starts"] >= 3 * 5
