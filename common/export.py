@@ -53,12 +53,12 @@ SUFFIXES = {"glb": ".glb", "mot": ".mot", "trc": ".trc", "keypoints3d": "_keypoi
             "json": ".jsonl", "csv": ".csv"}
 FOLDER_FORMATS = ("keypoints3d",)
 ALL_FORMATS = "all"  # a name for every one of FORMATS
+EXPORT_STEM = "motion"  # RESULT/motion.<suffix>: where mocap export writes by default
 
 
 def named_formats(names) -> list[str]:
     """The formats ``names`` (FORMATS or ALL_FORMATS) stand for, in order, each once."""
     return list(dict.fromkeys(FORMATS if ALL_FORMATS in names else names))
-EXPORT_STEM = "motion"  # RESULT/motion.<suffix>: where mocap export writes by default
 
 
 def export_name(fmt: str) -> str:

@@ -29,6 +29,14 @@ def add_overwrite_argument(p) -> None:
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
 
 
+def add_calibration_argument(p) -> None:
+    """--calibration: a calibration file for a sequence that holds none (segment and every
+    command of ``add_world_arguments``)."""
+    p.add_argument("--calibration", type=Path, default=None, metavar="FILE",
+                   help="the calibration to use, in any format mocap calib reads (default: the sequence's own "
+                        "calibration.json, or intri.yml + extri.yml)")
+
+
 def add_units_argument(p) -> None:
     """--units: the units of a calibration file that does not say (calib, import-video, fit,
     server, voxels, live)."""

@@ -27,19 +27,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from common.body import forward_kinematics, load_body_model  # noqa: E402
 from common.fitting import FitOptions, FrameData, FrameResult  # noqa: E402
 from common.scoring import joint_errors_mm  # noqa: E402
-from common.search import refine_frame, solve_locally  # noqa: E402
+from common.search import STANDING_OUT_RATIO, refine_frame, solve_locally, standing_out  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
 from server.results import load_records  # noqa: E402
-
-SPIKE_RATIO = 1.08  # a frame's energy over the mean of its neighbours' that counts as standing out
-
-
-def spikes(energies: list, ratio: float) -> list[int]:
-    """Indices of the frames (not the first or last) whose energy is ``ratio`` times the mean of
-    their two neighbours' or more."""
-    e = np.asarray(energies, dtype=np.float64)
-    return [i for i in range(1, len(e) - 1) if e[i] >= ratio * 0.5 * (e[i - 1] + e[i + 1])]
-
 
 def worst_mm(model, params, truth_frame) -> float:
     return float(joint_errors_mm(forward_kinematics(model, np.asarray(params)).joints[0], truth_frame).max())
@@ -48,7 +38,7 @@ def worst_mm(model, params, truth_frame) -> float:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("pairs", nargs="+", type=Path, help="RESULT SEQUENCE, repeated")
-    ap.add_argument("--ratio", type=float, default=SPIKE_RATIO)
+    ap.add_argument("--ratio", type=float, default=STANDING_OUT_RATIO)
     args = ap.parse_args(argv)
     if len(args.pairs) % 2:
         print("give RESULT SEQUENCE pairs", file=sys.stderr)
@@ -61,7 +51,7 @@ def main(argv=None) -> int:
         scale = json.loads((result / "summary.json").read_text()).get("actor_scale", 1.0)
         model = load_body_model() if scale == 1.0 else load_body_model().scaled(scale)
         truth = seq.truth()
-        for i in spikes([r["energy"] for r in records], args.ratio):
+        for i in standing_out([r["energy"] for r in records], args.ratio):
             r, before, after = records[i], records[i - 1], records[i + 1]
             data = FrameData(model, seq.studio, seq.silhouettes(r["frame"]))
             fit = FrameResult(np.asarray(r["params"], dtype=np.float64), int(r["energy"]), 0, 0)

@@ -17,8 +17,8 @@ from common.argtypes import count, non_negative, real
 from server.local_cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.config import MAX_ACTOR_HEIGHT, MIN_ACTOR_HEIGHT, PRESETS
 from server.progress import Progress
-from server.output import (add_overwrite_argument, add_units_argument, check_folder_target, counted, next_steps,
-                           replace_file, shell_word)
+from server.output import (add_calibration_argument, add_overwrite_argument, add_units_argument, check_folder_target,
+                           counted, next_steps, replace_file, shell_word)
 from server.results import MOTION_FILE, RESULT_FILES, earlier_actor_scale, load_records
 from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, run_fit,
                             tracking_error_note, xor_sides)
@@ -207,14 +207,6 @@ def register(sub) -> None:
                    help="start N local limb clients and a server on 127.0.0.1 (default 0: one process)")
     add_cluster_arguments(p, server=False)
     p.set_defaults(func=run)
-
-
-def add_calibration_argument(p) -> None:
-    """--calibration: a calibration file for a sequence that holds none (segment and every
-    command of ``add_world_arguments``)."""
-    p.add_argument("--calibration", type=Path, default=None, metavar="FILE",
-                   help="the calibration to use, in any format mocap calib reads (default: the sequence's own "
-                        "calibration.json, or intri.yml + extri.yml)")
 
 
 def add_world_arguments(p, clean: bool = True) -> None:

@@ -16,8 +16,8 @@ from common.errors import InputFileError
 from common.segmentation import METHODS, load_params, make_segmenter, params_dict
 from common.sequence import (IMAGE_SUFFIXES, MASK_FOLDERS, check_size, frame_files, image_size, load_sequence, read_image,
                              write_mask_png, write_sequence_meta)
-from server.commands.fit import add_calibration_argument
-from server.output import add_overwrite_argument, check_folder_target, staged_folder, write_text
+from server.output import (add_calibration_argument, add_overwrite_argument, check_folder_target, staged_folder,
+                           write_text)
 
 
 def register(subparsers) -> None:
