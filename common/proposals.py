@@ -59,10 +59,24 @@ def pelvis_twisted(model: BodyModel, params: np.ndarray, angle: float) -> np.nda
     return clip_to_limits(x)
 
 
+def heading_near(params: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(35,) ``params`` with its root heading moved by whole turns to within pi of the
+    ``reference`` pose's (35,): the same pose. The heading is unwrapped, so two fits of
+    neighbouring frames can stand a whole turn apart in their numbers (a frame searched again
+    from the voxels); a mean or a straight line between them must not spin the body round."""
+    out = np.array(params, dtype=np.float64)
+    out[P["root_heading"]] = nearest_turn(out[P["root_heading"]], reference[P["root_heading"]])
+    return out
+
+
 def midway(before: np.ndarray, after: np.ndarray) -> np.ndarray:
-    """(35,) the pose halfway between two poses (35,) parameter by parameter, within the joint
-    limits: a frame's start between its neighbours' fits."""
-    return clip_to_limits((np.asarray(before, dtype=np.float64) + np.asarray(after, dtype=np.float64)) / 2.0)
+    """(35,) the pose halfway between two poses (35,) parameter by parameter, the headings
+    taken a whole turn nearer each other where they stand more than pi apart, within the joint
+    limits: a frame's start between its neighbours' fits. Without the nearer turn, 05_17 from
+    source frame 401 started frame 15 halfway between a fit at heading 3.58 and a recovered
+    one at 9.75 (3.47 plus a turn): facing backwards."""
+    before = np.asarray(before, dtype=np.float64)
+    return clip_to_limits((before + heading_near(after, before)) / 2.0)
 
 
 def moved_on(params: np.ndarray, params_before: np.ndarray | None) -> tuple:

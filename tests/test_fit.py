@@ -160,6 +160,34 @@ def test_midway_is_the_mean_pose_within_the_joint_limits():
     np.testing.assert_array_equal(midway(a, b), midway(b, a))
 
 
+def test_a_heading_is_taken_whole_turns_nearer_a_reference():
+    """A pose with its heading a whole turn (or several) from another's is the same pose: it is
+    moved by whole turns to within pi of the reference, nothing else changed."""
+    from common.proposals import heading_near
+
+    truth = np.random.default_rng(2).normal(0.0, 0.5, PARAM_COUNT)
+    fit = truth + 0.05
+    fit[P["root_heading"]] += 2.0 * np.pi
+    near = heading_near(truth, fit)
+    assert near[P["root_heading"]] == pytest.approx(truth[P["root_heading"]] + 2.0 * np.pi)
+    others = np.arange(PARAM_COUNT) != P["root_heading"]
+    np.testing.assert_array_equal(near[others], truth[others])
+    np.testing.assert_array_equal(heading_near(truth, truth), truth)
+    assert heading_near(truth, truth + 6.0 * np.pi)[P["root_heading"]] == pytest.approx(truth[P["root_heading"]] + 6.0 * np.pi)
+
+
+def test_midway_between_headings_a_turn_apart_faces_between_them():
+    """Neighbours' fits at headings 3.58 and 9.75 (3.47 and a turn) are poses 0.11 rad apart:
+    halfway faces 3.525 (or that and a turn), never backwards (6.67, what a plain mean gives)."""
+    from common.proposals import midway
+    from common.retarget import nearest_turn
+
+    a, b = np.zeros(PARAM_COUNT), np.zeros(PARAM_COUNT)
+    a[P["root_heading"]], b[P["root_heading"]] = 3.58, 3.47 + 2.0 * np.pi
+    for mid in (midway(a, b), midway(b, a)):
+        assert nearest_turn(mid[P["root_heading"]], 3.525) == pytest.approx(3.525)
+
+
 def test_tilted_ahead_follows_the_pelvis_tilt_only_while_it_moves(model, frames):
     from common.proposals import TILT_AHEAD_RAD, TILT_MOVING_RAD, tilted_ahead
 
@@ -681,10 +709,13 @@ def test_a_lost_body_is_found_again_from_the_voxels(model, five_frames, tmp_path
     lines = read_lines(tmp_path / "poses.jsonl")
     assert not any(r["recovered"] for r in lines)
     lines[-1]["params"][0] += 0.6
+    lines[-1]["params"][P["root_heading"]] += 4.0 * np.pi  # the same pose, two turns on in its numbers
     (tmp_path / "poses.jsonl").write_text("".join(json.dumps(r) + "\n" for r in lines))
     summary = run_fit(model, seq, tmp_path, options, LocalSolver(model, options), resume=True, max_frames=4)
     last = read_lines(tmp_path / "poses.jsonl")[-1]
     assert last["recovered"] and summary["frames_recovered"] == 1
+    # the voxels' heading is taken to the turn the track is on, so the headings run on
+    assert abs(last["params"][P["root_heading"]] - lines[-1]["params"][P["root_heading"]]) < np.pi
     truth = seq.truth()[last["frame"]]
     assert joint_errors_mm(model, np.array(last["params"]), truth).mean() < 50.0
 

@@ -66,20 +66,3 @@ def test_chains_put_one_at_a_time_at_the_truth(small_sequence, tmp_path, capsys)
     with pytest.raises(SystemExit, match="--chains"):
         load_tool("fit_diagnostics").main([str(tmp_path / "fit"), str(small_sequence), "--chains",
                                            f"{frames[-1] + 1000}"])
-
-
-def test_the_truth_is_compared_a_whole_turn_nearer_the_fit():
-    """A fit tracked a whole turn away from the truth's heading numbers is the same pose: the
-    straight line to the truth goes to the truth's heading moved by whole turns, nothing else."""
-    import numpy as np
-
-    from common.body import P, PARAM_COUNT
-
-    truth = np.random.default_rng(2).normal(0.0, 0.5, PARAM_COUNT)
-    fit = truth + 0.05
-    fit[P["root_heading"]] += 2.0 * np.pi
-    near = load_tool("fit_diagnostics").heading_near(truth, fit)
-    assert near[P["root_heading"]] == pytest.approx(truth[P["root_heading"]] + 2.0 * np.pi)
-    others = np.arange(PARAM_COUNT) != P["root_heading"]
-    np.testing.assert_array_equal(near[others], truth[others])
-    np.testing.assert_array_equal(load_tool("fit_diagnostics").heading_near(truth, truth), truth)

@@ -37,9 +37,8 @@ sys.path.insert(0, str(ROOT))
 
 from common.body import CHAINS, P, forward_kinematics, load_body_model  # noqa: E402
 from common.fitting import FitOptions, FrameData, full_energy  # noqa: E402
-from common.proposals import midway  # noqa: E402
+from common.proposals import heading_near, midway  # noqa: E402
 from common.search import fit_frame  # noqa: E402
-from common.retarget import nearest_turn  # noqa: E402
 from common.sequence import load_sequence, write_sequence_meta  # noqa: E402
 from common.scoring import joint_errors_mm  # noqa: E402
 from server.results import load_records  # noqa: E402
@@ -131,16 +130,6 @@ def chains_against_truth(model, seq, truth, records, frames: list[int], options:
             text += (f"  fitted from halfway between frames {f - 1} and {f + 1}: {halfway.energy} "
                      f"({joint_error_mm(model, halfway.params, t):.1f} mm)")
         print(text)
-
-
-def heading_near(params: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """(35,) ``params`` with its root heading moved by whole turns to within pi of the
-    ``reference`` pose's (35,): the same pose. The heading is unwrapped, and a run started
-    from a search can track a whole turn away from the truth's numbers; a straight line to
-    the truth's own would spin the body round on the way."""
-    out = np.array(params, dtype=np.float64)
-    out[P["root_heading"]] = nearest_turn(out[P["root_heading"]], reference[P["root_heading"]])
-    return out
 
 
 def fewest_chains_lowering(energy, fit: np.ndarray, truth_params: np.ndarray, fit_energy: int) -> tuple:
