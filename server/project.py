@@ -566,8 +566,10 @@ def result_figures(result: Path) -> dict:
     except (OSError, ValueError):
         return {}
     frames = summary.get("frames") or 0
-    out = {"frames": frames,
-           "seconds_per_frame": summary["wall_seconds"] / frames if frames and summary.get("wall_seconds") else None}
+    # the whole take's time (after a --resume, this run's wall time alone would be a part of it);
+    # summaries older than take_seconds have wall_seconds only
+    seconds = summary.get("take_seconds", summary.get("wall_seconds"))
+    out = {"frames": frames, "seconds_per_frame": seconds / frames if frames and seconds else None}
     for key in ("actor_scale", "mean_joint_error_mm", "max_joint_error_mm"):
         if key in summary:
             out[key] = summary[key]

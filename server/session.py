@@ -670,6 +670,10 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         # with the actor-size search, which a user waits for too
         "wall_seconds": time.perf_counter() - wall0 + (actor_size.seconds if actor_size else 0.0),
         "actor_size_seconds": actor_size.seconds if actor_size else 0.0,
+        # the take's whole fit: this run's wall time and, after a --resume, the tracking time the
+        # earlier runs spent on the frames they left (refinement runs again over every frame)
+        "take_seconds": time.perf_counter() - wall0 + (actor_size.seconds if actor_size else 0.0)
+                        + sum(float(d.get("seconds") or 0.0) for d in done),
         "evaluations_per_frame": float(np.mean(stats.evaluations)) if stats.evaluations else None,
         "frames_recovered": sum(1 for r in records if r.get("recovered")),
         "frames_limbs_redetected": sum(1 for r in records if r.get("limbs_redetected")),

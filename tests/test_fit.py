@@ -1226,6 +1226,13 @@ def test_a_limb_lost_between_frames_is_found_again(model, five_frames, tmp_path)
     summary = run_fit(model, seq, tmp_path, options, LocalSolver(model, options), resume=True, max_frames=4)
     last = read_lines(tmp_path / "poses.jsonl")[-1]
     assert summary["frames_recovered"] == 0
+    # the take's time: this run's and the first run's tracking of the three frames it kept
+    from server.project import result_figures
+
+    carried = sum(r["seconds"] for r in lines)
+    assert summary["frames_fitted_this_run"] == 1 and carried > 0
+    assert 0.0 <= summary["take_seconds"] - summary["wall_seconds"] - carried < 0.5
+    assert result_figures(tmp_path)["seconds_per_frame"] == pytest.approx(summary["take_seconds"] / 4)
     arm = [JOINT_NAMES.index("l_elbow"), JOINT_NAMES.index("l_wrist")]
     errors = joint_errors_mm(model, np.array(last["params"]), seq.truth()[last["frame"]])[arm]
     assert errors.max() < 50.0, errors

@@ -95,6 +95,12 @@ def test_summary_shows_refinement_beside_tracking(fitted):
                                                     f"{summary['frames_refined']} frames improved)")
     assert rows["tracking alone, mean / max joint error"] == (f"{summary['tracking_mean_joint_error_mm']:.1f} / "
                                                               f"{summary['tracking_max_joint_error_mm']:.1f} mm")
+    take = "the take's fit, earlier runs' tracking with it"
+    assert take not in rows  # fitted in one run: its wall time is the take's
+    from dataclasses import replace
+
+    resumed = replace(load_result(res, seq), summary=summary | {"frames_fitted_this_run": 1, "take_seconds": 12.34})
+    assert dict(summary_rows(resumed))[take] == "12.3 s"
 
 
 def test_page_is_self_contained(report):
