@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(prog="mocap client", description="Limb-fitting client of a mocap server.")
     p.add_argument("--connect", type=zmq_address, required=True, help="server address, e.g. tcp://HOST:5555")
     p.add_argument("--id", dest="client_id", default=None, help="name in the server's logs and timing "
-                                                              "(default HOST-PID)")
+                                                              "(default HOST-PID-TAG, TAG random)")
     p.add_argument("--curve-keys", default=None, metavar="DIR",
                    help="CURVE keys: DIR/client.key_secret and the server's DIR/server.key")
     p.add_argument("--reconnect-min", type=seconds, default=RECONNECT_MIN,

@@ -83,11 +83,25 @@ def _height_or_auto(value) -> bool:
         return False
 
 
+# Named speed settings ([fit] keys over the defaults); `mocap bench presets` measures each.
+PRESETS = {
+    # online: one round of starts a frame (the previous pose; moved on as it moved; tilted
+    # ahead while the pelvis tilts), the limbs re-detected; no turns, no polish, no refinement.
+    # The start moved on took the turns' place: with it, the three development clips from the
+    # truth (walk, dance, basketball) track at 11.9 / 14.5 / 14.2 mm mean for 0.24 s a frame
+    # (walk from the search, `mocap bench presets`), against 11.2 / 15.1 / 12.4 for 0.33 s
+    # with the turns and no start moved on (docs/accuracy.md, "The fast preset's start moved on")
+    "fast": {"turn_hypotheses": 0, "track_moved_on": True, "polish_iterations": 0, "refine_passes": 0},
+    "default": {},
+    "best": {"refine_passes": 2, "refine_search": True, "refine_hops": 60},  # offline work
+}
+
+
 SETTINGS: tuple[Setting, ...] = (
     Setting("take", "sequence", "sequence", str, "folder (in the take) the take's videos or images are imported into"),
     Setting("take", "result", "result", str, "result folder, relative to the take"),
-    Setting("calibration", "file", "", str, "calibration file or folder (default: calibration.* or Calib.toml, "
-            "in the take, else in the project)"),
+    Setting("calibration", "file", "", str, "calibration file or folder (default: calibration.json, calibration.toml, "
+            "Calib.toml, a calibration/ folder or intri.yml + extri.yml, in the take, else in the project)"),
     Setting("calibration", "units", "", str, "units of a calibration that does not say: m, cm or mm",
             _one_of(("", "m", "cm", "mm")), "one of m, cm, mm"),
     Setting("calibration", "up", "auto", str, "the world's up axis", _one_of(UP_CHOICES),
@@ -102,6 +116,8 @@ SETTINGS: tuple[Setting, ...] = (
             "or skip: leave it out of every camera", _one_of(MISSING_FRAMES), "one of " + ", ".join(MISSING_FRAMES)),
     Setting("segmentation", "method", "cheung", str, "background subtraction method", _one_of(tuple(METHODS)),
             "one of " + ", ".join(sorted(METHODS))),
+    Setting("fit", "preset", DEFAULT, str, "named settings under the [fit] keys a Config.toml sets: fast (online), "
+            "default, best (offline), as mocap fit --preset", _one_of(tuple(PRESETS)), "one of " + ", ".join(PRESETS)),
     Setting("fit", "frames", 0, int, "fit only the first N frames (0: all)", _at_least(0), "an integer >= 0"),
     Setting("fit", "energy", "cpu", str, "energy backend", _one_of(ENERGY_BACKENDS),
             "one of " + ", ".join(ENERGY_BACKENDS)),
@@ -218,6 +234,10 @@ def load_config(files: list[Path]) -> Config:
         if path.is_file():
             for key, value in read_config_file(path).items():
                 values[key], sources[key] = value, str(path)
+    preset = values[("fit", "preset")]
+    for key, value in PRESETS[preset].items():  # under the keys a file sets, over the defaults
+        if sources[("fit", key)] == DEFAULT:
+            values[("fit", key)], sources[("fit", key)] = value, f"preset {preset}"
     return Config(values, sources)
 
 
@@ -235,20 +255,6 @@ FIT_OPTION_DESTS = {
 }
 
 
-# Named speed settings ([fit] keys over the defaults); `mocap bench presets` measures each.
-PRESETS = {
-    # online: one round of starts a frame (the previous pose; moved on as it moved; tilted
-    # ahead while the pelvis tilts), the limbs re-detected; no turns, no polish, no refinement.
-    # The start moved on took the turns' place: with it, the three development clips from the
-    # truth (walk, dance, basketball) track at 11.9 / 14.5 / 14.2 mm mean for 0.24 s a frame
-    # (walk from the search, `mocap bench presets`), against 11.2 / 15.1 / 12.4 for 0.33 s
-    # with the turns and no start moved on (docs/accuracy.md, "The fast preset's start moved on")
-    "fast": {"turn_hypotheses": 0, "track_moved_on": True, "polish_iterations": 0, "refine_passes": 0},
-    "default": {},
-    "best": {"refine_passes": 2, "refine_search": True, "refine_hops": 60},  # offline work
-}
-
-
 def _as_option_defaults(values: dict) -> dict:
     """{(section, key): value} -> {mocap fit's option dest: its value}."""
     out = {}
@@ -262,10 +268,13 @@ def _as_option_defaults(values: dict) -> dict:
 def fit_option_defaults(preset: str | None, path: Path | None) -> dict:
     """{option dest: value} that replace ``mocap fit``'s built-in defaults: a preset's, then the
     [fit] and [calibration] keys of a Config.toml (``--config``); options given still win."""
-    values = {("fit", k): v for k, v in PRESETS[preset or "default"].items()}
+    given = {}
     if path is not None:
         path = Path(path)
         if not path.is_file():
             raise InputFileError(path, "missing (--config names a Config.toml)")
-        values.update(read_config_file(path))
+        given = read_config_file(path)
+    # --preset over the file's [fit] preset; the file's own keys over either
+    values = {("fit", k): v for k, v in PRESETS[preset or given.get(("fit", "preset"), DEFAULT)].items()}
+    values.update(given)
     return _as_option_defaults(values)

@@ -264,7 +264,9 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     command += ["--calibration", str(calibration_file)] if calibration_file else []
     calibration_file = calibration_file or sequence / "calibration.json"
     steps.append(Step("fit", (tuple(command),), (calibration_file, sequence / "silhouettes", sequence / "sequence.json"),
-                      (result / "poses.jsonl", result / "summary.json"), {"fit": fit, "calibration": calib_settings},
+                      (result / "poses.jsonl", result / "summary.json"),
+                      # the preset is in the keys it set, and its name alone refits nothing
+                      {"fit": {k: v for k, v in fit.items() if k != "preset"}, "calibration": calib_settings},
                       also_writes=(result / RUN_FILE, result / MOTION_FILE),
                       # mocap fit --overwrite drops what was made from the result it replaces
                       clears=tuple(result / name for name in DERIVED_FILES)))

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.errors import UserError
+from common.errors import InputFileError, UserError
 from common.export import FORMATS
 from server.cli import main
 from server.config import load_config
@@ -717,3 +717,43 @@ def test_presets_under_the_config_file_under_the_options(tmp_path, small_sequenc
     config.write_text("[fit]\npolish_iterations = 1\n")
     both = options_of("--preset", "fast", "--config", str(config))
     assert (both["polish_iterations"], both["turn_hypotheses"]) == (1, PRESETS["fast"]["turn_hypotheses"])
+    config.write_text('[fit]\npreset = "fast"\npolish_iterations = 1\n')  # the file's preset, under its own keys
+    from_file = options_of("--config", str(config))
+    assert (from_file["polish_iterations"], from_file["turn_hypotheses"]) == (1, PRESETS["fast"]["turn_hypotheses"])
+    assert options_of("--config", str(config), "--preset", "default")["turn_hypotheses"] == 2  # --preset wins
+
+
+def test_a_projects_preset_under_the_keys_its_files_set(tmp_path):
+    """[fit] preset = "best" in the project: its keys in force where no Config.toml sets them,
+    each shown as from the preset; a take's own key wins; the name alone is no fit setting of
+    the take's plan (a project that names the preset it already spells out refits nothing)."""
+    from server.config import PRESETS
+
+    (tmp_path / "take").mkdir()
+    (tmp_path / "Config.toml").write_text('[fit]\npreset = "best"\n')
+    (tmp_path / "take" / "Config.toml").write_text("[fit]\nrefine_passes = 1\n")
+    config = load_config([tmp_path / "Config.toml", tmp_path / "take" / "Config.toml"])
+    assert config.get("fit", "refine_hops") == PRESETS["best"]["refine_hops"]
+    assert config.get("fit", "refine_search") is True and config.source("fit", "refine_search") == "preset best"
+    assert config.get("fit", "refine_passes") == 1 and config.source("fit", "refine_passes").endswith("take/Config.toml")
+    assert config.source("fit", "preset") == str(tmp_path / "Config.toml")
+    spelled = tmp_path / "spelled"
+    spelled.mkdir()
+    (spelled / "Config.toml").write_text("[fit]\nrefine_passes = 2\nrefine_search = true\nrefine_hops = 60\n")
+    assert load_config([spelled / "Config.toml"]).section("fit") | {"preset": "best"} == config.section("fit") | {
+        "refine_passes": 2}
+    (tmp_path / "Config.toml").write_text('[fit]\npreset = "quick"\n')
+    with pytest.raises(InputFileError, match=r"\[fit\] preset.*one of fast, default, best"):
+        load_config([tmp_path / "Config.toml"])
+
+
+def test_naming_the_preset_in_force_changes_no_step(project):
+    """A take's steps are the same with [fit] preset = "default" added: a project that names
+    the preset its keys already are is not refitted."""
+    from server.project import take_config
+
+    take = project / "walk_a"
+    before = [step.settings for step in plan_take(take).steps]
+    (take / "Config.toml").write_text('[fit]\npreset = "default"\n')
+    assert take_config(take).source("fit", "preset") == str(take / "Config.toml")
+    assert [step.settings for step in plan_take(take).steps] == before
