@@ -59,24 +59,42 @@ def pelvis_twisted(model: BodyModel, params: np.ndarray, angle: float) -> np.nda
     return clip_to_limits(x)
 
 
-def heading_near(params: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """(35,) ``params`` with its root heading moved by whole turns to within pi of the
-    ``reference`` pose's (35,): the same pose. The heading is unwrapped, so two fits of
+# The joints turned by rotation vectors: a vector v of angle |v| and the vector of angle
+# |v| - 2 pi along it are the same rotation, and fits near half a turn land on either
+BALL_JOINTS = tuple([P[f"{joint}_x"], P[f"{joint}_y"], P[f"{joint}_z"]]
+                    for joint in ("spine", "l_shoulder", "r_shoulder", "l_hip", "r_hip"))
+
+
+def same_pose_near(params: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """(35,) ``params`` written as the same pose nearest the ``reference`` pose's (35,) numbers:
+    its root heading moved by whole turns to within pi of the reference's, and each ball joint's
+    rotation vector v replaced by v (1 - 2 pi / |v|), the same rotation the other way round,
+    where that lies nearer the reference's. The heading is unwrapped, and two fits of
     neighbouring frames can stand a whole turn apart in their numbers (a frame searched again
-    from the voxels); a mean or a straight line between them must not spin the body round."""
+    from the voxels), or hold a shoulder turned nearly half a turn as vectors pointing opposite
+    ways; a mean or a straight line between them must not spin the body or the limb round."""
     out = np.array(params, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
     out[P["root_heading"]] = nearest_turn(out[P["root_heading"]], reference[P["root_heading"]])
+    for idx in BALL_JOINTS:
+        v = out[idx]
+        angle = float(np.linalg.norm(v))
+        if angle > 0.0:
+            other = v * (1.0 - 2.0 * np.pi / angle)
+            if np.linalg.norm(other - reference[idx]) < np.linalg.norm(v - reference[idx]):
+                out[idx] = other
     return out
 
 
 def midway(before: np.ndarray, after: np.ndarray) -> np.ndarray:
-    """(35,) the pose halfway between two poses (35,) parameter by parameter, the headings
-    taken a whole turn nearer each other where they stand more than pi apart, within the joint
-    limits: a frame's start between its neighbours' fits. Without the nearer turn, 05_17 from
-    source frame 401 started frame 15 halfway between a fit at heading 3.58 and a recovered
-    one at 9.75 (3.47 plus a turn): facing backwards."""
+    """(35,) the pose halfway between two poses (35,) parameter by parameter, ``after`` written
+    as the same pose nearest ``before`` (``same_pose_near``), within the joint limits: a frame's
+    start between its neighbours' fits. Without it, 05_17 from source frame 401 started frame 15
+    halfway between a fit at heading 3.58 and a recovered one at 9.75 (3.47 plus a turn): facing
+    backwards; and 05_13's frame 13 there with the right shoulder turned half a turn from both
+    neighbours', 0.43 rad apart but written as vectors near pi pointing opposite ways."""
     before = np.asarray(before, dtype=np.float64)
-    return clip_to_limits((before + heading_near(after, before)) / 2.0)
+    return clip_to_limits((before + same_pose_near(after, before)) / 2.0)
 
 
 def moved_on(params: np.ndarray, params_before: np.ndarray | None) -> tuple:
@@ -87,7 +105,7 @@ def moved_on(params: np.ndarray, params_before: np.ndarray | None) -> tuple:
     if params_before is None:
         return ()
     x = np.asarray(params, dtype=np.float64)
-    return (clip_to_limits(2.0 * x - np.asarray(params_before, dtype=np.float64)),)
+    return (clip_to_limits(2.0 * x - same_pose_near(params_before, x)),)
 
 
 TILT_MOVING_RAD = 0.03  # pelvis tilt change per frame above which a tilted-ahead start is tried

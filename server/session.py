@@ -39,7 +39,8 @@ from common.body import P, BodyModel, forward_kinematics, joints_dict, load_body
 from common.errors import InputFileError, UserError, print_warning
 from common.fitting import HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult, fit_rounds
 from common.helping_pool import HelpingPool
-from common.proposals import heading_near, voxel_starts
+from common.proposals import voxel_starts
+from common.retarget import nearest_turn
 from common.scoring import accuracy, frame_quality, quality_summary, size_score
 from common.settle import candidate_frames, mask_step, settle_choice
 from common.search import (FIT_JOBS, LIMBS_LOST, WIDE, VARIANTS, Context, descend_outward, fit_frame,
@@ -295,9 +296,11 @@ def track(model: BodyModel, data: FrameData, frame: int, start: np.ndarray, befo
         if note:
             note(f"frame {frame}: tracking lost, searching from voxels")
         again = search_frame(model, data, starts, options, ctx.dispatch, frame, solver.workers())
-        # the voxels' headings are those of one turn: the fit kept within a half turn of the
-        # track, so that the frames' headings run on and a mean of neighbours is a pose between them
-        again = replace(again, params=heading_near(again.params, ctx.start))
+        # the voxels' headings are those of one turn: the fit's kept within a half turn of the
+        # track's, so that the frames' headings run on
+        heading = again.params.copy()
+        heading[P["root_heading"]] = nearest_turn(heading[P["root_heading"]], ctx.start[P["root_heading"]])
+        again = replace(again, params=heading)
         recovered = again.energy < result.energy
         result = lowest([result, again])
     return result, limbs_redetected, recovered

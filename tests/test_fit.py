@@ -160,25 +160,42 @@ def test_midway_is_the_mean_pose_within_the_joint_limits():
     np.testing.assert_array_equal(midway(a, b), midway(b, a))
 
 
-def test_a_heading_is_taken_whole_turns_nearer_a_reference():
-    """A pose with its heading a whole turn (or several) from another's is the same pose: it is
-    moved by whole turns to within pi of the reference, nothing else changed."""
-    from common.proposals import heading_near
+def test_the_same_pose_is_written_nearest_a_reference():
+    """A heading a whole turn (or several) from another's is the same pose: moved by whole turns
+    to within pi of the reference's. A ball joint's rotation vector near half a turn has a twin
+    pointing the other way (angle |v| - 2 pi): taken where it is nearer the reference's. Nothing
+    else changes, and a pose near the reference is left as it is."""
+    from common.body import rotvec_to_matrix
+    from common.proposals import BALL_JOINTS, same_pose_near
 
     truth = np.random.default_rng(2).normal(0.0, 0.5, PARAM_COUNT)
     fit = truth + 0.05
     fit[P["root_heading"]] += 2.0 * np.pi
-    near = heading_near(truth, fit)
+    near = same_pose_near(truth, fit)
     assert near[P["root_heading"]] == pytest.approx(truth[P["root_heading"]] + 2.0 * np.pi)
     others = np.arange(PARAM_COUNT) != P["root_heading"]
     np.testing.assert_array_equal(near[others], truth[others])
-    np.testing.assert_array_equal(heading_near(truth, truth), truth)
-    assert heading_near(truth, truth + 6.0 * np.pi)[P["root_heading"]] == pytest.approx(truth[P["root_heading"]] + 6.0 * np.pi)
+    np.testing.assert_array_equal(same_pose_near(truth, truth), truth)
+    turns = truth.copy()
+    turns[P["root_heading"]] += 6.0 * np.pi
+    assert same_pose_near(truth, turns)[P["root_heading"]] == pytest.approx(turns[P["root_heading"]])
+    shoulder = [P["r_shoulder_x"], P["r_shoulder_y"], P["r_shoulder_z"]]
+    assert shoulder in [list(idx) for idx in BALL_JOINTS]
+    axis = np.array([0.6, 0.0, -0.8])
+    a, b = truth.copy(), truth.copy()
+    a[shoulder], b[shoulder] = 3.0 * axis, -3.1 * axis  # 0.18 rad apart, written opposite ways
+    twin = same_pose_near(b, a)[shoulder]
+    np.testing.assert_allclose(twin, (3.1 - 2.0 * np.pi) * -axis)
+    np.testing.assert_allclose(rotvec_to_matrix(twin), rotvec_to_matrix(b[shoulder]), atol=1e-12)
+    np.testing.assert_array_equal(np.delete(same_pose_near(b, a), shoulder), np.delete(b, shoulder))
 
 
-def test_midway_between_headings_a_turn_apart_faces_between_them():
+def test_midway_between_poses_written_apart_lies_between_them():
     """Neighbours' fits at headings 3.58 and 9.75 (3.47 and a turn) are poses 0.11 rad apart:
-    halfway faces 3.525 (or that and a turn), never backwards (6.67, what a plain mean gives)."""
+    halfway faces 3.525 (or that and a turn), never backwards (6.67, what a plain mean gives).
+    Shoulders 0.18 rad apart written as vectors near pi pointing opposite ways: halfway is
+    between them, not a shoulder turned half a turn (what a plain mean, near zero, gives)."""
+    from common.body import matrix_to_rotvec, rotvec_to_matrix
     from common.proposals import midway
     from common.retarget import nearest_turn
 
@@ -186,6 +203,13 @@ def test_midway_between_headings_a_turn_apart_faces_between_them():
     a[P["root_heading"]], b[P["root_heading"]] = 3.58, 3.47 + 2.0 * np.pi
     for mid in (midway(a, b), midway(b, a)):
         assert nearest_turn(mid[P["root_heading"]], 3.525) == pytest.approx(3.525)
+    shoulder = [P["l_shoulder_x"], P["l_shoulder_y"], P["l_shoulder_z"]]
+    axis = np.array([0.0, 0.6, 0.8])
+    a[shoulder], b[shoulder] = 2.95 * axis, -3.05 * axis
+    for mid in (midway(a, b), midway(b, a)):
+        for end in (a, b):
+            apart = matrix_to_rotvec(rotvec_to_matrix(mid[shoulder]).T @ rotvec_to_matrix(end[shoulder]))
+            assert np.linalg.norm(apart) < 0.2
 
 
 def test_tilted_ahead_follows_the_pelvis_tilt_only_while_it_moves(model, frames):

@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 from common.body import CHAINS, P, forward_kinematics, load_body_model  # noqa: E402
 from common.fitting import FitOptions, FrameData, full_energy  # noqa: E402
-from common.proposals import heading_near, midway  # noqa: E402
+from common.proposals import same_pose_near, midway  # noqa: E402
 from common.search import fit_frame  # noqa: E402
 from common.sequence import load_sequence, write_sequence_meta  # noqa: E402
 from common.scoring import joint_errors_mm  # noqa: E402
@@ -119,7 +119,7 @@ def chains_against_truth(model, seq, truth, records, frames: list[int], options:
               f"{from_truth.energy:7d} ({joint_error_mm(model, from_truth.params, t):.1f} mm)  "
               f"one chain at the truth: {', '.join(swaps)}")
         whole = data.whole_image_energy()
-        target = heading_near(t.params, fit)
+        target = same_pose_near(t.params, fit)
         names, change = fewest_chains_lowering(whole, fit, target, energy)
         line = whole(fit[None] + np.linspace(0.0, 1.0, LINE_POINTS)[:, None] * (target - fit)[None])
         fewest = f"{'+'.join(names)} {change:+d}" if names else "none"
