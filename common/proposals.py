@@ -63,13 +63,17 @@ def pelvis_twisted(model: BodyModel, params: np.ndarray, angle: float) -> np.nda
 # |v| - 2 pi along it are the same rotation, and fits near half a turn land on either
 BALL_JOINTS = tuple([P[f"{joint}_x"], P[f"{joint}_y"], P[f"{joint}_z"]]
                     for joint in ("spine", "l_shoulder", "r_shoulder", "l_hip", "r_hip"))
+# ... the twin taken only within this of the reference's vector (rad): two rotations that near
+# are one pose written two ways; farther apart (a spine bent forward against one bent back),
+# the way between them through the joint's limits is the plain one
+TWIN_NEAR_RAD = np.pi / 2
 
 
 def same_pose_near(params: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """(35,) ``params`` written as the same pose nearest the ``reference`` pose's (35,) numbers:
     its root heading moved by whole turns to within pi of the reference's, and each ball joint's
     rotation vector v replaced by v (1 - 2 pi / |v|), the same rotation the other way round,
-    where that lies nearer the reference's. The heading is unwrapped, and two fits of
+    where that lies nearer the reference's and within TWIN_NEAR_RAD of it. The heading is unwrapped, and two fits of
     neighbouring frames can stand a whole turn apart in their numbers (a frame searched again
     from the voxels), or hold a shoulder turned nearly half a turn as vectors pointing opposite
     ways; a mean or a straight line between them must not spin the body or the limb round."""
@@ -81,7 +85,8 @@ def same_pose_near(params: np.ndarray, reference: np.ndarray) -> np.ndarray:
         angle = float(np.linalg.norm(v))
         if angle > 0.0:
             other = v * (1.0 - 2.0 * np.pi / angle)
-            if np.linalg.norm(other - reference[idx]) < np.linalg.norm(v - reference[idx]):
+            apart = np.linalg.norm(other - reference[idx])
+            if apart < min(np.linalg.norm(v - reference[idx]), TWIN_NEAR_RAD):
                 out[idx] = other
     return out
 

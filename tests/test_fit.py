@@ -188,6 +188,13 @@ def test_the_same_pose_is_written_nearest_a_reference():
     np.testing.assert_allclose(twin, (3.1 - 2.0 * np.pi) * -axis)
     np.testing.assert_allclose(rotvec_to_matrix(twin), rotvec_to_matrix(b[shoulder]), atol=1e-12)
     np.testing.assert_array_equal(np.delete(same_pose_near(b, a), shoulder), np.delete(b, shoulder))
+    # far apart as rotations too (a spine bent forward, one bent back; a hip either way): as it is
+    spine = [P["spine_x"], P["spine_y"], P["spine_z"]]
+    hip = [P["l_hip_x"], P["l_hip_y"], P["l_hip_z"]]
+    c, d = truth.copy(), truth.copy()
+    c[spine], d[spine] = [1.5, 0.8, 1.0], [-0.7, -0.8, -1.0]
+    c[hip], d[hip] = [1.3, 0.0, 0.0], [-2.0, 0.0, 0.0]
+    np.testing.assert_array_equal(same_pose_near(c, d), c)
 
 
 def test_midway_between_poses_written_apart_lies_between_them():
@@ -210,6 +217,26 @@ def test_midway_between_poses_written_apart_lies_between_them():
         for end in (a, b):
             apart = matrix_to_rotvec(rotvec_to_matrix(mid[shoulder]).T @ rotvec_to_matrix(end[shoulder]))
             assert np.linalg.norm(apart) < 0.2
+
+
+def test_moved_on_from_the_same_poses_written_apart_is_the_same():
+    """The pose moved on as it moved since the frame before does not depend on how the frame
+    before is written: its heading a turn on, or a shoulder near half a turn as its twin."""
+    from common.proposals import moved_on
+
+    rng = np.random.default_rng(7)
+    x = rng.normal(0.0, 0.3, PARAM_COUNT)
+    before = x - 0.02
+    shoulder = [P["r_shoulder_x"], P["r_shoulder_y"], P["r_shoulder_z"]]
+    axis = np.array([0.0, 0.6, -0.8])
+    x[shoulder], before[shoulder] = 2.95 * axis, 2.85 * axis
+    (plain,) = moved_on(x, before)
+    written = before.copy()
+    written[P["root_heading"]] += 2.0 * np.pi
+    written[shoulder] = (2.85 - 2.0 * np.pi) * axis  # the same rotation, the other way round
+    (again,) = moved_on(x, written)
+    np.testing.assert_allclose(again, plain, atol=1e-12)
+    np.testing.assert_allclose(plain[shoulder], 3.05 * axis)  # on along the axis, at the same speed
 
 
 def test_tilted_ahead_follows_the_pelvis_tilt_only_while_it_moves(model, frames):
