@@ -95,6 +95,7 @@ PRESETS = {
     "default": {},
     "best": {"refine_passes": 2, "refine_search": True, "refine_hops": 60},  # offline work
 }
+PRESET_KEYS = frozenset(("fit", key) for values in PRESETS.values() for key in values)
 
 
 SETTINGS: tuple[Setting, ...] = (

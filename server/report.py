@@ -116,7 +116,7 @@ def summary_rows(result: ResultData) -> list[tuple[str, str]]:
         ("seconds per frame (median)", _fmt(s.get("seconds_per_frame"), ".3f", " s")),
         ("seconds per frame (mean)", _fmt(s.get("mean_seconds_per_frame"), ".3f", " s")),
         ("wall time", _fmt(s.get("wall_seconds"), ".1f", " s")),
-        *([("the take's fit, earlier runs' tracking with it", _fmt(s.get("take_seconds"), ".1f", " s"))]
+        *([("take time, with earlier runs' tracking", _fmt(s.get("take_seconds"), ".1f", " s"))]
           if s.get("frames_fitted_this_run", s.get("frames")) != s.get("frames") and "take_seconds" in s else []),
         *([("refinement seconds per frame", _fmt(s.get("refine_seconds_per_frame"), ".3f",
                                                  f" s {refinement_note(s)}"))] if refined else []),

@@ -136,17 +136,28 @@ def test_config_show_says_where_each_value_came_from(project, capsys):
 
 @pytest.mark.timeout(30)
 def test_config_keys_prints_a_config_toml_of_the_defaults(tmp_path, capsys):
-    """Pasted whole or a line at a time, what mocap config keys prints is TOML a Config.toml may hold."""
+    """Pasted whole or a line at a time, what mocap config keys prints is TOML a Config.toml may
+    hold: every key at its default, those a preset sets commented out (uncommented, the same),
+    so that the file saved with another preset takes the preset's values."""
     import tomllib
 
-    from server.config import SETTINGS, read_config_file
+    from server.config import PRESET_KEYS, PRESETS, SETTINGS, read_config_file
 
     assert main(["config", "keys"]) == 0
     out = capsys.readouterr().out
     for line in out.splitlines():
         tomllib.loads(line)  # raises on a line that is not TOML
+        if " = " in line:
+            tomllib.loads(line.removeprefix("# "))
     (tmp_path / "Config.toml").write_text(out)
-    assert read_config_file(tmp_path / "Config.toml") == {(s.section, s.key): s.default for s in SETTINGS}
+    defaults = {(s.section, s.key): s.default for s in SETTINGS}
+    assert read_config_file(tmp_path / "Config.toml") == {k: v for k, v in defaults.items() if k not in PRESET_KEYS}
+    uncommented = "\n".join(line.removeprefix("# ") if " = " in line else line for line in out.splitlines())
+    (tmp_path / "Config.toml").write_text(uncommented)
+    assert read_config_file(tmp_path / "Config.toml") == defaults
+    (tmp_path / "take").mkdir()
+    (tmp_path / "take" / "Config.toml").write_text(out.replace('preset = "default"', 'preset = "best"'))
+    assert load_config([tmp_path / "take" / "Config.toml"]).section("fit").items() >= PRESETS["best"].items()
 
 
 @pytest.mark.timeout(30)
@@ -747,13 +758,17 @@ def test_a_projects_preset_under_the_keys_its_files_set(tmp_path):
         load_config([tmp_path / "Config.toml"])
 
 
-def test_naming_the_preset_in_force_changes_no_step(project):
-    """A take's steps are the same with [fit] preset = "default" added: a project that names
-    the preset its keys already are is not refitted."""
-    from server.project import take_config
-
+def test_a_preset_named_or_spelled_out_gives_the_same_steps(project):
+    """A take whose Config.toml names [fit] preset = "best" and one that spells out the preset's
+    keys that no Config.toml sets plan the same steps; the preset's name is in no step's settings, so a project fitted before
+    the key existed, or one that names the preset its keys already are, is not fitted again."""
     take = project / "walk_a"
     before = [step.settings for step in plan_take(take).steps]
+    assert all("preset" not in step.settings.get("fit", {}) for step in plan_take(take).steps)
     (take / "Config.toml").write_text('[fit]\npreset = "default"\n')
-    assert take_config(take).source("fit", "preset") == str(take / "Config.toml")
     assert [step.settings for step in plan_take(take).steps] == before
+    (take / "Config.toml").write_text('[fit]\npreset = "best"\n')
+    named = [step.settings for step in plan_take(take).steps]
+    # the project's Config.toml sets refine_passes = 0, which the take's preset does not undo
+    (take / "Config.toml").write_text("[fit]\nrefine_search = true\nrefine_hops = 60\n")
+    assert [step.settings for step in plan_take(take).steps] == named != before

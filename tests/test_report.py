@@ -95,7 +95,7 @@ def test_summary_shows_refinement_beside_tracking(fitted):
                                                     f"{summary['frames_refined']} frames improved)")
     assert rows["tracking alone, mean / max joint error"] == (f"{summary['tracking_mean_joint_error_mm']:.1f} / "
                                                               f"{summary['tracking_max_joint_error_mm']:.1f} mm")
-    take = "the take's fit, earlier runs' tracking with it"
+    take = "take time, with earlier runs' tracking"
     assert take not in rows  # fitted in one run: its wall time is the take's
     from dataclasses import replace
 

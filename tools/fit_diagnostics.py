@@ -37,7 +37,7 @@ sys.path.insert(0, str(ROOT))
 
 from common.body import CHAINS, P, forward_kinematics, load_body_model  # noqa: E402
 from common.fitting import FitOptions, FrameData, full_energy  # noqa: E402
-from common.proposals import same_pose_near, midway  # noqa: E402
+from common.proposals import midway, same_pose_near  # noqa: E402
 from common.search import fit_frame  # noqa: E402
 from common.sequence import load_sequence, write_sequence_meta  # noqa: E402
 from common.scoring import joint_errors_mm  # noqa: E402

@@ -4,7 +4,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from common.errors import UserError
-from server.config import SECTIONS, SETTINGS, toml_value
+from server.config import PRESET_KEYS, SECTIONS, SETTINGS, toml_value
 from server.project import config_files, take_config
 
 
@@ -29,11 +29,14 @@ def run_show(args) -> int:
 
 
 def run_keys(args) -> int:
-    # a Config.toml of every key at its default: each section's keys under its header
-    print("# every key a Config.toml may hold, at its default")
+    # a Config.toml of every key at its default: each section's keys under its header; the keys a
+    # preset sets commented out, so that the file, saved and given a preset, still takes it
+    print("# every key a Config.toml may hold, at its default; the [fit] keys a preset sets are\n"
+          "# commented out: set here, they are in force whatever the preset")
     for section in SECTIONS:
         print(f"\n[{section}]")
         for s in SETTINGS:
             if s.section == section:
-                print(f"{s.key} = {toml_value(s.default)}   # {s.help}")
+                mark = "# " if (s.section, s.key) in PRESET_KEYS else ""
+                print(f"{mark}{s.key} = {toml_value(s.default)}   # {s.help}")
     return 0

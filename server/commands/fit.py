@@ -34,8 +34,8 @@ def add_fit_arguments(p) -> None:
                         "options given here win")
     p.add_argument("--preset", choices=tuple(PRESETS), default=None,
                    help="fast (online: the previous pose and that pose moved on as it moved, no turns, no refinement), "
-                        "default, or best (offline: two refinement passes with limb search and 60 hops); the file "
-                        "and options given win")
+                        "default, or best (offline: two refinement passes with limb search and 60 hops); over the "
+                        "--config file's [fit] preset, under its other keys and the options given")
     p.set_defaults(command_parser=p)  # server.cli re-parses with the preset's and file's values as defaults
     p.add_argument("--out", type=Path, required=True, help="result folder")
     p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
