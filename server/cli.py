@@ -74,6 +74,9 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as exc:
         print(f"mocap {name}: error: {one_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
+    except BrokenPipeError:  # the reader stopped reading (mocap config show | head): nothing to say
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        return 1
     except OSError as exc:  # the disk, not the input: full, read-only, a folder where a file goes
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"mocap {name}: error: {one_line(where + str(exc.strerror or exc))}", file=sys.stderr)

@@ -10,6 +10,7 @@ Paths in a file (``[calibration] file``) are relative to the folder of the file 
 """
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import re
@@ -172,8 +173,10 @@ def read_config_file(path: Path) -> dict[tuple[str, str], Any]:
         for key, value in table.items():
             setting = _BY_KEY.get((section, key))
             if setting is None:
-                known = ", ".join(s.key for s in SETTINGS if s.section == section)
-                raise InputFileError(path, f"[{section}] unknown key {key!r} (known: {known})")
+                keys = [s.key for s in SETTINGS if s.section == section]
+                near = difflib.get_close_matches(key, keys, n=1)
+                raise InputFileError(path, f"[{section}] unknown key {key!r}"
+                                           f"{f' (did you mean {near[0]!r}?)' if near else ''} (known: {', '.join(keys)})")
             value = setting.validate(value, str(path))
             if (section, key) == ("calibration", "file") and value:
                 value = str((path.parent / value).resolve())

@@ -89,15 +89,16 @@ def _probe_write(folder: Path, where: str) -> None:
         raise UserError(f"{where}: {folder} is not writable ({exc.strerror or exc})") from None
 
 
-def check_folder_target(folder: Path, earlier: tuple[str, ...], option: str = "--out", resume: bool = False,
+def check_folder_target(folder: Path, earlier: tuple[str, ...], option: str | None = "--out", resume: bool = False,
                         overwrite: bool = False, what: str = "result", given: bool = True) -> bool:
     """Check a folder a command is about to write before any work is done.
 
     ``earlier``: names of files or folders whose presence means the folder holds an earlier
     result (``("*",)``: anything at all). Returns whether such a result is there (which
     ``resume`` or ``overwrite`` then allowed). Raises UserError naming the folder otherwise.
-    ``option`` sets the folder; ``given``: whether the user gave it (else the folder is the
-    command's default, named alone, and ``option`` is offered as the way elsewhere).
+    ``option`` sets the folder (None: no option does, and no way elsewhere is offered);
+    ``given``: whether the user gave it (else the folder is the command's default, named alone,
+    and ``option`` is offered as the way elsewhere).
     """
     folder = Path(folder)
     where = _named(folder, option, given)
@@ -111,8 +112,9 @@ def check_folder_target(folder: Path, earlier: tuple[str, ...], option: str = "-
     if present and not (resume or overwrite):
         shown = ", ".join(present[:4]) + (", ..." if len(present) > 4 else "")
         again = "--resume to continue it or " if what == "result" else ""
-        elsewhere = "choose another folder" if given else f"{option} to write elsewhere"
-        raise UserError(f"{where}: holds an earlier {what} ({shown}); pass {again}--overwrite to replace it, or "
+        elsewhere = ("" if option is None else ", or choose another folder" if given
+                     else f", or {option} to write elsewhere")
+        raise UserError(f"{where}: holds an earlier {what} ({shown}); pass {again}--overwrite to replace it"
                         f"{elsewhere}")
     return bool(present)
 

@@ -358,6 +358,33 @@ def done_status(take: Path, step: Step) -> str | None:
     return UP_TO_DATE if done.get("outputs") == now["outputs"] else KEPT_EDITED
 
 
+def why_it_runs(take: Path, step: Step) -> str:
+    """Why a step that is not done (``done_status`` None) runs, in a few words: never run (or
+    stopped), which settings changed (section, key, old and new value), its commands, its inputs
+    (an earlier step made them again, or they were changed by hand), or an output missing."""
+    done = _read_record(take, step.name)
+    if done is None:
+        return "stopped before it finished" if _pending_path(take, step.name).exists() else "not run before"
+    now = _record(step)
+    if done.get("settings") != now["settings"]:
+        old = done.get("settings") if isinstance(done.get("settings"), dict) else {}
+        changed = [f"[{section}] {key} {_shown(old.get(section, {}).get(key))} -> {_shown(value)}"
+                   for section, values in now["settings"].items() if isinstance(values, dict)
+                   for key, value in values.items()
+                   if not isinstance(old.get(section), dict) or old[section].get(key) != value]
+        return "settings changed: " + (", ".join(changed) if changed else "as this version records them")
+    if done.get("commands") != now["commands"]:
+        return "its command changed"
+    if done.get("inputs") != now["inputs"]:
+        return "its inputs changed"
+    missing = [p for p in step.outputs if not p.exists()]
+    return f"{_relative(take, missing[0])} is missing" if missing else "its record is out of date"
+
+
+def _shown(value) -> str:
+    return "(none)" if value is None else json.dumps(value)
+
+
 def _overlap(a: Path, b: Path) -> bool:
     return a == b or a in b.parents or b in a.parents
 
@@ -486,7 +513,7 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
     ``mocap batch``): each step's status is "done", "up to date" or "kept (edited)" (with a
     ``note`` naming the outputs kept as edited), and the ``warnings`` its commands printed this
     run; ``log``: the file that holds the commands' whole output. ``progress(step, state)`` is
-    told "running" as a step starts, "warning: LINE" for each warning it prints, or the status
+    told "running (WHY)" as a step starts (``why_it_runs``, also each run step's "why"), "warning: LINE" for each warning it prints, or the status
     of a step that is done. Raises TakeFailed with the failing step's message, or UserError
     before anything is written where the recordings do not match the calibration, or where a
     step would replace an output no run made (``overwrite`` allows it)."""
@@ -503,9 +530,11 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
             for step in plan.steps:
                 status = done_status(take, step)
                 if status is None:
-                    steps.append({"step": step.name, "status": "failed", "warnings": []})
+                    steps.append({"step": step.name, "status": "failed", "why": why_it_runs(take, step),
+                                  "warnings": []})
                     try:
-                        steps[-1].update(_run_step(take, plan, step, log, progress, steps[-1]["warnings"]))
+                        steps[-1].update(_run_step(take, plan, step, log, progress, steps[-1]["warnings"],
+                                                   steps[-1]["why"]))
                     except UserError as exc:
                         raise TakeFailed(str(exc), steps, log_path) from None
                     continue
@@ -523,10 +552,11 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
             **result_figures(plan.result)}
 
 
-def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, warnings: list[str]) -> dict:
+def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, warnings: list[str], why: str) -> dict:
     """Run one step's commands and leave its record; the warnings they print go into
-    ``warnings`` (and to ``progress`` as they come). A fit that an earlier run started with the
-    same settings and inputs is continued, any other fit replaces what is there."""
+    ``warnings`` (and to ``progress`` as they come); ``why``: why it runs (``why_it_runs``). A
+    fit that an earlier run started with the same settings and inputs is continued, any other
+    fit replaces what is there."""
     pending = _pending_path(take, step.name)
     resume = step.name == "fit" and (plan.result / "poses.jsonl").exists() and _read_json(pending) == _pending(step)
     write_text(pending, json.dumps(_pending(step), indent=1))  # before the record goes: the outputs stay the run's
@@ -534,7 +564,9 @@ def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, warnings: l
     record.unlink(missing_ok=True)  # outputs being replaced: no longer up to date
     s0 = time.perf_counter()
     if progress:
-        progress(step.name, "running")
+        progress(step.name, f"running ({'continued where it stopped' if resume else why})")
+    log.write(f"{step.name}: running ({why})\n")
+
     def warn(line: str) -> None:
         warnings.append(line)
         if progress:

@@ -105,7 +105,7 @@ def test_config_cascade_and_sources(tmp_path):
 
 
 @pytest.mark.parametrize("text, names", [
-    ("[fit]\niteration = 2\n", ["[fit] unknown key 'iteration'"]),
+    ("[fit]\niteration = 2\n", ["[fit] unknown key 'iteration' (did you mean 'iterations'?)"]),
     ("[fitting]\niterations = 2\n", ["unknown section [fitting]"]),
     ("[fit]\niterations = 'two'\n", ["[fit] iterations", "an integer"]),
     ("[fit]\niterations = 0\n", ["[fit] iterations", ">= 1"]),
@@ -331,14 +331,22 @@ def test_run_refuses_outputs_changed_since_it_made_them(project, capsys):
     assert main(["run", str(take)]) == 0 and csv.read_bytes() == edited
     assert f"walk_a: export: kept result/motion.csv as edited since mocap run made it\n" in capsys.readouterr().out
     csv.unlink()  # an output removed: its step runs
-    assert [s["status"] for s in run_take(take)["steps"]] == ["up to date", "done", "up to date"]
+    again = run_take(take)["steps"]
+    assert [s["status"] for s in again] == ["up to date", "done", "up to date"]
+    assert again[1]["why"] == "result/motion.csv is missing"
     assert csv.read_bytes() != edited
     # a take last run before made.json was kept: the step records vouch for their outputs, then and later
     (take / ".mocap" / "made.json").unlink()
     (take / "Config.toml").write_text("[report]\ngif = true\n")
     assert [s["status"] for s in run_take(take)["steps"]] == ["up to date", "up to date", "done"]
     (take / "Config.toml").write_text("[fit]\nframes = 2\n")
-    assert [s["status"] for s in run_take(take)["steps"]] == ["done"] * 3 and len(poses(take)) == 2
+    said = []
+    refit = run_take(take, lambda step, state: said.append(f"{step}: {state}"))["steps"]
+    assert [s["status"] for s in refit] == ["done"] * 3 and len(poses(take)) == 2
+    # each step says why it runs: the fit and the report (gif no longer set) their settings, the
+    # export its input, the fit's poses
+    assert "fit: running (settings changed: [fit] frames 0 -> 2)" in said
+    assert [s["why"] for s in refit[1:]] == ["its inputs changed", "settings changed: [report] gif true -> false"]
 
 
 @pytest.mark.timeout(150)
@@ -504,7 +512,7 @@ def test_run_says_each_step_s_warnings(tmp_path, model, small_studio, capsys):
     capsys.readouterr()
     assert main(["run", str(take)]) == 0
     said = capsys.readouterr()
-    assert f"  import: running\n  import: warning: {guess}" in said.err
+    assert f"  import: running (not run before)\n  import: warning: {guess}" in said.err
     assert f"  full log: {take / '.mocap' / 'run.log'}\n" in said.out
     assert guess in (take / ".mocap" / "run.log").read_text()
     assert main(["run", str(root / "again"), "--json"]) == 0

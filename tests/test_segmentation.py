@@ -212,6 +212,19 @@ def test_cli_segment_writes_silhouettes(tmp_path, small_scene, method, capsys):
     assert seq.meta["segmentation"]["method"] == method
 
 
+def test_cli_segment_again_needs_overwrite_and_offers_no_other_folder(tmp_path, small_scene, capsys):
+    """The sequence's silhouettes/ is the one place segment writes: a second segmentation is
+    refused in one line that says --overwrite, and no option to write elsewhere (there is none)."""
+    root = _write_sequence(tmp_path / "seq", small_scene)
+    assert main(["segment", str(root)]) == 0
+    capsys.readouterr()
+    assert main(["segment", str(root)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "holds an earlier segmentation" in err and "--overwrite" in err
+    assert "elsewhere" not in err and "another folder" not in err
+    assert main(["segment", str(root), "--overwrite"]) == 0
+
+
 def test_cli_segment_with_params_file(tmp_path, small_scene):
     root = _write_sequence(tmp_path / "seq", small_scene)
     params = tmp_path / "p.toml"

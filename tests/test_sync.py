@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -155,6 +156,13 @@ def test_what_sync_prints_to_import_with():
     edge = estimate_of(("cam1", 3, False, 24), ("cam2", 0, True, 24), ("cam3", 0, True, 1), ("cam4", 0, True, 24))
     lines = report_lines(edge, 1, {}, 3)
     assert "try a larger --max-offset" in lines[0] and "no frame to judge" in lines[2]
+    # nothing told: in a take long enough, the actor's doing; in a short one, the frames judged
+    blind = estimate_of(("cam1", 0, False, 24), ("cam2", 0, False, 24), ("cam3", 0, False, 24))
+    assert report_lines(blind, 1, {}, 3)[-1].endswith("the actor hardly moves in these frames")
+    short = replace(blind, frames=(0, 1, 2, 3))
+    assert report_lines(short, 1, {}, 2, 24)[-1] == (
+        "no camera's offset could be told: only 4 frames could be judged (of --frames 24; a take needs 4 "
+        "frames at each end beyond those judged): a longer stretch of the take would tell more")
 
 
 def test_offsets_are_stated_against_the_most_common():

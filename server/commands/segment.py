@@ -62,7 +62,8 @@ def run(args) -> int:
             check_size((height, width), path, cam)
     seq.check_files(seq.frames, masks=False, images=True)
     silhouettes = root / MASK_FOLDERS[0]
-    check_folder_target(silhouettes, ("*",), option="silhouettes", overwrite=args.overwrite, what="segmentation")
+    # the sequence's own silhouettes/: no option writes them elsewhere
+    check_folder_target(silhouettes, ("*",), option=None, overwrite=args.overwrite, what="segmentation", given=False)
 
     seconds = 0.0
     with staged_folder(silhouettes) as staged:  # all new silhouettes, or the old ones as they were

@@ -78,7 +78,7 @@ def run(args) -> int:
     if args.json:
         print(json.dumps(report(estimate, spacing, imported, frames[0]), indent=1))
         return 0
-    for line in report_lines(estimate, spacing, imported, args.max_offset):
+    for line in report_lines(estimate, spacing, imported, args.max_offset, args.frames):
         print(line)
     return 0
 
@@ -103,8 +103,10 @@ def report(estimate: SyncEstimate, spacing: int, imported: dict, first: int) -> 
                           for c in estimate.cameras}}
 
 
-def report_lines(estimate: SyncEstimate, spacing: int, imported: dict, max_offset: int) -> list[str]:
-    """What ``mocap sync`` prints: a line per camera, then what to do."""
+def report_lines(estimate: SyncEstimate, spacing: int, imported: dict, max_offset: int,
+                 frames_asked: int = SYNC_FRAMES) -> list[str]:
+    """What ``mocap sync`` prints: a line per camera, then what to do (``frames_asked``: the
+    frames the take was to be judged on, more than it had room for in a short take)."""
     found = offsets_found(estimate, spacing)
     telling = sum(c.resolved for c in estimate.cameras)
     width = max(len(c.camera) for c in estimate.cameras)
@@ -140,7 +142,12 @@ def report_lines(estimate: SyncEstimate, spacing: int, imported: dict, max_offse
         lines.append("not sharp, check by eye before using: --offset " + total(blurred))
     if not sharp and not blurred:
         told = [c.camera for c in estimate.cameras if c.resolved]
-        if not told:
+        few = len(estimate.frames) < frames_asked
+        if not told and few:
+            lines.append(f"no camera's offset could be told: only {len(estimate.frames)} frames could be judged "
+                         f"(of --frames {frames_asked}; a take needs {2 * max_offset} frames at each end beyond "
+                         f"those judged): a longer stretch of the take would tell more")
+        elif not told:
             lines.append("no camera's offset could be told" + (": the actor hardly moves in these frames"
                                                                if all(c.judged >= 2 for c in estimate.cameras) else ""))
         else:
