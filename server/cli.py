@@ -75,7 +75,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mocap {name}: error: {one_line(exc)}", file=sys.stderr)
         return EXIT_USAGE
     except BrokenPipeError:  # the reader stopped reading (mocap config show | head): nothing to say
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        try:  # and no second error as the interpreter flushes stdout at exit
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):  # stdout is no file (captured): nothing will flush to a pipe
+            pass
         return 1
     except OSError as exc:  # the disk, not the input: full, read-only, a folder where a file goes
         where = f"{exc.filename}: " if exc.filename else ""

@@ -61,10 +61,10 @@ def next_steps(*commands: str) -> str:
     return "next: " + "; ".join(commands)
 
 
-def _named(path: Path, option: str, given: bool) -> str:
+def _named(path: Path, option: str | None, given: bool) -> str:
     """How an error names a target: with the option the user gave it by ("--out r/x.bvh"), or
     alone where it is the command's default, which no option the user typed named."""
-    return f"{option} {path}" if given else str(path)
+    return f"{option} {path}" if given and option else str(path)
 
 
 def _writable_folder(folder: Path, where: str) -> None:

@@ -358,31 +358,63 @@ def done_status(take: Path, step: Step) -> str | None:
     return UP_TO_DATE if done.get("outputs") == now["outputs"] else KEPT_EDITED
 
 
-def why_it_runs(take: Path, step: Step) -> str:
-    """Why a step that is not done (``done_status`` None) runs, in a few words: never run (or
-    stopped), which settings changed (section, key, old and new value), its commands, its inputs
-    (an earlier step made them again, or they were changed by hand), or an output missing."""
-    done = _read_record(take, step.name)
-    if done is None:
-        return "stopped before it finished" if _pending_path(take, step.name).exists() else "not run before"
-    now = _record(step)
-    if done.get("settings") != now["settings"]:
-        old = done.get("settings") if isinstance(done.get("settings"), dict) else {}
-        changed = [f"[{section}] {key} {_shown(old.get(section, {}).get(key))} -> {_shown(value)}"
-                   for section, values in now["settings"].items() if isinstance(values, dict)
-                   for key, value in values.items()
-                   if not isinstance(old.get(section), dict) or old[section].get(key) != value]
-        return "settings changed: " + (", ".join(changed) if changed else "as this version records them")
-    if done.get("commands") != now["commands"]:
-        return "its command changed"
-    if done.get("inputs") != now["inputs"]:
-        return "its inputs changed"
-    missing = [p for p in step.outputs if not p.exists()]
-    return f"{_relative(take, missing[0])} is missing" if missing else "its record is out of date"
+def why_it_runs(take: Path, step: Step, resume: bool = False) -> str:
+    """Why a step that is not done (``done_status`` None) runs, in a few words: never run;
+    stopped before it finished (a fit then continues, ``resume``, unless its settings or inputs
+    changed since); which settings changed (``[section] key old -> new``); its commands (a take
+    moved: they hold its paths); its inputs (an earlier step made them again, or they were
+    changed by hand); an output missing. Read before the step's run touches its records; a
+    record this version cannot read says so and never stops the run."""
+    if resume:
+        return "continued where it stopped"
+    try:
+        done = _read_record(take, step.name)
+        if done is None:
+            pending = _read_json(_pending_path(take, step.name))
+            if not isinstance(pending, dict):
+                return "not run before"
+            changed = _settings_changed(pending.get("settings"), step.settings)
+            since = (f"; settings changed since: {changed}" if changed
+                     else "; its inputs changed since" if pending.get("inputs") != _pending(step)["inputs"] else "")
+            return f"stopped before it finished{since}"
+        now = _record(step)
+        if done.get("settings") != now["settings"]:
+            return f"settings changed: {_settings_changed(done.get('settings'), now['settings']) or 'as recorded'}"
+        if done.get("commands") != now["commands"]:
+            return "its command changed"
+        if done.get("inputs") != now["inputs"]:
+            return "its inputs changed"
+        missing = [p for p in step.outputs if not p.exists()]
+        if missing:
+            shown = _relative(take, missing[0]) if take in missing[0].parents else str(missing[0])
+            return f"{shown} is missing"
+    except (AttributeError, TypeError, ValueError):
+        pass
+    return "its record is out of date"
+
+
+def _settings_changed(old, new: dict) -> str:
+    """``[section] key old -> new`` for each setting of ``new`` (a step's settings: sections of
+    keys, or keys) that differs from ``old`` (a record's), keys gone too; "" where none does."""
+    def flat(settings) -> dict:
+        out = {}
+        for name, value in (settings.items() if isinstance(settings, dict) else ()):
+            if isinstance(value, dict):
+                out.update({f"[{name}] {key}": v for key, v in value.items()})
+            else:
+                out[name] = value
+        return out
+    before, after = flat(old), flat(new)
+    return ", ".join(f"{key} {_shown(before.get(key, _UNSET))} -> {_shown(after.get(key, _UNSET))}"
+                     for key in list(after) + [k for k in before if k not in after]
+                     if before.get(key, _UNSET) != after.get(key, _UNSET))
+
+
+_UNSET = object()  # a setting one of the two does not have
 
 
 def _shown(value) -> str:
-    return "(none)" if value is None else json.dumps(value)
+    return "(not set)" if value is _UNSET else json.dumps(value)
 
 
 def _overlap(a: Path, b: Path) -> bool:
@@ -530,11 +562,9 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
             for step in plan.steps:
                 status = done_status(take, step)
                 if status is None:
-                    steps.append({"step": step.name, "status": "failed", "why": why_it_runs(take, step),
-                                  "warnings": []})
+                    steps.append({"step": step.name, "status": "failed", "warnings": []})
                     try:
-                        steps[-1].update(_run_step(take, plan, step, log, progress, steps[-1]["warnings"],
-                                                   steps[-1]["why"]))
+                        steps[-1].update(_run_step(take, plan, step, log, progress, steps[-1]))
                     except UserError as exc:
                         raise TakeFailed(str(exc), steps, log_path) from None
                     continue
@@ -552,19 +582,21 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
             **result_figures(plan.result)}
 
 
-def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, warnings: list[str], why: str) -> dict:
-    """Run one step's commands and leave its record; the warnings they print go into
-    ``warnings`` (and to ``progress`` as they come); ``why``: why it runs (``why_it_runs``). A
-    fit that an earlier run started with the same settings and inputs is continued, any other
-    fit replaces what is there."""
+def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, entry: dict) -> dict:
+    """Run one step's commands and leave its record; ``entry`` (the step's line of what was
+    done) gets why it runs (``why_it_runs``) and the warnings they print (which go to
+    ``progress`` as they come). A fit that an earlier run started with the same settings and
+    inputs is continued, any other fit replaces what is there."""
     pending = _pending_path(take, step.name)
     resume = step.name == "fit" and (plan.result / "poses.jsonl").exists() and _read_json(pending) == _pending(step)
+    why = entry["why"] = why_it_runs(take, step, resume)
+    warnings = entry["warnings"]
     write_text(pending, json.dumps(_pending(step), indent=1))  # before the record goes: the outputs stay the run's
     record = _record_path(take, step.name)
     record.unlink(missing_ok=True)  # outputs being replaced: no longer up to date
     s0 = time.perf_counter()
     if progress:
-        progress(step.name, f"running ({'continued where it stopped' if resume else why})")
+        progress(step.name, f"running ({why})")
     log.write(f"{step.name}: running ({why})\n")
 
     def warn(line: str) -> None:

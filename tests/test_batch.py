@@ -780,3 +780,46 @@ def test_a_preset_named_or_spelled_out_gives_the_same_steps(project):
     # the project's Config.toml sets refine_passes = 0, which the take's preset does not undo
     (take / "Config.toml").write_text("[fit]\nrefine_search = true\nrefine_hops = 60\n")
     assert [step.settings for step in plan_take(take).steps] == named != before
+
+
+def test_why_a_step_runs_is_said_from_its_records(project):
+    """Each reason a step runs, read from the records a run leaves, and a record of another shape
+    (an older version's) never stops the run."""
+    from server.project import STATE_DIR, _pending, _record, why_it_runs
+
+    take = project / "walk_a"
+    fit, export = (next(s for s in plan_take(take).steps if s.name == name) for name in ("fit", "export"))
+    state = take / STATE_DIR
+    state.mkdir(exist_ok=True)
+
+    def recorded(step, **changes):
+        (state / f"{step.name}.json").write_text(json.dumps(_record(step) | changes))
+
+    assert why_it_runs(take, fit) == "not run before"
+    (state / "fit.pending.json").write_text(json.dumps(_pending(fit)))
+    assert why_it_runs(take, fit) == "stopped before it finished"
+    assert why_it_runs(take, fit, resume=True) == "continued where it stopped"
+    was = json.loads(json.dumps(_pending(fit)))  # a copy: the step's own settings stay
+    was["settings"]["fit"]["iterations"] = 2
+    (state / "fit.pending.json").write_text(json.dumps(was))
+    assert why_it_runs(take, fit) == "stopped before it finished; settings changed since: [fit] iterations 2 -> 1"
+    (state / "fit.pending.json").write_text(json.dumps(_pending(fit) | {"inputs": "another"}))
+    assert why_it_runs(take, fit) == "stopped before it finished; its inputs changed since"
+    (state / "fit.pending.json").unlink()
+    old = json.loads(json.dumps(_record(fit)))
+    old["settings"]["fit"] = dict(old["settings"]["fit"], preset="best", refine_passes=2)
+    del old["settings"]["fit"]["threads"]
+    recorded(fit, settings=old["settings"])
+    assert why_it_runs(take, fit) == ('settings changed: [fit] refine_passes 2 -> 0, [fit] threads (not set) -> 0, '
+                                      '[fit] preset "best" -> (not set)')
+    recorded(export, settings={"formats": ["bvh"]})
+    assert why_it_runs(take, export) == f'settings changed: formats ["bvh"] -> {json.dumps(export.settings["formats"])}'
+    recorded(fit, commands=[["fit", "elsewhere"]])
+    assert why_it_runs(take, fit) == "its command changed"
+    recorded(fit, inputs="another")
+    assert why_it_runs(take, fit) == "its inputs changed"
+    recorded(fit)
+    assert why_it_runs(take, fit) == "result/poses.jsonl is missing"  # the take was never fitted
+    for odd in ({"fit": None}, {"fit": [1]}, "a string", None):  # records of other shapes: a reason all the same
+        recorded(fit, settings=odd)
+        assert why_it_runs(take, fit).startswith(("settings changed", "its record is out of date"))

@@ -82,6 +82,11 @@ def test_mocap_report_writes_page_and_pictures(fitted, capsys):
     assert capsys.readouterr().out == "" and (res / "r2.html").exists()
     assert mocap_report([str(res), "--no-gif", "--no-pictures", "--overwrite"]) == 0
     assert "report.html" in capsys.readouterr().out
+    # pictures again, to a new page: refused for the pictures RESULT/pictures/ holds, where no
+    # option would write them elsewhere
+    with pytest.raises(UserError, match="holds an earlier set of pictures") as refused:
+        mocap_report([str(res), "--no-gif", "--out", str(res / "r3.html")])
+    assert "--overwrite" in str(refused.value) and "another folder" not in str(refused.value)
 
 
 def test_summary_shows_refinement_beside_tracking(fitted):

@@ -163,6 +163,9 @@ def test_what_sync_prints_to_import_with():
     assert report_lines(short, 1, {}, 2, 24)[-1] == (
         "no camera's offset could be told: only 4 frames could be judged (of --frames 24; a take needs 4 "
         "frames at each end beyond those judged): a longer stretch of the take would tell more")
+    # frames missing in a camera as well: its own line says so, and the take's length is not blamed
+    gaps = replace(estimate_of(("cam1", 0, False, 24), ("cam2", 0, False, 1)), frames=(0, 1, 2, 3))
+    assert report_lines(gaps, 1, {}, 2, 24)[-1] == "no camera's offset could be told"
 
 
 def test_offsets_are_stated_against_the_most_common():

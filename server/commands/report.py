@@ -57,8 +57,9 @@ def run(args) -> int:
         raise UserError(f"--frames: frame {missing[0]} was not fitted (frames fitted: {frames_text(fitted)})")
     check_file_target(args.out or args.result / REPORT_NAME, args.overwrite, given=args.out is not None)
     if not args.no_pictures:
-        check_folder_target(args.result / PICTURES_DIR, ("*",), option="pictures", overwrite=args.overwrite,
-                            what="set of pictures")
+        # RESULT/pictures/: no option writes them elsewhere
+        check_folder_target(args.result / PICTURES_DIR, ("*",), option=None, overwrite=args.overwrite,
+                            what="set of pictures", given=False)
     cameras = _name_list(args.cameras)
     pictures = []
     if not args.no_pictures:

@@ -4,8 +4,9 @@ Steps that are done (their outputs made from the same inputs and settings, and a
 skipped; outputs edited by hand since are kept as edited, said in one line, and the steps that
 read them run again. An output in the way of a step that runs, that no run made or one changed
 since, is refused unless ``--overwrite``; see ``server.project``. Settings come from the
-project's and the take's Config.toml. The warnings a step prints are said under it, and the
-log of every command's output is named (``--json``: a ``warnings`` list per step, and ``log``).
+project's and the take's Config.toml. Each step that runs says why (``why_it_runs``), the
+warnings it prints are said under it, and the log of every command's output is named
+(``--json``: per step a ``warnings`` list and, where it ran, its ``why``; and ``log``).
 """
 from __future__ import annotations
 

@@ -142,7 +142,7 @@ def report_lines(estimate: SyncEstimate, spacing: int, imported: dict, max_offse
         lines.append("not sharp, check by eye before using: --offset " + total(blurred))
     if not sharp and not blurred:
         told = [c.camera for c in estimate.cameras if c.resolved]
-        few = len(estimate.frames) < frames_asked
+        few = len(estimate.frames) < frames_asked and all(c.judged >= 2 for c in estimate.cameras)
         if not told and few:
             lines.append(f"no camera's offset could be told: only {len(estimate.frames)} frames could be judged "
                          f"(of --frames {frames_asked}; a take needs {2 * max_offset} frames at each end beyond "
