@@ -432,7 +432,8 @@ def test_mocap_server_refuses_an_earlier_result_before_sizing_the_actor(seq_path
 @pytest.mark.timeout(120)
 def test_mocap_server_listens_while_it_sizes_the_actor(seq_path, tmp_path, monkeypatch):
     """The server binds before the actor's size search (which may take minutes on a real take),
-    so clients and a container's health check find it meanwhile."""
+    so clients and a container's health check find it meanwhile; the search runs on the
+    server's --threads."""
     import socket
 
     import server.commands.fit as fit
@@ -445,9 +446,21 @@ def test_mocap_server_listens_while_it_sizes_the_actor(seq_path, tmp_path, monke
     def search_while_listening(*args, **kwargs):
         with socket.socket() as s:
             seen.append(s.connect_ex(("127.0.0.1", port)) == 0)
+        threads.append(args[3])
         return search(*args, **kwargs)
 
+    import server.commands.server as server_command
+
+    class Recorded(server_command.ClusterSolver):
+        def __init__(self, *args, **kwargs):
+            threads.append(kwargs.get("threads"))
+            super().__init__(*args, **kwargs)
+
+    threads = []
     monkeypatch.setattr(fit, "choose_actor_scale", search_while_listening)
+    monkeypatch.setattr(server_command, "ClusterSolver", Recorded)
     assert main(["server", str(seq_path), "--out", str(tmp_path / "out"), "--init", "auto", "--frames", "1",
-                 "--refine-passes", "0", "--min-clients", "0", "--bind", f"tcp://127.0.0.1:{port}", "--quiet"]) == 0
+                 "--refine-passes", "0", "--min-clients", "0", "--bind", f"tcp://127.0.0.1:{port}", "--quiet",
+                 "--threads", "1"]) == 0
     assert seen == [True]
+    assert threads == [1, 1]  # --threads: the server's own rounds', then the size search's

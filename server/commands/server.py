@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import sys
 
+from common.argtypes import count
 from common.body import load_body_model
 from common.sequence import load_sequence
 from server.cluster import ClusterSolver
@@ -28,6 +29,9 @@ EXIT_TERMINATED = 143  # 128 + SIGTERM
 def register(sub) -> None:
     p = sub.add_parser("server", help="fit a sequence with limb clients over the network")
     add_fit_arguments(p)
+    p.add_argument("--threads", type=count(0), default=0,
+                   help="the server's own threads: for the actor-size search and the rounds it keeps (default 0: "
+                        "every core, or $MOCAP_THREADS); the poses are the same for any number")
     add_cluster_arguments(p, server=True)
     p.set_defaults(func=run)
 
@@ -51,12 +55,12 @@ def run(args) -> int:
         # it sizes the actor
         solver = ClusterSolver(options, bind=args.bind, heartbeat_interval=args.heartbeat,
                                client_timeout=args.client_timeout, curve_keys=args.curve_keys,
-                               insecure=args.insecure)
+                               insecure=args.insecure, threads=args.threads)
         shutdown = None
         try:
-            # the actor's size as mocap fit chooses it, on this machine's cores (mocap server has no
-            # --threads); the FRAMEs carry it to the clients
-            model, size = actor_model(load_body_model(), seq, options, args, init)
+            # the actor's size as mocap fit chooses it, on the server's threads; the FRAMEs carry it
+            # to the clients
+            model, size = actor_model(load_body_model(), seq, options, args, init, args.threads)
             if args.min_clients > 0:
                 logging.getLogger("server.cluster").info("waiting for %d client(s) on %s", args.min_clients,
                                                          solver.endpoint)
