@@ -73,10 +73,11 @@ def same_pose_near(params: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """(35,) ``params`` written as the same pose nearest the ``reference`` pose's (35,) numbers:
     its root heading moved by whole turns to within pi of the reference's, and each ball joint's
     rotation vector v replaced by v (1 - 2 pi / |v|), the same rotation the other way round,
-    where that lies nearer the reference's and within TWIN_NEAR_RAD of it. The heading is unwrapped, and two fits of
-    neighbouring frames can stand a whole turn apart in their numbers (a frame searched again
-    from the voxels), or hold a shoulder turned nearly half a turn as vectors pointing opposite
-    ways; a mean or a straight line between them must not spin the body or the limb round."""
+    where that lies nearer the reference's and within TWIN_NEAR_RAD of it. The heading is
+    unwrapped, and two fits of neighbouring frames can stand a whole turn apart in their numbers
+    (a frame searched again from the voxels), or hold a shoulder turned nearly half a turn as
+    vectors pointing opposite ways; a mean or a straight line between them must not spin the
+    body or the limb round."""
     out = np.array(params, dtype=np.float64)
     reference = np.asarray(reference, dtype=np.float64)
     out[P["root_heading"]] = nearest_turn(out[P["root_heading"]], reference[P["root_heading"]])

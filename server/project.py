@@ -358,16 +358,18 @@ def done_status(take: Path, step: Step) -> str | None:
     return UP_TO_DATE if done.get("outputs") == now["outputs"] else KEPT_EDITED
 
 
-def why_it_runs(take: Path, step: Step, resume: bool = False) -> str:
+def why_it_runs(take: Path, step: Step, inputs: str | None = None, resume: bool = False) -> str:
     """Why a step that is not done (``done_status`` None) runs, in a few words: never run;
     stopped before it finished (a fit then continues, ``resume``, unless its settings or inputs
     changed since); which settings changed (``[section] key old -> new``); its commands (a take
     moved: they hold its paths); its inputs (an earlier step made them again, or they were
-    changed by hand); an output missing. Read before the step's run touches its records; a
-    record this version cannot read says so and never stops the run."""
+    changed by hand); an output missing. ``inputs``: the inputs' fingerprint where the caller
+    has it (else taken here). Read before the step's run touches its records; a record this
+    version cannot read says so and never stops the run."""
     if resume:
         return "continued where it stopped"
     try:
+        inputs = fingerprint(list(step.inputs)) if inputs is None else inputs
         done = _read_record(take, step.name)
         if done is None:
             pending = _read_json(_pending_path(take, step.name))
@@ -375,14 +377,13 @@ def why_it_runs(take: Path, step: Step, resume: bool = False) -> str:
                 return "not run before"
             changed = _settings_changed(pending.get("settings"), step.settings)
             since = (f"; settings changed since: {changed}" if changed
-                     else "; its inputs changed since" if pending.get("inputs") != _pending(step)["inputs"] else "")
+                     else "; its inputs changed since" if pending.get("inputs") != inputs else "")
             return f"stopped before it finished{since}"
-        now = _record(step)
-        if done.get("settings") != now["settings"]:
-            return f"settings changed: {_settings_changed(done.get('settings'), now['settings']) or 'as recorded'}"
-        if done.get("commands") != now["commands"]:
+        if done.get("settings") != step.settings:
+            return f"settings changed: {_settings_changed(done.get('settings'), step.settings) or 'as recorded'}"
+        if done.get("commands") != [list(c) for c in step.commands]:
             return "its command changed"
-        if done.get("inputs") != now["inputs"]:
+        if done.get("inputs") != inputs:
             return "its inputs changed"
         missing = [p for p in step.outputs if not p.exists()]
         if missing:
@@ -545,8 +546,8 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
     ``mocap batch``): each step's status is "done", "up to date" or "kept (edited)" (with a
     ``note`` naming the outputs kept as edited), and the ``warnings`` its commands printed this
     run; ``log``: the file that holds the commands' whole output. ``progress(step, state)`` is
-    told "running (WHY)" as a step starts (``why_it_runs``, also each run step's "why"), "warning: LINE" for each warning it prints, or the status
-    of a step that is done. Raises TakeFailed with the failing step's message, or UserError
+    told "running (WHY)" as a step starts (``why_it_runs``, also each run step's "why"),
+    "warning: LINE" for each warning it prints, or the status of a step that is done. Raises TakeFailed with the failing step's message, or UserError
     before anything is written where the recordings do not match the calibration, or where a
     step would replace an output no run made (``overwrite`` allows it)."""
     take = Path(take).resolve()
@@ -587,11 +588,11 @@ def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, entry: dict
     done) gets why it runs (``why_it_runs``) and the warnings they print (which go to
     ``progress`` as they come). A fit that an earlier run started with the same settings and
     inputs is continued, any other fit replaces what is there."""
-    pending = _pending_path(take, step.name)
-    resume = step.name == "fit" and (plan.result / "poses.jsonl").exists() and _read_json(pending) == _pending(step)
-    why = entry["why"] = why_it_runs(take, step, resume)
+    pending, now = _pending_path(take, step.name), _pending(step)  # the inputs fingerprinted once
+    resume = step.name == "fit" and (plan.result / "poses.jsonl").exists() and _read_json(pending) == now
+    why = entry["why"] = why_it_runs(take, step, now["inputs"], resume)
     warnings = entry["warnings"]
-    write_text(pending, json.dumps(_pending(step), indent=1))  # before the record goes: the outputs stay the run's
+    write_text(pending, json.dumps(now, indent=1))  # before the record goes: the outputs stay the run's
     record = _record_path(take, step.name)
     record.unlink(missing_ok=True)  # outputs being replaced: no longer up to date
     s0 = time.perf_counter()

@@ -116,8 +116,9 @@ def summary_rows(result: ResultData) -> list[tuple[str, str]]:
         ("seconds per frame (median)", _fmt(s.get("seconds_per_frame"), ".3f", " s")),
         ("seconds per frame (mean)", _fmt(s.get("mean_seconds_per_frame"), ".3f", " s")),
         ("wall time", _fmt(s.get("wall_seconds"), ".1f", " s")),
-        *([("take time, with earlier runs' tracking", _fmt(s.get("take_seconds"), ".1f", " s"))]
-          if s.get("frames_fitted_this_run", s.get("frames")) != s.get("frames") and "take_seconds" in s else []),
+        # a resumed fit's: more than this run's wall time
+        *([("take time, with earlier runs' tracking", _fmt(s["take_seconds"], ".1f", " s"))]
+          if s.get("take_seconds", s.get("wall_seconds")) != s.get("wall_seconds") else []),
         *([("refinement seconds per frame", _fmt(s.get("refine_seconds_per_frame"), ".3f",
                                                  f" s {refinement_note(s)}"))] if refined else []),
         ("evaluations per frame", _fmt(s.get("evaluations_per_frame"), ".0f")),

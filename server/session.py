@@ -397,7 +397,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
         ahead = i + step  # the neighbour on the other side, not yet refined in a pass without chunks
         other = before[ahead] if 0 <= ahead < len(out) else None
         data = frame_data(model, seq, r["frame"])
-        tracked = FrameResult(np.asarray(r["params"], dtype=np.float64), int(r["energy"]), 0, 0)
+        tracked = record_fit(r)
         if own_thread:
             dispatch, at_once = solve_locally(model, data, options, int(r["frame"])), 1
         else:
@@ -446,6 +446,11 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     return out, len(replaced)
 
 
+def record_fit(r: dict) -> FrameResult:
+    """A record's pose and energy as the fit a refinement starts from (nothing spent on it here)."""
+    return FrameResult(np.asarray(r["params"], dtype=np.float64), int(r["energy"]), 0, 0)
+
+
 def keep_refit(model: BodyModel, seq: Sequence, r: dict, again: FrameResult, seconds: float) -> bool:
     """Record ``r`` refitted (``again``, in ``seconds``): its time and evaluations added, its fit
     replaced where ``again`` is lower (the tracking fit kept under "first_pass"); whether it was."""
@@ -476,7 +481,7 @@ def refit_standing_out(model: BodyModel, seq: Sequence, records: list[dict], opt
         t0 = time.perf_counter()
         data = frame_data(model, seq, r["frame"])
         ctx = context(model, data, r["frame"], options, solver)
-        tracked = FrameResult(np.asarray(r["params"], dtype=np.float64), int(r["energy"]), 0, 0)
+        tracked = record_fit(r)
         again = refine_frame(model, data, tracked, options, ctx.dispatch, np.asarray(records[i - 1]["params"]),
                              None, np.asarray(records[i + 1]["params"]), frame_number=r["frame"],
                              side_by_side=ctx.side_by_side)

@@ -142,14 +142,14 @@ def report_lines(estimate: SyncEstimate, spacing: int, imported: dict, max_offse
         lines.append("not sharp, check by eye before using: --offset " + total(blurred))
     if not sharp and not blurred:
         told = [c.camera for c in estimate.cameras if c.resolved]
-        few = len(estimate.frames) < frames_asked and all(c.judged >= 2 for c in estimate.cameras)
-        if not told and few:
+        every_camera_judged = all(c.judged >= 2 for c in estimate.cameras)
+        if not told and every_camera_judged and len(estimate.frames) < frames_asked:
             lines.append(f"no camera's offset could be told: only {len(estimate.frames)} frames could be judged "
                          f"(of --frames {frames_asked}; a take needs {2 * max_offset} frames at each end beyond "
                          f"those judged): a longer stretch of the take would tell more")
         elif not told:
-            lines.append("no camera's offset could be told" + (": the actor hardly moves in these frames"
-                                                               if all(c.judged >= 2 for c in estimate.cameras) else ""))
+            lines.append("no camera's offset could be told"
+                         + (": the actor hardly moves in these frames" if every_camera_judged else ""))
         else:
             lines.append("the cameras are in step" + (f" (as far as {', '.join(told)} can tell)"
                                                       if len(told) < len(estimate.cameras) else ""))
