@@ -66,6 +66,8 @@ def energies_against_truth(model, seq, truth, records, every: int) -> None:
 
 
 def lag(truth, records) -> None:
+    if len(records) < 3:  # a velocity needs neighbours on both sides
+        return
     X = np.array([r["params"] for r in records])
     T = np.array([truth[r["frame"]].params for r in records])
     velocity = np.gradient(T[:, :3], axis=0)
