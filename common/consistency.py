@@ -37,8 +37,6 @@ HULL_EXTENT_M = 3.0          # metres: side of the box around the actor (its hei
 HULL_MIN_VIEWS = 2           # a voxel must project inside at least this many images
 HULL_MISSES = 1              # ... and may fall outside this many of the masks that see it, where 3 or more do
                              # (a hole in one mask, segmentation noise, must not carve the actor away)
-HULL_STRAY_CELLS = 2         # hull components this small (0.002 m^3) ...
-HULL_STRAY_GAP_CELLS = 2     # ... more than this many cells (20 cm) from any larger one are phantoms (``without_strays``)
 SPLAT_RADIUS_PX = 4          # the hull's projection is dilated by this much (voxels are coarse)
 RAY_STEP_M = 0.02            # metres between the points a pixel's ray is tested at: under a forearm's width
 NEAR_CELLS = 2               # pixels within this many cells' radii of the hull's projection are not tested:
@@ -115,28 +113,9 @@ def hull_points(studio: Studio, masks: np.ndarray, centre: np.ndarray) -> np.nda
     """(n, 3) centres of the voxels inside the visual hull, in ``hull_box(centre)``. masks
     (K, H, W) bool in the studio's (distorted) images, padded beyond each camera's own size. A
     voxel outside a camera's image is not carved by it, and one outside HULL_MISSES of the masks
-    that see it is still kept where at least three see it; stray voxels apart from the rest are
-    dropped (``without_strays``)."""
+    that see it is still kept where at least three see it."""
     points = hull_lattice(centre)
-    inside = carved(studio, masks, points).reshape((HULL_GRID,) * 3)
-    return points[without_strays(inside).ravel()]
-
-
-def without_strays(cells: np.ndarray) -> np.ndarray:
-    """(G, G, G) bool hull cells -> the same without the strays: components (26-connected) of
-    HULL_STRAY_CELLS cells or fewer more than HULL_STRAY_GAP_CELLS cells from any larger one.
-    Where masks hold blobs that are not the actor, a cell that three of four views' blobs happen
-    to cover (one miss allowed) is a phantom, and the pixels near its projection would be kept
-    unquestioned: the seated take's cam2 kept a 1,200-pixel blob of the room, 1.8 m from the
-    actor, by one such cell. A hull with no larger component is left as it is."""
-    labels, count = ndimage.label(cells, structure=np.ones((3, 3, 3), dtype=bool))
-    sizes = np.bincount(labels.ravel(), minlength=count + 1)
-    sizes[0] = 0
-    if count < 2 or sizes.max() <= HULL_STRAY_CELLS:
-        return cells
-    larger = (sizes > HULL_STRAY_CELLS)[labels]
-    near = ndimage.binary_dilation(larger, np.ones((3, 3, 3), dtype=bool), iterations=HULL_STRAY_GAP_CELLS)
-    return cells & near
+    return points[carved(studio, masks, points)]
 
 
 def carved(studio: Studio, masks: np.ndarray, points: np.ndarray, tolerant_views: int = 3) -> np.ndarray:

@@ -95,44 +95,6 @@ def test_blobs_one_camera_sees_alone_are_dropped_and_the_actor_kept():
     assert removed[0] == 80 and removed[3] == 18 * 18 and removed[1] == 0
 
 
-def test_a_small_thing_three_of_four_cameras_see_far_from_the_actor_is_dropped():
-    """One miss is allowed where three or more cameras see a hull cell (a hole in one mask must
-    not carve the actor away), so specks that three of four views happen to hold make a phantom
-    cell; alone, far from the actor, it vouches for no pixel."""
-    from common.consistency import image_points
-    from common.energy import EnergySetup, Window
-    from common.objective import make_energy
-    model = load_body_model()
-    studio = circle_studio(4, 160, 120)
-    params = posture_params(model, "seated")
-    setup = EnergySetup(studio, tuple(Window(0, 0, 160, 120) for _ in studio), np.zeros((4, 120, 160), bool),
-                        tuple(range(16)), params, prerender=False)
-    masks = make_energy("cpu", model, setup).render(params)
-    noisy = masks.copy()
-    for k in (0, 1, 2):  # a 5-pixel speck where a point 1.3 m from the actor projects; camera 3 sees none
-        (u, v), = image_points(studio[k], np.array([[1.0, -0.9, 1.2]]))
-        noisy[k, v - 2:v + 3, u - 2:u + 3] = True
-    cleaned, removed = supported_masks(studio, noisy, np.array([0.0, 0.0, 0.6]))
-    np.testing.assert_array_equal(cleaned, masks)
-    assert removed.tolist() == [25, 25, 25, 0]
-
-
-def test_stray_hull_cells_apart_from_the_rest_are_dropped():
-    from common.consistency import HULL_STRAY_CELLS, HULL_STRAY_GAP_CELLS, without_strays
-    cells = np.zeros((20, 20, 20), dtype=bool)
-    cells[2:6, 2:6, 2:10] = True                                   # the actor
-    cells[5 + HULL_STRAY_GAP_CELLS, 3, 3] = True                   # a stray just near enough: kept
-    cells[15, 15, 15] = True                                       # far off: dropped
-    cells[15, 2:2 + HULL_STRAY_CELLS + 1, 15] = True               # far off but larger: kept
-    kept = without_strays(cells)
-    expected = cells.copy()
-    expected[15, 15, 15] = False
-    np.testing.assert_array_equal(kept, expected)
-    lone = np.zeros((20, 20, 20), dtype=bool)
-    lone[3, 3, 3] = lone[15, 15, 15] = True                        # nothing larger to be apart from
-    np.testing.assert_array_equal(without_strays(lone), lone)
-
-
 @pytest.mark.parametrize("posture", ["rest", "seated"])
 def test_a_streak_joined_to_the_actor_in_one_view_is_cut_off_and_the_actor_kept(posture):
     """A floor seam or shadow touching the actor's blob is one blob with it: kept as a blob, its
