@@ -4,14 +4,15 @@ Each frame is fitted by ``common.search``'s schedules: tracked from the previous
 frame whose energy jumps above the recent frames' is a loss (a limb: every limb re-detected; the
 whole body: searched again from its voxels, as a first frame is), the better fit kept. After
 tracking, ``options.refine_passes`` passes fit every frame again from its neighbour's fit,
-backwards then forwards alternately (``refine_pass``), and each frame then takes whichever of
+backwards then forwards alternately (``refine_pass``), the frames around poor fits and those
+that stand out of their neighbours are refined once more, and each frame then takes whichever of
 its neighbours' fits makes the take's energy and steps least where the masks did not move
 (``settle_records``: a still actor holds still); with no pass, a run that starts from a search
 (no truth) still refines its first frames backwards once tracking has settled. Jobs (limb chains,
 hops, whole fits) go to a ``Solver``: this process, or a cluster of clients; ``mocap fit`` is this
 loop with the local solver: single-process mode is the server with zero clients.
 
-One module of about 700 lines: the frame loop, the actor-size search and the refinement passes
+One module of about 780 lines: the frame loop, the actor-size search and the refinement passes
 share the solver, the records and the result folder, and are read together.
 
 Result folder (``server.results``):
@@ -45,7 +46,7 @@ from common.scoring import accuracy, frame_quality, quality_summary, size_score
 from common.settle import candidate_frames, mask_step, settle_choice
 from common.search import (FIT_JOBS, LIMBS_LOST, WIDE, VARIANTS, Context, descend_outward, fit_frame,
                            is_chain_solve, lowest, refine_frame, run_schedule, search_frame, solve_locally,
-                           standing_out, tracking_lost, LIMB_LOSS_ENERGY_RATIO)
+                           poor_windows, standing_out, tracking_lost, LIMB_LOSS_ENERGY_RATIO)
 from common.sequence import Sequence
 from server.output import write_text
 from server.threads import backend_threads
@@ -465,6 +466,26 @@ def keep_refit(model: BodyModel, seq: Sequence, r: dict, again: FrameResult, sec
     return True
 
 
+def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
+                        stats: RunStats) -> tuple[list[dict], int]:
+    """After the passes: the frames around each run of poor fits (``common.search.poor_windows``:
+    the XOR share of the silhouette well above the take's median) refined once more, forwards
+    from the fit before the window, then backwards from the fit after it (``refine_pass``; a
+    window at the take's end starts from hops). A run the passes left in a valley of its own
+    (the cartwheel rolling onto its side, where each frame fitted from a neighbour that is off
+    stays off) is refined from both sides again, as further passes would, at a few frames'
+    cost. Returns the records, changed, and how many frames ended with a lower energy."""
+    shares = [r["energy"] / max(int(np.count_nonzero(seq.silhouettes(r["frame"]))), 1) for r in records]
+    out = [dict(r) for r in records]
+    for first, last in poor_windows(shares):
+        for backward in (False, True):
+            beyond = last + 1 if backward else first - 1
+            anchor = np.asarray(out[beyond]["params"], dtype=np.float64) if 0 <= beyond < len(out) else None
+            out[first:last + 1], _ = refine_pass(model, seq, out[first:last + 1], options, solver, stats, backward,
+                                                 anchor=anchor)
+    return out, sum(1 for r, before in zip(out, records) if r["energy"] < before["energy"])
+
+
 def refit_standing_out(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
                        stats: RunStats) -> tuple[list[dict], int]:
     """After the passes: each frame whose energy stands STANDING_OUT_RATIO above both neighbours'
@@ -646,8 +667,9 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                        "hops_run": stats.hops_run - hops_before,
                        "hop_seconds": stats.hop_seconds - hop_seconds_before,
                        "frames_replaced": replaced, "seconds": time.perf_counter() - t0})
-    standing_out_refitted = 0
+    standing_out_refitted = poor_refined = 0
     if passes:
+        records, poor_refined = refine_poor_windows(model, seq, records, options, solver, stats)
         records, standing_out_refitted = refit_standing_out(model, seq, records, options, solver, stats)
     settled, refined = 0, sum(1 for r in records if "first_pass" in r)
     if passes:  # offline runs only: a frame's pose may come from a later frame's fit
@@ -687,6 +709,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "frames_recovered": sum(1 for r in records if r.get("recovered")),
         "frames_limbs_redetected": sum(1 for r in records if r.get("limbs_redetected")),
         "frames_refined": refined,
+        "frames_poor_refined": poor_refined,
         "frames_standing_out_refitted": standing_out_refitted,
         "frames_settled": settled,
         "chain_cpu_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_cpu.items()},

@@ -730,6 +730,20 @@ def test_a_frame_stands_out_over_both_neighbours_mean():
     assert standing_out([1000, 1100, 1000], ratio=1.05) == [1] and STANDING_OUT_RATIO > 1.0
 
 
+def test_runs_of_poor_frames_are_refined_with_a_margin():
+    from common.search import POOR_SHARE_RATIO, poor_windows
+
+    shares = [0.10] * 20
+    assert poor_windows(shares) == []
+    shares[8] = shares[9] = 0.13   # a run of two
+    shares[19] = 0.125             # the last frame
+    assert poor_windows(shares, margin=3) == [(5, 12), (16, 19)]
+    assert poor_windows(shares, margin=5) == [(3, 19)]  # windows that meet are one
+    shares[0] = 0.119              # noise
+    assert poor_windows(shares, margin=0) == [(8, 9), (19, 19)] and POOR_SHARE_RATIO > 1.0
+    assert poor_windows([]) == []
+
+
 @pytest.fixture(scope="module")
 def five_frames(tmp_path_factory, model):
     from common.camera import circle_studio
