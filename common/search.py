@@ -664,11 +664,10 @@ def standing_out(energies: list, ratio: float = STANDING_OUT_RATIO) -> list[int]
 
 
 # A refined frame whose XOR share of its silhouette area is this many times the take's median
-# share is poor, and the frames around it are refined once more (``poor_windows``). The 17 shared
-# clips' refined frames: the cartwheel's that roll onto their side (05_06, frames over 40 mm) reach
-# 1.07-1.43 times, the other 16 clips' frames at most 1.22 (05_17: 2 frames over 1.2; 05_10,
-# 05_13, 06_14 and 06_15 up to 1.15-1.19, the other 11 clips 1.13); silhouette noise and the
-# body's own shape move the share by a tenth (docs/accuracy.md, "Poor runs refined again")
+# share is poor, and the frames around it are refined once more (``poor_windows``): silhouette
+# noise and the body's own shape move the share by about a tenth, a run left in a valley of its
+# own (the cartwheel rolling onto its side) by up to a half (docs/accuracy.md, "Poor runs
+# refined again")
 POOR_SHARE_RATIO = 1.2
 POOR_MARGIN_FRAMES = 3  # frames refined either side of a run of poor ones
 
@@ -678,7 +677,7 @@ def poor_windows(shares: list, ratio: float = POOR_SHARE_RATIO, margin: int = PO
     area) is ``ratio`` times the median of ``shares`` or more, ``margin`` frames added either
     side (within the take), runs that meet or overlap merged, in order."""
     s = np.asarray(shares, dtype=np.float64)
-    if len(s) == 0:
+    if len(s) == 0 or not np.median(s) > 0.0:  # fits that explain their masks whole: none is poor
         return []
     poor = np.flatnonzero(s >= ratio * float(np.median(s)))
     windows: list[tuple[int, int]] = []

@@ -467,14 +467,18 @@ def keep_refit(model: BodyModel, seq: Sequence, r: dict, again: FrameResult, sec
 
 
 def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
-                        stats: RunStats) -> tuple[list[dict], int]:
+                        stats: RunStats, progress=None) -> tuple[list[dict], int]:
     """After the passes: the frames around each run of poor fits (``common.search.poor_windows``:
     the XOR share of the silhouette well above the take's median) refined once more, forwards
     from the fit before the window, then backwards from the fit after it (``refine_pass``; a
     window at the take's end starts from hops). A run the passes left in a valley of its own
     (the cartwheel rolling onto its side, where each frame fitted from a neighbour that is off
     stays off) is refined from both sides again, as further passes would, at a few frames'
-    cost. Returns the records, changed, and how many frames ended with a lower energy."""
+    cost. The volume energy is no XOR (metres squared): its fits are not judged so. A window's
+    end frames are not also started from halfway to the frame beyond it. Returns the records,
+    changed, and how many frames ended with a lower energy."""
+    if options.energy == "volume":
+        return records, 0
     shares = [r["energy"] / max(int(np.count_nonzero(seq.silhouettes(r["frame"]))), 1) for r in records]
     out = [dict(r) for r in records]
     for first, last in poor_windows(shares):
@@ -482,7 +486,7 @@ def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], op
             beyond = last + 1 if backward else first - 1
             anchor = np.asarray(out[beyond]["params"], dtype=np.float64) if 0 <= beyond < len(out) else None
             out[first:last + 1], _ = refine_pass(model, seq, out[first:last + 1], options, solver, stats, backward,
-                                                 anchor=anchor)
+                                                 progress, anchor=anchor)
     return out, sum(1 for r, before in zip(out, records) if r["energy"] < before["energy"])
 
 
@@ -669,7 +673,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                        "frames_replaced": replaced, "seconds": time.perf_counter() - t0})
     standing_out_refitted = poor_refined = 0
     if passes:
-        records, poor_refined = refine_poor_windows(model, seq, records, options, solver, stats)
+        records, poor_refined = refine_poor_windows(model, seq, records, options, solver, stats, progress)
         records, standing_out_refitted = refit_standing_out(model, seq, records, options, solver, stats)
     settled, refined = 0, sum(1 for r in records if "first_pass" in r)
     if passes:  # offline runs only: a frame's pose may come from a later frame's fit

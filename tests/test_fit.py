@@ -741,7 +741,7 @@ def test_runs_of_poor_frames_are_refined_with_a_margin():
     assert poor_windows(shares, margin=5) == [(3, 19)]  # windows that meet are one
     shares[0] = 0.119              # noise
     assert poor_windows(shares, margin=0) == [(8, 9), (19, 19)] and POOR_SHARE_RATIO > 1.0
-    assert poor_windows([]) == []
+    assert poor_windows([]) == [] and poor_windows([0.0, 0.0, 0.01]) == []  # a median of nothing
 
 
 @pytest.fixture(scope="module")
