@@ -156,6 +156,19 @@ XML_TAGS = {
     "P": ("ProjectionMatrix", "P", "projection_matrix"),
 }
 CAMERA_FIELDS = ("K", "R", "t")  # an XML file with all three (or a P) holds a camera
+# An XML file of another kind (or one that does not parse) is a damaged camera file, refused when
+# read, where it names tags of two camera fields or more (one alone may be a notes file's <p>);
+# otherwise it is notes, passed over
+CAMERA_FIELD_TAGS = {field: frozenset(tag.lower().replace("_", "") for tag in XML_TAGS[field])
+                     for field in (*CAMERA_FIELDS, "P")}
+CAMERA_TAG_TEXT = re.compile(r"<\s*([A-Za-z_]+)\b")
+
+
+def _names_camera_fields(tags) -> bool:
+    """Whether ``tags`` (any spelling) name two or more of the camera fields K, R, t, P."""
+    keys = {_tag_key(tag) for tag in tags}
+    return sum(1 for field_tags in CAMERA_FIELD_TAGS.values() if keys & field_tags) >= 2
+
 
 Warn = Callable[[str], None]  # receives one line to show the user
 
@@ -1023,7 +1036,8 @@ def _file_kind(path: Path) -> str:
     "camera": OpenCV XML with K, R and t; "projection": OpenCV XML with P, or a .txt of 12 numbers
     (a .txt of 9, a 3x3 K beside it, holds no camera; of another count it is "broken");
     "qualisys": a Qualisys <calibration>; "broken": OpenCV XML with some of K, R, t, or not
-    valid XML; "foreign": XML of another kind; "none": no camera fields at all.
+    valid XML, empty or naming camera fields; "foreign": XML of another kind that names camera
+    fields; "none": no camera fields at all (a board, notes, another tool's project file).
     """
     if _is_projection_text(path):
         try:
@@ -1035,10 +1049,17 @@ def _file_kind(path: Path) -> str:
         return "projection" if values.size == 12 else "broken"
     try:
         root = _parse_xml(path)
-    except CalibrationError:
-        return "broken"
+    except CalibrationError:  # a damaged camera file is refused when read; damaged notes are passed over
+        try:
+            text = _read_text(path)
+        except CalibrationError:  # not text either: reported when read
+            return "broken"
+        return "none" if text.strip() and not _names_camera_fields(CAMERA_TAG_TEXT.findall(text)) else "broken"
     if root.tag != "opencv_storage":
-        return "qualisys" if root.tag == "calibration" else "foreign"
+        if root.tag == "calibration":
+            return "qualisys"
+        # another tool's XML (a project file, a board description): a camera only where it names camera fields
+        return "foreign" if _names_camera_fields(elem.tag for elem in root.iter()) else "none"
     nodes = _xml_nodes(path, root)
     present = [field for field in CAMERA_FIELDS if _xml_find(nodes, field)[0] is not None]
     if len(present) == len(CAMERA_FIELDS):
@@ -1160,6 +1181,9 @@ def _xml_value(elem: ET.Element):
     return (elem.text or "").strip()
 
 
+PROJECTION_SEPARATORS = str.maketrans(",;[]", "    ")
+
+
 def _is_projection_text(path: Path) -> bool:
     """A .txt that is not XML (a Qualisys file is XML whatever its name)."""
     if path.suffix.lower() != ".txt":
@@ -1171,11 +1195,13 @@ def _is_projection_text(path: Path) -> bool:
 
 
 def _projection_text(path: Path) -> str:
-    """A projection .txt's numbers: without '#' comment lines and a PMVS ``CONTOUR`` header."""
+    """A projection .txt's numbers: without '#' comment lines and a PMVS ``CONTOUR`` header;
+    commas and semicolons (CSV rows, a matrix copied from MATLAB or numpy) separate numbers as
+    spaces do, and brackets around them are dropped."""
     lines = [line for line in _read_text(path).splitlines() if line.strip() and not line.lstrip().startswith("#")]
     if lines and lines[0].strip() == CONTOUR_HEADER:
         lines = lines[1:]
-    return " ".join(lines)
+    return " ".join(lines).translate(PROJECTION_SEPARATORS)
 
 
 def _projection_matrix(value, source: str, field: str) -> np.ndarray:

@@ -23,7 +23,7 @@ Every writer takes a ``FittedMotion``: frame numbers, frame rate, per-frame para
 positions, and the body model (with the fitted actor's segment lengths) that turns one into the
 other.
 
-One module of about 510 lines: the eight writers share ``FittedMotion`` and the axis conversions,
+One module of about 520 lines: the eight writers share ``FittedMotion`` and the axis conversions,
 each of them one short section.
 """
 from __future__ import annotations

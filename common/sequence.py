@@ -27,6 +27,7 @@ axis), which every fit, voxel and picture uses; ``Sequence.world`` turns points 
 """
 from __future__ import annotations
 
+import copy
 import json
 import re
 import threading
@@ -40,8 +41,7 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from common.body import JOINT_NAMES, PARAM_NAMES
-from common.calibration import (EASYMOCAP_FILES, MAX_IMAGE_PIXELS, load_calibration, natural_key, refuse_calibrations,
-                                with_image_sizes)
+from common.calibration import EASYMOCAP_FILES, MAX_IMAGE_PIXELS, load_calibration, natural_key, refuse_calibrations
 from common.camera import Studio
 from common.consistency import PROP_SAMPLES, StaticProps, static_props, supported_masks
 from common.errors import FieldChecks, InputFileError, UserError, print_warning
@@ -55,6 +55,7 @@ MASK_FOLDERS = ("silhouettes", "mask", "masks")  # ours first, then EasyMocap / 
 IMAGE_FOLDER = "images"
 DEFAULT_FPS = 30.0  # frames per second when sequence.json does not say
 MAX_MASK_THRESHOLD = 65535  # grey levels of 16-bit masks
+SIXTEEN_BIT_MODES = ("I", "I;16", "I;16B", "I;16L", "F")  # PIL's modes of masks with more than 8 bits
 # bytes of cleaned masks a Sequence keeps, bit-packed (77 kB a frame at 8 x 320x240: 800 frames):
 # a fit reads each frame at least three times (tracking, refinement, the fit-quality record),
 # and cleaning one costs tens of milliseconds, unpacking it a fraction of one
@@ -79,27 +80,41 @@ class TruthFrame:
 
 # --------------------------------------------------------------------------- files
 def frame_number(name: str) -> int | None:
-    """The frame number of a file name: its last run of digits ("img_2.jpg" -> 2), or None."""
+    """The frame number of a file name taken alone: its last run of digits ("img_2.jpg" -> 2), or None."""
     runs = _DIGITS.findall(Path(name).stem)
     return int(runs[-1]) if runs else None
+
+
+def frame_run(stems: list[str]) -> int:
+    """Which run of digits numbers the frames of one folder's file names (stems), as an index
+    into each name's runs: the first that differs in every file where every name has as many
+    runs ("0001_c1" -> the first; ZJU-MoCap's "CoreView_313_Camera_(1)_0001_2019-08-23_16-08-50.592"
+    -> the fourth, not the milliseconds), else the last (-1)."""
+    runs = [[int(r) for r in _DIGITS.findall(stem)] for stem in stems]
+    if len(runs) >= 2 and runs[0] and all(len(r) == len(runs[0]) for r in runs):
+        for k in range(len(runs[0])):
+            if len({r[k] for r in runs}) == len(runs):
+                return k
+    return -1
 
 
 def frame_files(folder) -> dict[int, Path]:
     """Frame number -> image file of one camera's folder, in frame order (empty if no folder).
 
     Every file with an image suffix (``IMAGE_SUFFIXES``, any case) and a digit in its name
-    counts; two files with the same number are refused.
+    counts; its frame number is the run of digits ``frame_run`` picks for the folder. Two files
+    with the same number are refused.
     """
     folder = Path(folder)
     if not folder.is_dir():
         return {}
+    paths = [path for path in sorted(folder.iterdir(), key=lambda p: natural_key(p.name))
+             if path.suffix.lower() in IMAGE_SUFFIXES and not path.name.startswith(".")
+             and _DIGITS.search(path.stem)]
+    k = frame_run([path.stem for path in paths])
     found: dict[int, Path] = {}
-    for path in sorted(folder.iterdir(), key=lambda p: natural_key(p.name)):
-        if path.suffix.lower() not in IMAGE_SUFFIXES or path.name.startswith("."):
-            continue
-        number = frame_number(path.name)
-        if number is None:
-            continue
+    for path in paths:
+        number = int(_DIGITS.findall(path.stem)[k])
         if number in found:
             raise InputFileError(folder, f"two files for frame {number}: {found[number].name} and {path.name}")
         found[number] = path
@@ -112,9 +127,9 @@ def expected_path(folder: Path, files: dict[int, Path], frame: int) -> Path:
         return folder / FRAME_NAME.format(frame=frame)
     example = next(iter(files.values()))
     stem = example.stem
-    last = list(_DIGITS.finditer(stem))[-1]
-    number = str(frame).zfill(len(last.group()))
-    return folder / f"{stem[:last.start()]}{number}{stem[last.end():]}{example.suffix}"
+    digits = list(_DIGITS.finditer(stem))[frame_run([p.stem for p in files.values()])]
+    number = str(frame).zfill(len(digits.group()))
+    return folder / f"{stem[:digits.start()]}{number}{stem[digits.end():]}{example.suffix}"
 
 
 @contextmanager
@@ -158,13 +173,16 @@ def read_mask(path, threshold: int | None = None) -> np.ndarray:
 
     Without a threshold the file must be binary: at most two grey levels (the higher is
     silhouette; a single level is silhouette when non-zero). Colour images (channels that
-    differ) and grey images with more levels are refused. With a threshold, grey level >
-    threshold is silhouette (colour is converted to grey first).
+    differ) and grey images with more levels are refused, but for a palette image of two
+    colours (a label map), whose brighter colour is silhouette. With a threshold, grey
+    level > threshold is silhouette (colour is converted to grey first); a threshold that
+    leaves no level of an 8-bit image above it is refused.
     """
     with _open_image(path) as im:
         if im.mode == "1":
             return np.asarray(im, dtype=bool)
-        if im.mode in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
+        eight_bit = im.mode not in SIXTEEN_BIT_MODES
+        if im.mode in ("L", *SIXTEEN_BIT_MODES):
             grey, colour = np.asarray(im), False
         elif im.mode in ("LA", "La"):
             grey, colour = np.asarray(im.getchannel(0)), False
@@ -172,9 +190,20 @@ def read_mask(path, threshold: int | None = None) -> np.ndarray:
             rgb = np.asarray(im.convert("RGB"))
             colour = not (np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2]))
             grey = np.asarray(im.convert("L")) if colour else rgb[..., 0]
+            if colour and threshold is None and im.mode in ("P", "PA"):
+                # a palette image of two colours is a label map (black and the person's colour,
+                # as segmentation tools write them): the brighter one is silhouette
+                packed = rgb[..., 0].astype(np.uint32) << 16 | rgb[..., 1].astype(np.uint32) << 8 | rgb[..., 2]
+                shown = np.unique(packed)
+                if len(shown) == 2:
+                    brighter = grey[packed == shown[1]][0] > grey[packed == shown[0]][0]
+                    return packed == shown[1] if brighter else packed == shown[0]
     if threshold is not None:
+        if eight_bit and threshold >= 255:
+            raise InputFileError(path, f"an 8-bit image: no grey level is above the mask threshold {threshold} "
+                                       "(0..254 for 8-bit masks)")
         return grey > threshold
-    hint = "give binary masks, or a mask threshold (mocap fit --mask-threshold N: grey level > N is silhouette)"
+    hint = "give binary masks, or a mask threshold (--mask-threshold N: grey level > N is silhouette)"
     if colour:
         raise InputFileError(path, f"a colour image, not a mask (its red, green and blue differ); {hint}")
     lo, hi = grey.min(), grey.max()
@@ -221,18 +250,17 @@ class Sequence:
         self.calibration = Path(calibration) if calibration is not None else None
         own = self.path / "calibration.json"
         easymocap = all((self.path / n).is_file() for n in EASYMOCAP_FILES)
-        if self.calibration is not None:
-            self.user_studio: Studio = load_calibration(self.calibration, units)
-        elif easymocap and own.exists():
+        if easymocap and own.exists() and self.calibration is None:
             refuse_calibrations(self.path, [own.name, " + ".join(EASYMOCAP_FILES)], "keep one")
-        elif easymocap:
-            self.user_studio = load_calibration(self.path, units, fmt="easymocap")
-        else:
-            self.user_studio = load_calibration(own, units)
+        source, fmt = ((self.calibration, None) if self.calibration is not None
+                       else (self.path, "easymocap") if easymocap else (own, None))
         self.mask_folder = next((self.path / f for f in MASK_FOLDERS if (self.path / f).is_dir()), None)
         self._files: dict[tuple[Path, str], dict[int, Path]] = {}
-        if any(c.size_guessed for c in self.user_studio):  # EasyMocap's write_intri writes no sizes
-            self.user_studio = with_image_sizes(self.user_studio, self._first_image_sizes(), str(self.path))
+        # read quietly for its cameras first: sizes the file lacks (EasyMocap's write_intri writes
+        # none) come from the images, and a size taken from them is not warned of as guessed
+        quiet = load_calibration(source, units, fmt=fmt, warn=lambda line: None)
+        sizes = self._first_image_sizes(quiet) if any(c.size_guessed for c in quiet) else None
+        self.user_studio: Studio = load_calibration(source, units, fmt=fmt, image_sizes=sizes, images=str(self.path))
         # fitting runs in the z-up fit frame (common.world); results go back to the user's
         self.world: WorldFrame = resolve_world(self.user_studio, up)
         if (warning := below_floor_warning(self.user_studio, self.world)) is not None:
@@ -250,19 +278,20 @@ class Sequence:
         if not self.frames:
             raise InputFileError(self.path, "no frames (no silhouettes/, mask/ or images/ and no sequence.json)")
 
-    def _first_image_sizes(self) -> dict[str, tuple[int, int]]:
-        """Camera -> (width, height) of its first mask (else colour image), for cameras whose
-        calibration gave no size; cameras without files are left out."""
+    def _first_image_sizes(self, studio: Studio) -> dict[str, tuple[int, int]]:
+        """Camera -> (width, height) of its first mask (else colour image), for ``studio``'s
+        cameras whose calibration gave no size; cameras without files are left out."""
         sizes = {}
-        for cam in self.user_studio:
+        for cam in studio:
             files = self.mask_files(cam.name) or self.image_files(cam.name)
             if cam.size_guessed and files:
                 sizes[cam.name] = image_size(next(iter(files.values())))
         return sizes
 
     def _frames_on_disk(self) -> list[int]:
-        first = self.studio.names[0]
-        return list(self.mask_files(first) or self.image_files(first))
+        """Every frame any camera has a file for: a frame one camera lacks is then named as
+        missing there (``check_files``), never dropped from the others without a word."""
+        return sorted(set().union(*(self.mask_files(name) or self.image_files(name) for name in self.studio.names)))
 
     @property
     def has_silhouettes(self) -> bool:
@@ -389,27 +418,41 @@ class Sequence:
                     width, height = image_size(path)
                     check_size((height, width), path, cam)
 
-    def check_masks(self, frames) -> list[str]:
-        """Warnings (one per camera) for cameras whose mask is all on or all off in every frame.
-
-        Cheap: a camera's scan stops at its first mask with both silhouette and background.
-        """
+    def constant_cameras(self, frames) -> dict[str, str]:
+        """Camera name -> "on", "off" or "on or off" for each camera whose mask is all on or all
+        off in every one of ``frames`` (a camera that sees nothing of the actor, or whose masks
+        failed). Cheap: a camera's scan stops at its first mask with both silhouette and background."""
         frames = list(frames)
-        warnings = []
+        found = {}
         for cam in self.studio:
-            counts = set()
+            states = set()
             for frame in frames:
                 mask = self.mask(cam, frame)
                 on = bool(mask.any())
                 if on and not mask.all():
                     break
-                counts.add("on" if on else "off")
+                states.add("on" if on else "off")
             else:
                 if frames:
-                    state = " or ".join(sorted(counts, reverse=True))
-                    warnings.append(f"{self.mask_folder / cam.name}: camera {cam.name}'s mask is all {state} "
-                                    f"in every frame ({len(frames)} frames); check the masks or the mask threshold")
-        return warnings
+                    found[cam.name] = " or ".join(sorted(states, reverse=True))
+        return found
+
+    def check_masks(self, frames) -> list[str]:
+        """Warnings (one per camera) for cameras whose mask is all on or all off in every frame."""
+        frames = list(frames)
+        return [f"{self.mask_folder / name}: camera {name}'s mask is all {state} in every frame ({len(frames)} "
+                "frames); check the masks or the mask threshold"
+                for name, state in self.constant_cameras(frames).items()]
+
+    def without_cameras(self, names) -> "Sequence":
+        """The same sequence with the cameras ``names`` left out (the world frame is still the
+        one all cameras gave)."""
+        names = set(names)
+        out = copy.copy(self)
+        out.user_studio = Studio(tuple(c for c in self.user_studio if c.name not in names), self.user_studio.source)
+        out.studio = Studio(tuple(c for c in self.studio if c.name not in names), self.studio.source)
+        out._cleaned, out._cleaned_bytes, out._cleaned_lock, out._props = OrderedDict(), 0, threading.Lock(), None
+        return out
 
     def truth(self) -> dict[int, TruthFrame] | None:
         """Ground truth per frame number, or None when the sequence has none."""

@@ -24,7 +24,7 @@ output kept as edited is not vouched for): any other output in the way of a step
 was replacing when stopped is still its own. A fit that was interrupted is continued
 (``--resume``); one whose settings changed is replaced. A lock file keeps two runs off one take.
 
-One module of about 590 lines: a take's plan, its steps' records and the run are read
+One module of about 670 lines: a take's plan, its steps' records and the run are read
 together (which steps run follows from the records of the plan's inputs and outputs, and the
 records from what the run did).
 """

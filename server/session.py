@@ -172,6 +172,24 @@ def silhouette_centre(data: FrameData) -> np.ndarray:
     return centre
 
 
+def usable_cameras(seq: Sequence, frames) -> Sequence:
+    """``seq`` without the cameras whose mask is all on or all off in every one of ``frames``,
+    each named in a warning: such a camera tells nothing of the actor (all on: any body fits;
+    all off where the actor is in view: none does, and the hull and the size search carve
+    everything away). Refused when that would leave no camera."""
+    constant = seq.constant_cameras(frames)
+    if not constant:
+        return seq
+    where = seq.mask_folder
+    if len(constant) == len(seq.studio):
+        raise InputFileError(where, f"every camera's mask is all on or all off in every frame ({len(list(frames))} "
+                                    "frames); check the masks or the mask threshold")
+    for name, state in constant.items():
+        print_warning(f"{where / name}: camera {name}'s mask is all {state} in every frame ({len(list(frames))} "
+                      "frames): left out of the fit; check the masks or the mask threshold")
+    return seq.without_cameras(constant)
+
+
 def truth_start(seq: Sequence) -> np.ndarray:
     """(35,) the truth's pose of the sequence's first frame; UserError where there is none."""
     truth = seq.truth()

@@ -774,6 +774,29 @@ def test_folder_camera_choice(tmp_path):
         load_calibration(folder, units="mm")
 
 
+def test_other_tools_xml_and_damaged_notes_in_a_folder_are_skipped(tmp_path, capsys):
+    """Files that name no camera fields are passed over whatever they hold (another tool's
+    project file, notes that do not parse); one that names them is a damaged camera, refused."""
+    folder = copy_fixture(tmp_path, "../calibration/uu_layout")
+    (folder / "project.xml").write_text("<project><name>lab</name><p>seated take</p></project>")
+    (folder / "notes.xml").write_text("<notes>board moved after cam2 <b>was</notes>")
+    warnings = []
+    studio = load_calibration(folder, units="mm", warn=warnings.append)
+    assert studio.names == ["cam1", "cam2", "cam3"]
+    assert warnings[0] == (f"{folder}: skipped (no camera fields): checkerboard.xml, notes.xml, project.xml, "
+                           "cam1/intrinsics.xml, cam2/intrinsics.xml, cam3/intrinsics.xml")
+    rc, _, err = cli(capsys, "calib", "convert", folder, tmp_path / "out.json", "--units", "mm")
+    assert rc == 0 and "skipped (no camera fields): checkerboard.xml, notes.xml, project.xml" in err
+    (folder / "cam4.xml").write_text("<camera><Rotation>1 0 0</Rotation><Translation>0 0 0</Translation></camera>")
+    for sub in ("cam1", "cam2", "cam3"):  # cameras at the top: the damaged one is read and refused
+        shutil.move(folder / sub / "config.xml", folder / f"{sub}.xml")
+    with pytest.raises(CalibrationError, match=r"cam4\.xml: <root>: expected <opencv_storage>, got <camera>"):
+        load_calibration(folder, units="mm")
+    (folder / "cam4.xml").write_text("<opencv_storage><Rotation>1 0 0</Rotation><Translation>0 0")
+    with pytest.raises(CalibrationError, match=r"cam4\.xml: not valid XML"):
+        load_calibration(folder, units="mm")
+
+
 @pytest.mark.skipif(not REAL_UU.is_dir(), reason="needs the shared real recordings")
 def test_real_uu_folder(tmp_path, capsys):
     out = tmp_path / "calibration.json"
@@ -1017,6 +1040,28 @@ def test_projection_folder():
             rows = [line for line in (folder / f"{cam.name}.txt").read_text().splitlines() if line[0] not in "#C"]
             P = np.array([[float(x) for x in row.split()] for row in rows])
             assert relative_error(P, cam.projection_matrix) < 1e-12
+
+
+def test_projection_text_with_commas_and_brackets(tmp_path):
+    """P as CSV rows, as one comma-separated line and as a matrix copied from numpy or MATLAB:
+    each read as the space-separated text is."""
+    rng = np.random.default_rng(7)
+    layouts = {"a": lambda rows: "\n".join(" ".join(r) for r in rows),
+               "b": lambda rows: "\n".join(",".join(r) for r in rows),
+               "c": lambda rows: ", ".join(x for r in rows for x in r),
+               "d": lambda rows: "[" + "; ".join(" ".join(r) for r in rows) + "]",
+               "e": lambda rows: "[[" + "],\n [".join(", ".join(r) for r in rows) + "]]"}
+    written = {}
+    for name, layout in layouts.items():
+        written[name] = random_camera_P(rng, 0.0)[0]
+        (tmp_path / f"{name}.txt").write_text(layout([[repr(float(x)) for x in row] for row in written[name]]) + "\n")
+    studio = load_calibration(tmp_path, size=(640, 480))
+    assert studio.names == list(layouts)
+    for cam in studio:
+        assert relative_error(written[cam.name], cam.projection_matrix) < 1e-12
+    (tmp_path / "f.txt").write_text("1, 2, 3, x, 5, 6, 7, 8, 9, 10, 11, 12\n")
+    with pytest.raises(CalibrationError, match=r"f\.txt: P: not numeric"):
+        load_calibration(tmp_path / "f.txt", size=(640, 480))
 
 
 def test_projection_skew_warning(tmp_path):

@@ -709,6 +709,34 @@ def test_fit_truncated_png_is_refused_before_anything_is_written(broken_copy, tm
     assert not out.exists()
 
 
+@pytest.mark.timeout(300)
+def test_a_camera_whose_masks_are_all_off_is_left_out_with_a_warning(broken_copy, tmp_path, capsys):
+    """A dead camera (masks all off in every frame) would carve every hull and body away: the
+    fit and the voxels go on without it, naming it; with every camera dead, one error line."""
+    from common.sequence import write_mask_png
+
+    frames = sorted((broken_copy / "silhouettes" / "cam2").iterdir())
+    for png in frames:
+        write_mask_png(png, np.zeros((120, 160), dtype=bool))
+    out = tmp_path / "out"
+    assert fit(broken_copy, out, "--frames", "2", "--init", "auto", "--preset", "fast") == 0
+    err = capsys.readouterr().err
+    assert f"camera cam2's mask is all off in every frame (2 frames): left out of the fit" in err
+    records = read_lines(out / "poses.jsonl")
+    assert len(records) == 2 and len(records[0]["fit_quality"]["xor_share"]) == 3
+    summary = json.loads((out / "summary.json").read_text())
+    assert set(summary["fit_quality"]["per_camera_mean_xor_share"]) == {"cam1", "cam3", "cam4"}
+    assert main(["voxels", str(broken_copy), "--out", str(tmp_path / "vox"), "--grid", "16", "--quiet"]) == 0
+    assert "cam2's mask is all off in every frame (3 frames): left out" in capsys.readouterr().err
+    summary = json.loads((tmp_path / "vox" / "voxels.json").read_text())
+    assert summary["cameras"] == 3 and min(f["occupied"] for f in summary["frames"]) > 0
+    for camera in ("cam1", "cam3", "cam4"):
+        for png in sorted((broken_copy / "silhouettes" / camera).iterdir()):
+            write_mask_png(png, np.zeros((120, 160), dtype=bool))
+    _expect_user_error(capsys, fit(broken_copy, tmp_path / "none", "--frames", "2"),
+                       "every camera's mask is all on or all off in every frame (2 frames)")
+
+
 # ------------------------------------------------------------------ loss of tracking
 
 def test_tracking_lost_is_a_jump_over_the_recent_median():

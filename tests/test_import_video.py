@@ -120,6 +120,20 @@ def test_lengths_differing_by_a_frame_are_trimmed(tmp_path, calib, capsys):
     assert sorted(p.name for p in (out / "images" / "cam3").iterdir()) == [f"{f:06d}.png" for f in seq.frames]
 
 
+def test_sizes_the_calibration_lacks_come_from_the_videos_without_a_guess_warning(tmp_path, capsys):
+    """EasyMocap's intri.yml as write_intri writes it (no H_/W_): the videos give the sizes, and
+    no line says they were guessed."""
+    folder = tmp_path / "calib"
+    save_calibration(circle_studio(3, W, H, overhead=False), folder, fmt="easymocap")
+    intri = folder / "intri.yml"
+    intri.write_text("".join(line for line in intri.read_text().splitlines(keepends=True)
+                             if not line.startswith(("H_", "W_"))))
+    videos = {c: _write_video(tmp_path / f"{c}.avi", range(4)) for c in ("cam1", "cam2", "cam3")}
+    rc, _, err = _run(capsys, folder, videos, "--out", tmp_path / "seq")
+    assert rc == 0 and err == "", err
+    assert all((c.width, c.height) == (W, H) and not c.size_guessed for c in load_sequence(tmp_path / "seq").studio)
+
+
 def test_offsets_match_frames_by_content(tmp_path, calib, capsys):
     # cam2 started 3 frames early (its frame j + 3 is frame j), cam3 2 frames late (its frame j - 2 is frame j).
     videos = {"cam1": _write_video(tmp_path / "a.mp4", range(20), "libx264"),
@@ -149,6 +163,23 @@ def test_frames_beyond_the_memory_budget_are_decoded_again(tmp_path, calib, caps
     assert seq.frames == [0, 3, 6, 9, 12, 15, 18] and "0..18" in _one_line(err)  # cam3 has 19 after the offset
     for f in seq.frames:
         assert [_number(im) for im in seq.images(f)] == [f, f, f + 1]
+
+
+def test_an_offset_past_the_trim_limit_is_no_length_difference(tmp_path, calib, capsys):
+    """Recordings of one length, one camera 12 frames late (more than the 10 frames two lengths
+    may differ by): the others' last 12 frames go with the offset, with a warning, no error."""
+    videos = {c: _write_video(tmp_path / f"{c}.avi", range(22)) for c in ("cam1", "cam2", "cam3")}
+    out = tmp_path / "seq"
+    rc, _, err = _run(capsys, calib, videos, "--out", out, "--offset", "cam2=12", "--step", "3")
+    assert rc == 0, err
+    assert _one_line(err) == ("warning: with the offsets (cam1 22, cam2 22 (offset +12), cam3 22 frames) the frames "
+                              "all cameras have are 0..9")
+    seq = load_sequence(out)
+    assert seq.frames == [0, 3, 6, 9]
+    for f in seq.frames:
+        assert [_number(im) for im in seq.images(f)] == [f, f + 12, f]
+    rc, _, err = _run(capsys, calib, videos, "--out", tmp_path / "late", "--offset", "cam2=-12", "--step", "3")
+    assert rc == 0 and "the frames all cameras have are 12..21" in _one_line(err)
 
 
 def test_a_large_length_difference_is_an_error(tmp_path, calib, capsys):

@@ -9,7 +9,7 @@ from PIL import Image
 from common.calibration import save_calibration
 from common.camera import Studio, circle_studio
 from common.errors import InputFileError, UserError
-from common.sequence import frame_files, frame_number, load_sequence, read_mask, write_sequence_meta
+from common.sequence import expected_path, frame_files, frame_number, load_sequence, read_mask, write_sequence_meta
 
 W, H = 64, 48
 MIXED_SIZES = ((320, 240), (400, 300), (480, 360))  # width, height
@@ -63,6 +63,26 @@ def test_frame_files_in_natural_order(tmp_path):
     assert frame_files(tmp_path / "nope") == {}
 
 
+def test_the_frame_number_is_the_run_of_digits_that_changes(tmp_path):
+    """ZJU-MoCap's CoreView names end in a time stamp, others put the camera after the frame:
+    the frame is the run of digits that differs in every file of the folder."""
+    zju = tmp_path / "zju"
+    zju.mkdir()
+    for f, ms in ((1, 592), (2, 625), (3, 658)):
+        (zju / f"CoreView_313_Camera_(1)_{f:04d}_2019-08-23_16-08-50.{ms}.png").write_bytes(b"")
+    assert list(frame_files(zju)) == [1, 2, 3]
+    after = tmp_path / "after"
+    after.mkdir()
+    for f in (3, 1, 2):
+        (after / f"{f:04d}_c1.png").write_bytes(b"")
+    assert list(frame_files(after)) == [1, 2, 3]
+    assert expected_path(after, frame_files(after), 7) == after / "0007_c1.png"
+    single = tmp_path / "single"  # one file: nothing differs, the last run as for one name alone
+    single.mkdir()
+    (single / "cam1_000004.png").write_bytes(b"")
+    assert list(frame_files(single)) == [4]
+
+
 def test_two_files_for_one_frame_are_refused(tmp_path):
     (tmp_path / "a_3.png").write_bytes(b"")
     (tmp_path / "b_003.jpg").write_bytes(b"")
@@ -114,7 +134,7 @@ def test_image_formats(tmp_path, suffix):
 
 
 @pytest.mark.parametrize("masks_folder,sizes_written", [("mask", True), ("masks", True), ("mask", False)])
-def test_easymocap_layout(tmp_path, masks_folder, sizes_written):
+def test_easymocap_layout(tmp_path, capsys, masks_folder, sizes_written):
     """EasyMocap / ZJU-MoCap: images/<cam>/000000.jpg, mask(s)/<cam>/000000.png (0/1), intri.yml + extri.yml,
     with image sizes or, as EasyMocap's write_intri writes it, without (then the images' sizes)."""
     root = tmp_path / "easymocap"
@@ -134,6 +154,8 @@ def test_easymocap_layout(tmp_path, masks_folder, sizes_written):
     assert seq.images(1).shape == (3, H, W, 3)
     seq.check_files(seq.frames, images=True)
     assert seq.check_masks(seq.frames) == []
+    assert all((c.width, c.height) == (W, H) and not c.size_guessed for c in seq.user_studio)
+    assert "guessed" not in capsys.readouterr().err  # the sizes are the images', not guesses
 
 
 @pytest.mark.timeout(60)
@@ -186,6 +208,25 @@ def test_jpeg_masks_with_a_threshold(tmp_path):
     got = load_sequence(root, mask_threshold=127).silhouettes(0)
     truth = np.stack([_mask(W, H, k) for k in range(2)])
     assert np.count_nonzero(got != truth) <= 0.01 * truth.size
+
+
+def test_label_map_masks_and_thresholds_past_8_bits(tmp_path):
+    """A palette PNG of two colours (black and a label's colour) is a mask; an 8-bit mask with
+    a threshold no grey level exceeds is refused, naming the file."""
+    root, studio = _root(tmp_path)
+    m = _mask(W, H)
+    for cam in studio:
+        label = Image.fromarray(m.astype(np.uint8), "L").convert("P")
+        label.putpalette([0, 0, 0, 192, 128, 128] + [0] * 762)
+        path = root / "silhouettes" / cam.name / "000000.png"
+        path.parent.mkdir(parents=True)
+        label.save(path)
+    assert Image.open(path).mode == "P" and np.array_equal(read_mask(path), m)
+    assert np.array_equal(load_sequence(root).silhouettes(0)[1], m)
+    with pytest.raises(InputFileError, match=r"cam2/000000.png: an 8-bit image: no grey level is above the mask "
+                                             r"threshold 255 \(0..254 for 8-bit masks\)"):
+        read_mask(path, 255)
+    assert not read_mask(path, 254).any() and read_mask(path, 0).sum() == m.sum()
 
 
 @pytest.mark.parametrize("threshold", [-1, 1.5, "127", True, 70000])
@@ -249,6 +290,19 @@ def test_check_files_names_the_first_missing_file(tmp_path):
     seq.check_files([0, 2])
     with pytest.raises(InputFileError, match="img_0001.png: missing"):
         seq.silhouettes(1)
+
+
+def test_a_frame_the_first_camera_lacks_is_named_not_dropped(tmp_path):
+    """Without sequence.json the frames are those any camera has a file for."""
+    root, studio = _root(tmp_path)
+    for f in range(3):
+        for cam in studio:
+            _save(root / "silhouettes" / cam.name / f"{f:06d}.png", _mask(W, H, frame=f))
+    (root / "silhouettes" / "cam1" / "000001.png").unlink()
+    seq = load_sequence(root)
+    assert seq.frames == [0, 1, 2]
+    with pytest.raises(InputFileError, match=r"silhouettes/cam1/000001.png: missing: frame 1 of camera cam1"):
+        seq.check_files(seq.frames)
 
 
 def test_check_files_unreadable_and_absent_folders(tmp_path):

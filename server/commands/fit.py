@@ -21,7 +21,7 @@ from server.output import (add_calibration_argument, add_overwrite_argument, add
                            counted, next_steps, replace_file, shell_word)
 from server.results import MOTION_FILE, RESULT_FILES, earlier_actor_scale, load_records
 from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, run_fit,
-                            tracking_error_note, xor_sides)
+                            tracking_error_note, usable_cameras, xor_sides)
 from server.threads import resolve_threads
 
 INIT_CHOICES = ("auto", "truth", "standing")
@@ -279,6 +279,9 @@ def run(args) -> int:
     base = load_body_model()
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
                         clean_masks=args.clean_masks, calibration=args.calibration)
+    frames = seq.frames[:args.frames] if args.frames else seq.frames
+    seq.check_files(frames)  # every mask there and readable before the size search reads them
+    seq = usable_cameras(seq, frames)
     options = options_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
     model, size = actor_model(base, seq, options, args, init, args.threads)

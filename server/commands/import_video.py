@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from common.calibration import load_calibration, save_calibration, with_image_sizes
+from common.calibration import load_calibration, save_calibration
 from common.errors import InputFileError, UserError, print_warning
 from common.sequence import DEFAULT_FPS, FRAME_NAME, check_size, write_sequence_meta
 from common.argtypes import count, real
@@ -130,8 +130,9 @@ def _common_range(frames: dict[str, list[int]], offsets: dict[str, int]) -> tupl
     """[lo, hi) frame numbers every camera spans, and the warning when frames were cut.
 
     frames: each camera's frame numbers (its source numbers less its offset), increasing. The
-    frames that the offsets put before the first synchronous one are not counted as cut; those
-    of a folder that starts before the others, or of a recording that goes on after them, are.
+    frames that the offsets put before the first synchronous one, or after the last, are not
+    counted as cut; those of a folder that starts before the others, or of a recording that
+    goes on after them, are.
     """
     base = _first_frame(offsets)
     lo = max(base, *(f[0] for f in frames.values()))
@@ -146,7 +147,11 @@ def _common_range(frames: dict[str, list[int]], offsets: dict[str, int]) -> tupl
 
     if hi <= lo:
         raise UserError(f"--offset: the recordings have no frames in common ({listing()} frames)")
-    cut = max(bisect_left(f, lo) - bisect_left(f, base) + len(f) - bisect_left(f, hi) for f in frames.values())
+    # a camera shifted by its offset loses the others' last frames by as many: that is the
+    # offset's doing, not a length that differs
+    shift = {n: max(offsets.values()) - offsets[n] for n in frames}
+    ends = {n: (bisect_left(f, lo) - bisect_left(f, base), len(f) - bisect_left(f, hi)) for n, f in frames.items()}
+    cut = max(start + max(0, end - shift[n]) for n, (start, end) in ends.items())
     longest = max(len(f) - bisect_left(f, base) for f in frames.values())
     if cut > MAX_TRIM_FRAMES or cut > MAX_TRIM_FRACTION * longest:
         raise UserError(f"--video: frame counts differ between cameras: {listing()} (more than "
@@ -156,6 +161,8 @@ def _common_range(frames: dict[str, list[int]], offsets: dict[str, int]) -> tupl
     if cut:
         warning = (f"recordings differ in length ({listing()} frames); using the frames {lo}..{hi - 1} all cameras "
                    f"have (a camera that started late is out of step: mocap sync finds its --offset)")
+    elif any(start + end for start, end in ends.values()):
+        warning = f"with the offsets ({listing()} frames) the frames all cameras have are {lo}..{hi - 1}"
     return lo, hi, warning
 
 
@@ -190,8 +197,8 @@ def _write_rgb(path: Path, image: np.ndarray) -> None:
 # --------------------------------------------------------------------------- command
 def run(args) -> int:
     calibration = Path(args.calibration)
-    studio = load_calibration(calibration, units=args.units)
-    names = studio.names
+    # read quietly for its cameras; its warnings come once the videos have given the sizes
+    names = load_calibration(calibration, units=args.units, warn=lambda line: None).names
     videos = {n: Path(p) for n, p in _pairs(args.video, "--video", names, calibration).items()}
     missing = [n for n in names if n not in videos]
     if missing:
@@ -214,7 +221,8 @@ def run(args) -> int:
     _one_camera_per_file([*sources.values(), *bg_sources.values()])
     firsts = {n: s.first() for n, s in sources.items()}
     # A calibration without image sizes gets the videos'; one with sizes must agree with them.
-    studio = with_image_sizes(studio, {n: (f.shape[1], f.shape[0]) for n, f in firsts.items()}, "--video")
+    studio = load_calibration(calibration, units=args.units, images="--video",
+                              image_sizes={n: (f.shape[1], f.shape[0]) for n, f in firsts.items()})
     for n, src in bg_sources.items():
         check_size(src.first().shape, src.where(), studio.camera(n))
 

@@ -21,6 +21,7 @@ from common.sequence import FRAME_NAME, load_sequence
 from common.argtypes import count, real
 from server.commands.fit import add_world_arguments
 from server.output import add_overwrite_argument, add_units_argument, check_folder_target, staged_folder, write_text
+from server.session import usable_cameras
 from common.voxels import SpotGrid, bounds_around, save_voxels, silhouette_centre
 
 SUMMARY = "voxels.json"
@@ -72,6 +73,8 @@ def run(args) -> int:
     if bounds is not None and not np.all(bounds[0] < bounds[1]):
         raise UserError(f"--bounds: expected X0 Y0 Z0 below X1 Y1 Z1, got {' '.join(f'{v:g}' for v in args.bounds)}")
     frames = seq.frames[:args.frames] if args.frames else seq.frames
+    seq.check_files(frames)
+    seq = usable_cameras(seq, frames)
     if bounds is None:  # around the actor wherever it goes (the studio's middle can miss it)
         sampled = frames[::max(1, -(-len(frames) // BOUNDS_SAMPLES))]
         bounds = bounds_around(seq.studio, [silhouette_centre(seq.studio, seq.silhouettes(f)) for f in sampled])
