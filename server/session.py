@@ -364,6 +364,13 @@ SETTLE_FRAMES = 10  # frames tracked after a first-frame search before it is ref
 # 89 mm off through the hops, and from the basins its energy fell from 3,272 to 3,188 pixels
 # and its worst joint to 35 mm.
 PASS_START_HOPS = 120
+# Hops for every frame of a poor window's passes (``refine_poor_windows``). Each frame of the run
+# the passes left in a valley of its own is fitted from its neighbour, which is off too; a hop
+# moves one chain and fits all 35 parameters together, which goes down a valley that runs across
+# the chains (docs/accuracy.md, "Hops in poor windows": the cartwheel's frames over 40 mm 11 -> 7
+# with 20, 7 with 40)
+POOR_WINDOW_HOPS = 20
+
 
 def refine_chunks(order: list[int], chunk_frames: int) -> list[list[int]]:
     """A refinement pass's frame indices, in its order, cut into chunks of about
@@ -381,7 +388,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     its neighbour's fit: going backwards each frame starts from the (already refined) fit of the
     frame after it, forwards from the frame before; each keeps the lowest energy. The pass's
     first frame, which has no neighbour, is fitted by PASS_START_HOPS hops (the pass's own
-    ``hops`` where it has them) and from its limbs' other basins, unless ``anchor`` (35,) is
+    ``hops`` where they are more) and from its limbs' other basins, unless ``anchor`` (35,) is
     the fit of the frame beyond it, which
     the pass then starts from (a run without refinement carrying its settled tracking back over
     the frames after a first-frame search). With ``search``, each frame is also fitted from each limb's
@@ -436,7 +443,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     searched = []
     neighbour = None if anchor is None else np.asarray(anchor, dtype=np.float64)
     if neighbour is None and order:  # the pass's first frame, by hops on every thread
-        searched.append(refine_one(order[0], None, None, hops or PASS_START_HOPS, basins=True))
+        searched.append(refine_one(order[0], None, None, max(hops, PASS_START_HOPS), basins=True))
         neighbour, order = np.asarray(out[order[0]]["params"], dtype=np.float64), order[1:]
     chunks = refine_chunks(order, options.refine_chunk_frames)
     side_by_side = isinstance(solver, LocalSolver) and solver.threads > 1 and len(chunks) > 1
@@ -488,11 +495,11 @@ def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], op
                         stats: RunStats, progress=None) -> tuple[list[dict], int]:
     """After the passes: the frames around each run of poor fits (``common.search.poor_windows``:
     the XOR share of the silhouette well above the take's median) refined once more, forwards
-    from the fit before the window, then backwards from the fit after it (``refine_pass``; a
-    window at the take's end starts from hops). A run the passes left in a valley of its own
-    (the cartwheel rolling onto its side, where each frame fitted from a neighbour that is off
-    stays off) is refined from both sides again, as further passes would, at a few frames'
-    cost. The volume energy is no XOR (metres squared): its fits are not judged so. A window's
+    from the fit before the window, then backwards from the fit after it (``refine_pass``, each
+    frame also by POOR_WINDOW_HOPS hops; a window at the take's end starts from hops). A run the
+    passes left in a valley of its own (the cartwheel rolling onto its side, where each frame
+    fitted from a neighbour that is off stays off) is refined from both sides again, as further
+    passes would, and searched more widely, at a few frames' cost. The volume energy is no XOR (metres squared): its fits are not judged so. A window's
     end frames are not also started from halfway to the frame beyond it. Returns the records,
     changed, and how many frames ended with a lower energy."""
     if options.energy == "volume":
@@ -504,7 +511,7 @@ def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], op
             beyond = last + 1 if backward else first - 1
             anchor = np.asarray(out[beyond]["params"], dtype=np.float64) if 0 <= beyond < len(out) else None
             out[first:last + 1], _ = refine_pass(model, seq, out[first:last + 1], options, solver, stats, backward,
-                                                 progress, anchor=anchor)
+                                                 progress, hops=POOR_WINDOW_HOPS, anchor=anchor)
     return out, sum(1 for r, before in zip(out, records) if r["energy"] < before["energy"])
 
 

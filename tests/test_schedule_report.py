@@ -39,8 +39,8 @@ def params(out: Path) -> list:
 def test_every_tracked_and_refined_frame_is_counted_once(small_sequence, tmp_path, saved_search, monkeypatch):
     """3 frames, the first from the truth's pose: each tracked once (TRACKING); the backward pass
     refines its first frame (2) by REFINE_SEARCH with hops, frames 1 and 0 by REFINE, frame 1
-    (taken for poor) forwards and backwards once more from its neighbours' fits, and frame
-    1 once more by REFINE where it stands out of its neighbours; the fits and re-detection's
+    (taken for poor) forwards and backwards once more from its neighbours' fits with hops, and
+    frame 1 once more by REFINE where it stands out of its neighbours; the fits and re-detection's
     grids spend evaluations; the poses are those of the same fit unwatched."""
     import server.session as session
 
@@ -64,7 +64,9 @@ def test_every_tracked_and_refined_frame_is_counted_once(small_sequence, tmp_pat
     assert standing_out[0] in ([], [1]) and standing_out[1] == standing_out[0]
     assert len(poor) == 2 and len(poor[0]) == 3 and all(share > 0 for share in poor[0])
     # the window's frame forwards from frame 0's fit and backwards from frame 2's, by REFINE
-    assert sum(report["winners"]["REFINE"].values()) == 2 + 2 + len(standing_out[0])
+    # with the window's hops
+    assert sum(report["winners"]["REFINE"].values()) == 2 + len(standing_out[0])
+    assert sum(report["winners"]["REFINE+AFTER_HOPS"].values()) == 2
     assert sum(report["winners"]["REFINE_SEARCH+AFTER_HOPS"].values()) == 1
     summary = json.loads((tmp_path / "plain" / "summary.json").read_text())
     assert summary["frames_poor_refined"] in (0, 1)
