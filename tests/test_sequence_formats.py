@@ -277,32 +277,25 @@ def test_each_file_is_checked_against_its_own_camera(tmp_path):
 
 
 # --------------------------------------------------------------------------- missing files
-def test_check_files_names_the_first_missing_file(tmp_path):
+@pytest.mark.parametrize("lacking,listed", [("cam2", True), ("cam1", False)])
+def test_check_files_names_the_first_missing_file(tmp_path, lacking, listed):
+    """With sequence.json or without (then the frames are those any camera has a file for, so
+    a frame the first camera lacks is named, not dropped)."""
     root, studio = _root(tmp_path)
     for f in range(3):
         for cam in studio:
             _save(root / "silhouettes" / cam.name / f"img_{f:04d}.png", _mask(W, H, frame=f))
-    (root / "silhouettes" / "cam2" / "img_0001.png").unlink()
-    write_sequence_meta(root, [0, 1, 2], 30.0, studio.names)
+    (root / "silhouettes" / lacking / "img_0001.png").unlink()
+    if listed:
+        write_sequence_meta(root, [0, 1, 2], 30.0, studio.names)
     seq = load_sequence(root)
-    with pytest.raises(InputFileError, match=r"silhouettes/cam2/img_0001.png: missing: frame 1 of camera cam2"):
+    assert seq.frames == [0, 1, 2]
+    with pytest.raises(InputFileError, match=rf"silhouettes/{lacking}/img_0001.png: missing: frame 1 of camera "
+                                             rf"{lacking}"):
         seq.check_files(seq.frames)
     seq.check_files([0, 2])
     with pytest.raises(InputFileError, match="img_0001.png: missing"):
         seq.silhouettes(1)
-
-
-def test_a_frame_the_first_camera_lacks_is_named_not_dropped(tmp_path):
-    """Without sequence.json the frames are those any camera has a file for."""
-    root, studio = _root(tmp_path)
-    for f in range(3):
-        for cam in studio:
-            _save(root / "silhouettes" / cam.name / f"{f:06d}.png", _mask(W, H, frame=f))
-    (root / "silhouettes" / "cam1" / "000001.png").unlink()
-    seq = load_sequence(root)
-    assert seq.frames == [0, 1, 2]
-    with pytest.raises(InputFileError, match=r"silhouettes/cam1/000001.png: missing: frame 1 of camera cam1"):
-        seq.check_files(seq.frames)
 
 
 def test_check_files_unreadable_and_absent_folders(tmp_path):
