@@ -87,15 +87,18 @@ def frame_number(name: str) -> int | None:
 
 def frame_run(stems: list[str]) -> int:
     """Which run of digits numbers the frames of one folder's file names (stems), as an index
-    into each name's runs: the first that differs in every file where every name has as many
-    runs ("0001_c1" -> the first; ZJU-MoCap's "CoreView_313_Camera_(1)_0001_2019-08-23_16-08-50.592"
-    -> the fourth, not the milliseconds), else the last (-1)."""
-    runs = [[int(r) for r in _DIGITS.findall(stem)] for stem in stems]
-    if len(runs) >= 2 and runs[0] and all(len(r) == len(runs[0]) for r in runs):
-        for k in range(len(runs[0])):
-            if len({r[k] for r in runs}) == len(runs):
-                return k
-    return -1
+    into each name's runs, where every name has as many runs: of the runs that differ in every
+    file, the one numbered most densely (the smallest largest gap between its sorted values: a
+    frame counter steps by one or by the import's step, a time stamp by a frame's duration);
+    "0001_c1" -> the first; ZJU-MoCap's "CoreView_313_Camera_(1)_0001_2019-08-23_16-08-50.592"
+    -> the fourth, not the milliseconds. Else the last run (-1), as for a name taken alone."""
+    runs = np.array([[int(r) for r in _DIGITS.findall(stem)] for stem in stems], dtype=object)
+    if len(stems) < 2 or runs.ndim != 2 or runs.shape[1] == 0:  # ragged: names of different shapes
+        return -1
+    distinct = [k for k in range(runs.shape[1]) if len(set(runs[:, k])) == len(stems)]
+    if not distinct:
+        return -1
+    return min(distinct, key=lambda k: (max(np.diff(sorted(runs[:, k]))), k))
 
 
 def frame_files(folder) -> dict[int, Path]:

@@ -77,6 +77,11 @@ def test_the_frame_number_is_the_run_of_digits_that_changes(tmp_path):
         (after / f"{f:04d}_c1.png").write_bytes(b"")
     assert list(frame_files(after)) == [1, 2, 3]
     assert expected_path(after, frame_files(after), 7) == after / "0007_c1.png"
+    stamped = tmp_path / "stamped"  # a time stamp first, in milliseconds: the frame counter is denser
+    stamped.mkdir()
+    for f in (1, 2, 3):
+        (stamped / f"{1571823530000 + 33 * f + f % 2}_{f:06d}.png").write_bytes(b"")
+    assert list(frame_files(stamped)) == [1, 2, 3]
     single = tmp_path / "single"  # one file: nothing differs, the last run as for one name alone
     single.mkdir()
     (single / "cam1_000004.png").write_bytes(b"")
