@@ -155,7 +155,8 @@ def _open_image(path):
     except FileNotFoundError:
         raise InputFileError(path, "missing") from None
     except IMAGE_ERRORS as exc:
-        reason = " ".join(str(exc).split()) or type(exc).__name__  # PIL's messages may hold line breaks
+        # PIL's messages may hold line breaks, and name the file the error line names already
+        reason = " ".join(str(exc).replace(repr(str(path)), "").replace(str(path), "").split()) or type(exc).__name__
         raise InputFileError(path, f"not a readable image ({reason})") from None
 
 

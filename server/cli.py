@@ -15,6 +15,7 @@ from common.argtypes import OneLineParser
 
 EXIT_OK = 0
 EXIT_USAGE = 2  # bad input: missing/corrupt files, bad calibration, wrong arguments
+EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT), as a shell reports it
 ACTION_DESTS = ("calib_command", "config_command", "bench")  # the commands' own subcommands
 
 COMMAND_MODULES = (
@@ -91,9 +92,11 @@ def main(argv: list[str] | None = None) -> int:
             raise
         from server.results import stopped_note
 
-        kept = f"; {stopped_note(args.out)}" if args.command in ("fit", "server") else ""
+        kept = (f"; {stopped_note(args.out)}" if args.command in ("fit", "server")
+                else "; what was done is kept, and the same command again goes on from there"
+                if args.command in ("run", "batch") else "")
         print(f"mocap {name}: interrupted{kept}", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
 
 
 def _command_parser(parser: argparse.ArgumentParser, args) -> argparse.ArgumentParser:

@@ -58,7 +58,8 @@ class Setting:
         if not ok:
             wanted = self.wanted or {int: "an integer", float: "a finite number", str: "a string", bool: "true or false",
                                      list: "a list of strings", dict: "a table of integers"}[kind]
-            raise InputFileError(where, f"[{self.section}] {self.key}: expected {wanted}, got {value!r}")
+            shown = str(value).lower() if isinstance(value, bool) else repr(value)  # as the TOML file spells it
+            raise InputFileError(where, f"[{self.section}] {self.key}: expected {wanted}, got {shown}")
         return value
 
 
@@ -256,6 +257,7 @@ FIT_OPTION_DESTS = {
     ("fit", "init"): ("init", lambda v: v or None), ("fit", "actor_height"): ("actor_height", None),
     ("fit", "clean_masks"): ("clean_masks", None), ("fit", "threads"): ("threads", None),
     ("calibration", "units"): ("units", lambda v: v or None), ("calibration", "up"): ("up", None),
+    ("calibration", "file"): ("calibration", lambda v: Path(v) if v else None),
 }
 
 

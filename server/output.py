@@ -90,7 +90,8 @@ def _probe_write(folder: Path, where: str) -> None:
 
 
 def check_folder_target(folder: Path, earlier: tuple[str, ...], option: str | None = "--out", resume: bool = False,
-                        overwrite: bool = False, what: str = "result", given: bool = True) -> bool:
+                        overwrite: bool = False, what: str = "result", given: bool = True,
+                        instead: str | None = None) -> bool:
     """Check a folder a command is about to write before any work is done.
 
     ``earlier``: names of files or folders whose presence means the folder holds an earlier
@@ -98,7 +99,7 @@ def check_folder_target(folder: Path, earlier: tuple[str, ...], option: str | No
     ``resume`` or ``overwrite`` then allowed). Raises UserError naming the folder otherwise.
     ``option`` sets the folder (None: no option does, and no way elsewhere is offered);
     ``given``: whether the user gave it (else the folder is the command's default, named alone,
-    and ``option`` is offered as the way elsewhere).
+    and ``option`` is offered as the way elsewhere); ``instead``: another way out to offer.
     """
     folder = Path(folder)
     where = _named(folder, option, given)
@@ -113,7 +114,7 @@ def check_folder_target(folder: Path, earlier: tuple[str, ...], option: str | No
         shown = ", ".join(present[:4]) + (", ..." if len(present) > 4 else "")
         again = "--resume to continue it or " if what == "result" else ""
         elsewhere = ("" if option is None else ", or choose another folder" if given
-                     else f", or {option} to write elsewhere")
+                     else f", or {option} to write elsewhere") + (f", or {instead}" if instead else "")
         raise UserError(f"{where}: holds an earlier {what} ({shown}); pass {again}--overwrite to replace it"
                         f"{elsewhere}")
     return bool(present)

@@ -71,8 +71,22 @@ def find_takes(project: Path) -> list[Path]:
 def _takes_in(folder: Path) -> list[Path]:
     if is_take(folder):
         return [folder]
-    return [t for sub in sorted(folder.iterdir()) if sub.is_dir() and not sub.name.startswith(".")
-            for t in _takes_in(sub)]
+    return [t for sub in _sub_folders(folder) for t in _takes_in(sub)]
+
+
+def _sub_folders(folder: Path) -> list[Path]:
+    return [sub for sub in sorted(folder.iterdir()) if sub.is_dir() and not sub.name.startswith(".")]
+
+
+def folders_without_takes(project: Path) -> list[Path]:
+    """The project's folders (the highest of each branch) that hold no take, but for its
+    calibration folder: a take whose recordings' folder is misspelt (``video/``) or empty."""
+    out = []
+    for sub in _sub_folders(Path(project)) if not is_take(Path(project)) else []:
+        if sub.name in CALIBRATION_NAMES:
+            continue
+        out += [sub] if not _takes_in(sub) else folders_without_takes(sub)
+    return out
 
 
 def project_of(take: Path) -> Path | None:
@@ -524,7 +538,7 @@ def run_mocap(argv: tuple[str, ...], log, warn=None) -> None:
     """One mocap command in this process, its output into ``log`` and each of its warning lines
     (without "warning: ") to ``warn``; a failure raises UserError with the command's one-line
     message, after its warnings."""
-    from server.cli import main
+    from server.cli import EXIT_INTERRUPTED, main
 
     out = io.StringIO()
     err = _Stderr(out)
@@ -536,6 +550,8 @@ def run_mocap(argv: tuple[str, ...], log, warn=None) -> None:
     for line in err.getvalue().splitlines():
         if warn and line.startswith(WARNING_PREFIX):
             warn(line[len(WARNING_PREFIX):].strip())
+    if code == EXIT_INTERRUPTED:  # Ctrl-C, which the command caught: the run stops as a whole
+        raise KeyboardInterrupt
     if code:
         errors = [line.split(": error: ", 1)[1] for line in text.splitlines() if ": error: " in line]
         raise UserError((errors or text.strip().splitlines() or ["failed"])[-1].strip())

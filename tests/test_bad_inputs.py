@@ -115,7 +115,8 @@ def test_broken_image_files_are_one_error(tmp_path, reader, case):
         assert image_size(path) == (64, 64)
         return
     expected = "a folder" if case == "folder" else "not a readable image"
-    refused(lambda: READERS[reader](path), str(path), expected, kind=InputFileError)
+    message = refused(lambda: READERS[reader](path), str(path), expected, kind=InputFileError)
+    assert message.count(path.name) == 1  # PIL's reason names the file too: said once
 
 
 def test_a_folder_in_place_of_a_frame_file_stops_check_files(tmp_path):

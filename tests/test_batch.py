@@ -113,6 +113,7 @@ def test_config_cascade_and_sources(tmp_path):
     ("[fit\n", ["not valid TOML"]),
     ("[fit]\nactor_height = 3.5\n", ["[fit] actor_height", "0.5 to 3", "3.5"]),
     ("[fit]\nactor_height = 'tall'\n", ["[fit] actor_height", "metres", "auto"]),
+    ("[fit]\niterations = true\n", ["[fit] iterations: expected an integer >= 1, got true"]),
 ])
 def test_bad_config_is_one_line_naming_file_and_key(tmp_path, capsys, text, names):
     take = tmp_path / "take"
@@ -280,6 +281,27 @@ def test_an_interrupted_fit_is_continued(project):
     (take / "result" / "motion.csv").write_text("half written")
     assert [s["status"] for s in run_take(take)["steps"]] == ["up to date", "done", "up to date"]
     assert (take / "result" / "motion.csv").read_text() != "half written"
+
+
+def test_ctrl_c_in_a_steps_command_stops_the_run_as_ctrl_c(project, monkeypatch, capsys):
+    """The fit command catches Ctrl-C and says how it goes on; mocap run stops as interrupted
+    (130, not a failed step) and says that running it again goes on, which it does."""
+    import server.session as session
+
+    take = project / "walk_a"
+    fit_whole = session.run_fit
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(session, "run_fit", interrupted)
+    monkeypatch.setattr("server.commands.fit.run_fit", interrupted)
+    assert main(["run", str(take)]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == "mocap run: interrupted; what was done is kept, and the same command again goes on from there"
+    monkeypatch.setattr(session, "run_fit", fit_whole)
+    monkeypatch.setattr("server.commands.fit.run_fit", fit_whole)
+    assert main(["run", str(take)]) == 0 and len(poses(take)) == 3
 
 
 def test_run_refuses_a_result_it_did_not_make(project, capsys):
@@ -601,9 +623,19 @@ def test_the_batch_table_says_each_take_s_fit_quality():
 
 
 def test_find_takes(project):
+    from server.project import folders_without_takes
+
     assert [t.name for t in find_takes(project)] == ["broken", "walk_a", "walk_b"]
     with pytest.raises(UserError, match="not a take"):
         plan_take(project)
+    assert folders_without_takes(project) == []
+    (project / "empty").mkdir()
+    (project / "day2" / "walk_c" / "video").mkdir(parents=True)  # videos/ misspelt
+    (project / "day2" / "walk_d").mkdir()
+    (project / "day2" / "walk_d" / "sequence.json").write_text("{}")
+    (project / "calibration").mkdir()  # the project's calibration folder is no missing take
+    assert [p.relative_to(project).as_posix() for p in folders_without_takes(project)] == ["day2/walk_c", "empty"]
+    assert folders_without_takes(project / "walk_a") == []
 
 
 @pytest.mark.timeout(60)
@@ -718,6 +750,15 @@ def test_fit_config_file_sets_defaults_and_flags_win(tmp_path, small_sequence, c
     assert main(["fit", str(small_sequence), "--out", str(tmp_path / "other"), "--config", str(config)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(config) in err and "unknown key 'iteration'" in err
+    # [calibration] file, relative to the Config.toml's folder, read as --calibration would be
+    config.write_text('[calibration]\nfile = "lab/none.json"\n')
+    assert main(["fit", str(small_sequence), "--out", str(tmp_path / "third"), "--config", str(config)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(tmp_path / "lab" / "none.json") in err, err
+    (tmp_path / "lab").mkdir()
+    shutil.copy(small_sequence / "calibration.json", tmp_path / "lab" / "none.json")
+    assert main(["fit", str(small_sequence), "--out", str(tmp_path / "third"), "--config", str(config), "--quiet",
+                 "--frames", "1", "--iterations", "1", "--refine-passes", "0"]) == 0
 
 
 def test_presets_under_the_config_file_under_the_options(tmp_path, small_sequence):

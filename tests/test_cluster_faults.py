@@ -143,6 +143,23 @@ def test_client_joins_late(seq_path, reference, tmp_path):
 
 
 @pytest.mark.timeout(90)
+def test_sigterm_stops_a_single_process_fit_as_ctrl_c(seq_path, tmp_path):
+    """A job scheduler's SIGTERM to a single-process fit: exit 130 and the line that says what
+    was kept, as Ctrl-C (not a silent 143)."""
+    out = tmp_path / "out"
+    cmd = [PY, "-m", "server.cli", "fit", str(seq_path), "--out", str(out), "--quiet", "--refine-passes", "1"]
+    with open(tmp_path / "fit.log", "w") as log:
+        fit = subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=log, stderr=log)
+    try:
+        wait_for(lambda: len(records(out)) >= 1, 60, "the first frame")
+        fit.send_signal(signal.SIGTERM)
+        assert fit.wait(STOP_SECONDS) == 130
+    finally:
+        stop([fit])
+    assert (tmp_path / "fit.log").read_text().strip().endswith(
+        f"mocap fit: interrupted; the frames fitted are kept in {out}, and the same command with --resume continues")
+
+
 def test_sigterm_stops_everything_and_resume_finishes(seq_path, reference, tmp_path):
     out = tmp_path / "out"
     cmd = [PY, "-m", "server.cli", "fit", str(seq_path), "--out", str(out), "--clients", "2",

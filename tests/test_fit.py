@@ -589,14 +589,19 @@ def test_a_resume_keeps_the_size_the_run_chose(small_sequence, tmp_path):
     assert read_lines(out / "poses.jsonl")[0]["params"] == read_lines(first / "poses.jsonl")[0]["params"]
 
 
-def test_mocap_fit_resume_after_a_crash(fresh_result, small_sequence, tmp_path):
+def test_mocap_fit_resume_after_a_crash(fresh_result, small_sequence, tmp_path, capsys):
     fresh = (fresh_result / "poses.jsonl").read_text().splitlines(keepends=True)
     out = tmp_path / "result"
     out.mkdir()
     torn = fresh[1][: len(fresh[1]) // 3]  # a crash in the middle of writing frame 1
     (out / "poses.jsonl").write_text(fresh[0] + torn)
     shutil.copy(fresh_result / "run.json", out)  # the settings the crashed run was started with
+    (out / "motion.trc").write_text("made from frame 0 alone")  # an export of the result before
+    capsys.readouterr()
     assert fit(small_sequence, out, "--frames", "2", "--resume") == 0
+    assert (f"{out}: motion.trc was made from the result before this run went on; make them again"
+            in capsys.readouterr().err)
+    assert (out / "motion.trc").read_text() == "made from frame 0 alone"  # kept: the user's to replace
     resumed = read_lines(out / "poses.jsonl")
     first, second = json.loads(fresh[0]), json.loads(fresh[1])
     assert [r["frame"] for r in resumed] == [0, 1]
@@ -707,6 +712,15 @@ def test_fit_truncated_png_is_refused_before_anything_is_written(broken_copy, tm
     _expect_user_error(capsys, rc, str(png))
     # every frame's masks are read before the first is fitted: no result folder at all
     assert not out.exists()
+
+
+def test_fit_into_the_sequence_folder_is_refused_and_too_many_frames_said(broken_copy, tmp_path, capsys):
+    rc = fit(broken_copy, broken_copy, "--frames", "1")
+    _expect_user_error(capsys, rc, f"--out {broken_copy}: the sequence folder itself")
+    assert not (broken_copy / "poses.jsonl").exists()
+    assert fit(broken_copy, tmp_path / "out", "--frames", "99", "--iterations", "1", "--refine-passes", "0") == 0
+    assert f"--frames 99: {broken_copy} has 3 frames; fitting them all" in capsys.readouterr().err
+    assert len(read_lines(tmp_path / "out" / "poses.jsonl")) == 3
 
 
 @pytest.mark.timeout(300)

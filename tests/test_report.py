@@ -87,6 +87,7 @@ def test_mocap_report_writes_page_and_pictures(fitted, capsys):
     with pytest.raises(UserError, match="holds an earlier set of pictures") as refused:
         mocap_report([str(res), "--no-gif", "--out", str(res / "r3.html")])
     assert "--overwrite" in str(refused.value) and "another folder" not in str(refused.value)
+    assert str(refused.value).endswith("or --no-pictures to write the page alone")
 
 
 def test_summary_shows_refinement_beside_tracking(fitted):

@@ -19,7 +19,7 @@ from server.config import MAX_ACTOR_HEIGHT, MIN_ACTOR_HEIGHT, PRESETS
 from server.progress import Progress
 from server.output import (add_calibration_argument, add_overwrite_argument, add_units_argument, check_folder_target,
                            counted, next_steps, replace_file, shell_word)
-from server.results import MOTION_FILE, RESULT_FILES, earlier_actor_scale, load_records
+from server.results import DERIVED_FILES, MOTION_FILE, RESULT_FILES, earlier_actor_scale, load_records
 from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, run_fit,
                             tracking_error_note, usable_cameras, xor_sides)
 from server.threads import resolve_threads
@@ -112,12 +112,18 @@ def options_from_args(args) -> FitOptions:
 
 def finish(model, seq, args, summary: dict) -> None:
     """Files made from the results: the BVH (a finished run's only where a stop before it left
-    none), and the summary on the terminal."""
+    none), and the summary on the terminal; a warning where a resumed run leaves reports and
+    exports of the result before it."""
     complete = bool(summary.get("already_complete"))
     if complete:
         print_warning(f"{args.out}: already complete ({summary['frames']} frames); nothing to resume "
                       "(--overwrite fits it again)")
     records = load_records(args.out)
+    stale = [name for name in DERIVED_FILES if (args.out / name).exists()]
+    if args.resume and not complete and stale:  # the new frames, and refinement over the old ones
+        print_warning(f"{args.out}: {', '.join(stale)} {'was' if len(stale) == 1 else 'were'} made from the result "
+                      "before this run went on; "
+                      "make them again (mocap report, mocap export --overwrite)")
     if records and not (complete and (args.out / MOTION_FILE).is_file()):
         import numpy as np
 
@@ -279,6 +285,10 @@ def run(args) -> int:
     base = load_body_model()
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
                         clean_masks=args.clean_masks, calibration=args.calibration)
+    if Path(args.out).resolve() == seq.path.resolve():
+        raise UserError(f"--out {args.out}: the sequence folder itself; choose a folder of its own for the result")
+    if args.frames and args.frames > len(seq.frames):
+        print_warning(f"--frames {args.frames}: {seq.path} has {len(seq.frames)} frames; fitting them all")
     frames = seq.frames[:args.frames] if args.frames else seq.frames
     seq.check_files(frames)  # every mask there and readable before the size search reads them
     seq = usable_cameras(seq, frames)
@@ -288,10 +298,12 @@ def run(args) -> int:
     total = min(len(seq.frames), args.frames or len(seq.frames))
     bar = Progress("fit", total, enabled=None if not args.quiet else False)
     if args.clients == 0:
+        # SIGTERM (a job scheduler's stop) unwinds like Ctrl-C: the run says what it kept
         solver = LocalSolver(model, options, resolve_threads(args.threads, options))
         try:
-            summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
-                              max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)
+            with terminate_on_sigterm():
+                summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
+                                  max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)
         finally:
             solver.close()
     else:

@@ -59,7 +59,7 @@ def run(args) -> int:
     if not args.no_pictures:
         # RESULT/pictures/: no option writes them elsewhere
         check_folder_target(args.result / PICTURES_DIR, ("*",), option=None, overwrite=args.overwrite,
-                            what="set of pictures", given=False)
+                            what="set of pictures", given=False, instead="--no-pictures to write the page alone")
     cameras = _name_list(args.cameras)
     pictures = []
     if not args.no_pictures:
