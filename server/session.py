@@ -383,12 +383,12 @@ def refine_chunks(order: list[int], chunk_frames: int) -> list[list[int]]:
 
 def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
                 stats: RunStats, backward: bool = True, progress=None, search: bool = False,
-                hops: int = 0, anchor: np.ndarray | None = None) -> tuple[list[dict], int]:
+                hops: int = 0, anchor: np.ndarray | None = None, start_hops: int = 0) -> tuple[list[dict], int]:
     """Fitted frames fitted again in one direction, each by ``common.search.refine_frame`` from
     its neighbour's fit: going backwards each frame starts from the (already refined) fit of the
     frame after it, forwards from the frame before; each keeps the lowest energy. The pass's
-    first frame, which has no neighbour, is fitted by PASS_START_HOPS hops (the pass's own
-    ``hops`` where they are more) and from its limbs' other basins, unless ``anchor`` (35,) is
+    first frame, which has no neighbour, is fitted by ``start_hops`` hops (else the pass's own
+    ``hops``, else PASS_START_HOPS) and from its limbs' other basins, unless ``anchor`` (35,) is
     the fit of the frame beyond it, which
     the pass then starts from (a run without refinement carrying its settled tracking back over
     the frames after a first-frame search). With ``search``, each frame is also fitted from each limb's
@@ -443,7 +443,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     searched = []
     neighbour = None if anchor is None else np.asarray(anchor, dtype=np.float64)
     if neighbour is None and order:  # the pass's first frame, by hops on every thread
-        searched.append(refine_one(order[0], None, None, max(hops, PASS_START_HOPS), basins=True))
+        searched.append(refine_one(order[0], None, None, start_hops or hops or PASS_START_HOPS, basins=True))
         neighbour, order = np.asarray(out[order[0]]["params"], dtype=np.float64), order[1:]
     chunks = refine_chunks(order, options.refine_chunk_frames)
     side_by_side = isinstance(solver, LocalSolver) and solver.threads > 1 and len(chunks) > 1
@@ -511,7 +511,8 @@ def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], op
             beyond = last + 1 if backward else first - 1
             anchor = np.asarray(out[beyond]["params"], dtype=np.float64) if 0 <= beyond < len(out) else None
             out[first:last + 1], _ = refine_pass(model, seq, out[first:last + 1], options, solver, stats, backward,
-                                                 progress, hops=POOR_WINDOW_HOPS, anchor=anchor)
+                                                 progress, hops=POOR_WINDOW_HOPS, anchor=anchor,
+                                                 start_hops=PASS_START_HOPS)
     return out, sum(1 for r, before in zip(out, records) if r["energy"] < before["energy"])
 
 
