@@ -277,12 +277,10 @@ def check_resume_or_overwrite(args) -> None:
         raise UserError("--resume continues the result there and --overwrite replaces it: give one of them")
 
 
-def run(args) -> int:
-    check_resume_or_overwrite(args)
-    # the folder first: a result in the way is refused before the slow actor-size search
-    check_folder_target(args.out, RESULT_FILES, resume=args.resume, overwrite=args.overwrite)
-    warn_if_software_gl(args.energy)
-    base = load_body_model()
+def open_sequence_to_fit(args):
+    """The sequence ``mocap fit`` or ``mocap server`` fits, its masks checked for the frames to
+    fit before the actor-size search reads them, without the cameras whose masks tell nothing
+    (``usable_cameras``); a result folder that is the sequence's is refused."""
     seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
                         clean_masks=args.clean_masks, calibration=args.calibration)
     if Path(args.out).resolve() == seq.path.resolve():
@@ -290,8 +288,17 @@ def run(args) -> int:
     if args.frames and args.frames > len(seq.frames):
         print_warning(f"--frames {args.frames}: {seq.path} has {len(seq.frames)} frames; fitting them all")
     frames = seq.frames[:args.frames] if args.frames else seq.frames
-    seq.check_files(frames)  # every mask there and readable before the size search reads them
-    seq = usable_cameras(seq, frames)
+    seq.check_files(frames)
+    return usable_cameras(seq, frames)
+
+
+def run(args) -> int:
+    check_resume_or_overwrite(args)
+    # the folder first: a result in the way is refused before the slow actor-size search
+    check_folder_target(args.out, RESULT_FILES, resume=args.resume, overwrite=args.overwrite)
+    warn_if_software_gl(args.energy)
+    base = load_body_model()
+    seq = open_sequence_to_fit(args)
     options = options_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
     model, size = actor_model(base, seq, options, args, init, args.threads)

@@ -12,12 +12,11 @@ import sys
 
 from common.argtypes import count
 from common.body import load_body_model
-from common.sequence import load_sequence
 from server.cluster import ClusterSolver
 from server.local_cluster import Terminated, add_cluster_arguments, terminate_on_sigterm
 from server.trust import check_bind, default_bind, server_keys
 from server.commands.fit import (actor_model, add_fit_arguments, check_resume_or_overwrite, finish,
-                                 options_from_args, warn_if_software_gl)
+                                 open_sequence_to_fit, options_from_args, warn_if_software_gl)
 from server.output import check_folder_target
 from server.progress import Progress
 from server.results import RESULT_FILES, stopped_note
@@ -46,8 +45,7 @@ def run(args) -> int:
     # the folder first: a result in the way is refused before the slow actor-size search
     check_folder_target(args.out, RESULT_FILES, resume=args.resume, overwrite=args.overwrite)
     warn_if_software_gl(args.energy)
-    seq = load_sequence(args.sequence, args.units, up=args.up, mask_threshold=args.mask_threshold,
-                        clean_masks=args.clean_masks, calibration=args.calibration)
+    seq = open_sequence_to_fit(args)
     options = options_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
     with terminate_on_sigterm():
