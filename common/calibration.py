@@ -156,18 +156,19 @@ XML_TAGS = {
     "P": ("ProjectionMatrix", "P", "projection_matrix"),
 }
 CAMERA_FIELDS = ("K", "R", "t")  # an XML file with all three (or a P) holds a camera
-# An XML file of another kind (or one that does not parse) is a damaged camera file, refused when
-# read, where it names tags of two camera fields or more (one alone may be a notes file's <p>);
+# An XML file of another kind is a damaged camera file, refused when read, where it names tags
+# of two camera fields or more (one alone may be a notes file's <p>); one that does not parse,
+# where it is empty, has an <opencv_storage> root or names one camera field (a file cut short);
 # otherwise it is notes, passed over
 CAMERA_FIELD_TAGS = {field: frozenset(tag.lower().replace("_", "") for tag in XML_TAGS[field])
                      for field in (*CAMERA_FIELDS, "P")}
 CAMERA_TAG_TEXT = re.compile(r"<\s*([A-Za-z_]+)\b")
 
 
-def _names_camera_fields(tags) -> bool:
-    """Whether ``tags`` (any spelling) name two or more of the camera fields K, R, t, P."""
+def _names_camera_fields(tags, at_least: int = 2) -> bool:
+    """Whether ``tags`` (any spelling) name ``at_least`` of the camera fields K, R, t, P."""
     keys = {_tag_key(tag) for tag in tags}
-    return sum(1 for field_tags in CAMERA_FIELD_TAGS.values() if keys & field_tags) >= 2
+    return sum(1 for field_tags in CAMERA_FIELD_TAGS.values() if keys & field_tags) >= at_least
 
 
 Warn = Callable[[str], None]  # receives one line to show the user
@@ -1054,7 +1055,10 @@ def _file_kind(path: Path) -> str:
             text = _read_text(path)
         except CalibrationError:  # not text either: reported when read
             return "broken"
-        return "none" if text.strip() and not _names_camera_fields(CAMERA_TAG_TEXT.findall(text)) else "broken"
+        # a camera file cut short may name one field or none whole: its root says what it was
+        tags = CAMERA_TAG_TEXT.findall(text)
+        damaged = not text.strip() or "opencv_storage" in tags or _names_camera_fields(tags, at_least=1)
+        return "broken" if damaged else "none"
     if root.tag != "opencv_storage":
         if root.tag == "calibration":
             return "qualisys"

@@ -11,7 +11,8 @@ Layout (see docs/CONTRIBUTING.md)::
     SEQUENCE/truth.jsonl
 
 Frame files may be PNG, JPEG, BMP, PBM/PGM/PPM or TIFF under any name: the frame number is
-the last run of digits in the name (``img_2.jpg`` -> 2, ``000010.png`` -> 10).
+the run of digits that differs in every file of a camera's folder (``frame_run``), else the
+last run of digits in the name (``img_2.jpg`` -> 2, ``000010.png`` -> 10).
 
 Cameras may differ in resolution. Per-frame stacks are then padded: ``silhouettes(frame)``
 is ``(K, Hmax, Wmax)`` bool and ``images(frame)`` ``(K, Hmax, Wmax, 3)`` uint8, with camera
@@ -55,7 +56,7 @@ MASK_FOLDERS = ("silhouettes", "mask", "masks")  # ours first, then EasyMocap / 
 IMAGE_FOLDER = "images"
 DEFAULT_FPS = 30.0  # frames per second when sequence.json does not say
 MAX_MASK_THRESHOLD = 65535  # grey levels of 16-bit masks
-SIXTEEN_BIT_MODES = ("I", "I;16", "I;16B", "I;16L", "F")  # PIL's modes of masks with more than 8 bits
+WIDE_MODES = ("I", "I;16", "I;16B", "I;16L", "F")  # PIL's modes of grey masks wider than 8 bits
 # bytes of cleaned masks a Sequence keeps, bit-packed (77 kB a frame at 8 x 320x240: 800 frames):
 # a fit reads each frame at least three times (tracking, refinement, the fit-quality record),
 # and cleaning one costs tens of milliseconds, unpacking it a fraction of one
@@ -79,19 +80,14 @@ class TruthFrame:
 
 
 # --------------------------------------------------------------------------- files
-def frame_number(name: str) -> int | None:
-    """The frame number of a file name taken alone: its last run of digits ("img_2.jpg" -> 2), or None."""
-    runs = _DIGITS.findall(Path(name).stem)
-    return int(runs[-1]) if runs else None
-
-
 def frame_run(stems: list[str]) -> int:
     """Which run of digits numbers the frames of one folder's file names (stems), as an index
     into each name's runs, where every name has as many runs: of the runs that differ in every
     file, the one numbered most densely (the smallest largest gap between its sorted values: a
     frame counter steps by one or by the import's step, a time stamp by a frame's duration);
     "0001_c1" -> the first; ZJU-MoCap's "CoreView_313_Camera_(1)_0001_2019-08-23_16-08-50.592"
-    -> the fourth, not the milliseconds. Else the last run (-1), as for a name taken alone."""
+    -> the fourth, not the milliseconds. Else the last run (-1), as for a name taken alone
+    ("img_2" -> 2)."""
     runs = np.array([[int(r) for r in _DIGITS.findall(stem)] for stem in stems], dtype=object)
     if len(stems) < 2 or runs.ndim != 2 or runs.shape[1] == 0:  # ragged: names of different shapes
         return -1
@@ -177,16 +173,16 @@ def read_mask(path, threshold: int | None = None) -> np.ndarray:
 
     Without a threshold the file must be binary: at most two grey levels (the higher is
     silhouette; a single level is silhouette when non-zero). Colour images (channels that
-    differ) and grey images with more levels are refused, but for a palette image of two
-    colours (a label map), whose brighter colour is silhouette. With a threshold, grey
+    differ) and grey images with more levels are refused, but for a palette image of black and
+    one colour (a label map), whose colour is silhouette. With a threshold, grey
     level > threshold is silhouette (colour is converted to grey first); a threshold that
     leaves no level of an 8-bit image above it is refused.
     """
     with _open_image(path) as im:
         if im.mode == "1":
             return np.asarray(im, dtype=bool)
-        eight_bit = im.mode not in SIXTEEN_BIT_MODES
-        if im.mode in ("L", *SIXTEEN_BIT_MODES):
+        eight_bit = im.mode not in WIDE_MODES
+        if im.mode in ("L", *WIDE_MODES):
             grey, colour = np.asarray(im), False
         elif im.mode in ("LA", "La"):
             grey, colour = np.asarray(im.getchannel(0)), False
@@ -195,13 +191,12 @@ def read_mask(path, threshold: int | None = None) -> np.ndarray:
             colour = not (np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2]))
             grey = np.asarray(im.convert("L")) if colour else rgb[..., 0]
             if colour and threshold is None and im.mode in ("P", "PA"):
-                # a palette image of two colours is a label map (black and the person's colour,
-                # as segmentation tools write them): the brighter one is silhouette
+                # a palette image of black and one colour is a label map (the background and the
+                # person's label, as segmentation tools write them)
                 packed = rgb[..., 0].astype(np.uint32) << 16 | rgb[..., 1].astype(np.uint32) << 8 | rgb[..., 2]
                 shown = np.unique(packed)
-                if len(shown) == 2:
-                    brighter = grey[packed == shown[1]][0] > grey[packed == shown[0]][0]
-                    return packed == shown[1] if brighter else packed == shown[0]
+                if len(shown) == 2 and shown[0] == 0:  # black and a colour (np.unique sorts: black first)
+                    return packed == shown[1]
     if threshold is not None:
         if eight_bit and threshold >= 255:
             raise InputFileError(path, f"an 8-bit image: no grey level is above the mask threshold {threshold} "
@@ -275,6 +270,7 @@ class Sequence:
         self._cleaned_bytes = 0
         self._cleaned_lock = threading.Lock()
         self._props: tuple[StaticProps | None] | None = None  # (props,) once looked for
+        self._checked: dict = {}  # (frames, masks, images) -> the cameras check_files passed them for
         meta_path = self.path / "sequence.json"
         self.meta = read_sequence_meta(meta_path) if meta_path.exists() else {}
         self.fps = self.meta.get("fps", DEFAULT_FPS)
@@ -405,9 +401,14 @@ class Sequence:
         """Raise InputFileError for the first missing or unusable silhouette (with ``masks``) or
         colour image (with ``images``) of ``frames``: all files are looked for first, then each
         is checked as ``silhouettes`` would read it (read in full: size, binary mask) or, for
-        colour images, from its header (size, readable).
+        colour images, from its header (size, readable). A check this sequence passed already
+        (the same frames and kinds, for these cameras or more: ``mocap fit`` checks before its
+        size search, and the fit again after leaving cameras out) is not read again.
         """
         frames = list(frames)
+        done = (tuple(frames), masks, images)
+        if set(self.studio.names) <= self._checked.get(done, set()):
+            return
         folders = ([self.mask_folder] if masks else []) + ([self.path / IMAGE_FOLDER] if images else [])
         for folder in folders:
             for frame in frames:
@@ -421,6 +422,7 @@ class Sequence:
                     path = self._path(self.path / IMAGE_FOLDER, cam.name, frame)
                     width, height = image_size(path)
                     check_size((height, width), path, cam)
+        self._checked[done] = set(self.studio.names)
 
     def constant_cameras(self, frames) -> dict[str, str]:
         """Camera name -> "on", "off" or "on or off" for each camera whose mask is all on or all
@@ -440,13 +442,6 @@ class Sequence:
                 if frames:
                     found[cam.name] = " or ".join(sorted(states, reverse=True))
         return found
-
-    def check_masks(self, frames) -> list[str]:
-        """Warnings (one per camera) for cameras whose mask is all on or all off in every frame."""
-        frames = list(frames)
-        return [f"{self.mask_folder / name}: camera {name}'s mask is all {state} in every frame ({len(frames)} "
-                "frames); check the masks or the mask threshold"
-                for name, state in self.constant_cameras(frames).items()]
 
     def without_cameras(self, names) -> "Sequence":
         """The same sequence with the cameras ``names`` left out (the world frame is still the

@@ -6,6 +6,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -27,7 +28,12 @@ class Terminated(KeyboardInterrupt):
 
 @contextmanager
 def terminate_on_sigterm():
-    """Within the block, SIGTERM raises ``Terminated`` in the main thread; the old handler after."""
+    """Within the block, SIGTERM raises ``Terminated`` in the main thread; the old handler after.
+    Off the main thread (a fit run by a batch's Dask worker) signals cannot be caught: nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
     def handler(signum, frame):
         raise Terminated()
 

@@ -186,7 +186,7 @@ def usable_cameras(seq: Sequence, frames) -> Sequence:
                                     "frames); check the masks or the mask threshold")
     for name, state in constant.items():
         print_warning(f"{where / name}: camera {name}'s mask is all {state} in every frame ({len(list(frames))} "
-                      "frames): left out of the fit; check the masks or the mask threshold")
+                      "frames): left out; check the masks or the mask threshold")
     return seq.without_cameras(constant)
 
 
@@ -499,9 +499,10 @@ def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], op
     frame also by POOR_WINDOW_HOPS hops; a window at the take's end starts from hops). A run the
     passes left in a valley of its own (the cartwheel rolling onto its side, where each frame
     fitted from a neighbour that is off stays off) is refined from both sides again, as further
-    passes would, and searched more widely, at a few frames' cost. The volume energy is no XOR (metres squared): its fits are not judged so. A window's
-    end frames are not also started from halfway to the frame beyond it. Returns the records,
-    changed, and how many frames ended with a lower energy."""
+    passes would, and searched more widely, at a few frames' cost. The volume energy is no XOR
+    (metres squared): its fits are not judged so. A window's end frames are not also started
+    from halfway to the frame beyond it. Returns the records, changed, and how many frames
+    ended with a lower energy."""
     if options.energy == "volume":
         return records, 0
     shares = [r["energy"] / max(int(np.count_nonzero(seq.silhouettes(r["frame"]))), 1) for r in records]
@@ -593,8 +594,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     """
     frames = seq.frames[:max_frames] if max_frames else list(seq.frames)
     seq.check_files(frames)  # every mask there and readable before anything is written
-    for warning in seq.check_masks(frames):
-        print_warning(warning)
+    seq = usable_cameras(seq, frames)
     if len(seq.studio) < MIN_GOOD_CAMERAS:
         print_warning(f"{len(seq.studio)} camera(s): fewer than {MIN_GOOD_CAMERAS} views leave depth and the "
                       "limbs' sides unresolved; expect joint errors of several centimetres and frames off by up "

@@ -795,6 +795,11 @@ def test_other_tools_xml_and_damaged_notes_in_a_folder_are_skipped(tmp_path, cap
     (folder / "cam4.xml").write_text("<opencv_storage><Rotation>1 0 0</Rotation><Translation>0 0")
     with pytest.raises(CalibrationError, match=r"cam4\.xml: not valid XML"):
         load_calibration(folder, units="mm")
+    whole = (folder / "cam1.xml").read_text()
+    for cut in (whole.index("<Rotation") + 4, whole.index("<CameraMatrix") + 3):  # a file cut short
+        (folder / "cam4.xml").write_text(whole[:cut])
+        with pytest.raises(CalibrationError, match=r"cam4\.xml: not valid XML"):
+            load_calibration(folder, units="mm")
 
 
 @pytest.mark.skipif(not REAL_UU.is_dir(), reason="needs the shared real recordings")

@@ -143,6 +143,28 @@ def test_client_joins_late(seq_path, reference, tmp_path):
 
 
 @pytest.mark.timeout(90)
+def test_the_sigterm_guard_off_the_main_thread_is_no_guard():
+    """A batch's Dask worker runs mocap fit on a thread of its own, where no signal handler can
+    be set: the block runs as it is."""
+    import threading
+
+    from server.local_cluster import terminate_on_sigterm
+
+    ran, failed = [], []
+
+    def fit_on_a_worker_thread():
+        try:
+            with terminate_on_sigterm():
+                ran.append(True)
+        except ValueError as exc:  # "signal only works in main thread"
+            failed.append(exc)
+
+    worker = threading.Thread(target=fit_on_a_worker_thread)
+    worker.start()
+    worker.join(10)
+    assert ran == [True] and failed == []
+
+
 def test_sigterm_stops_a_single_process_fit_as_ctrl_c(seq_path, tmp_path):
     """A job scheduler's SIGTERM to a single-process fit: exit 130 and the line that says what
     was kept, as Ctrl-C (not a silent 143)."""

@@ -735,7 +735,7 @@ def test_a_camera_whose_masks_are_all_off_is_left_out_with_a_warning(broken_copy
     out = tmp_path / "out"
     assert fit(broken_copy, out, "--frames", "2", "--init", "auto", "--preset", "fast") == 0
     err = capsys.readouterr().err
-    assert f"camera cam2's mask is all off in every frame (2 frames): left out of the fit" in err
+    assert err.count("camera cam2's mask is all off in every frame (2 frames): left out;") == 1
     records = read_lines(out / "poses.jsonl")
     assert len(records) == 2 and len(records[0]["fit_quality"]["xor_share"]) == 3
     summary = json.loads((out / "summary.json").read_text())

@@ -183,7 +183,7 @@ def read_whole_sequence(root: Path) -> None:
     seq = load_sequence(root, clean_masks=False)
     seq.truth()
     seq.check_files(seq.frames)
-    seq.check_masks(seq.frames)
+    seq.constant_cameras(seq.frames)
     seq.silhouettes(seq.frames[0])
 
 

@@ -180,6 +180,10 @@ def test_an_offset_past_the_trim_limit_is_no_length_difference(tmp_path, calib, 
         assert [_number(im) for im in seq.images(f)] == [f, f + 12, f]
     rc, _, err = _run(capsys, calib, videos, "--out", tmp_path / "late", "--offset", "cam2=-12", "--step", "3")
     assert rc == 0 and "the frames all cameras have are 12..21" in _one_line(err)
+    # image folders numbered from 1000: the same
+    folders = {c: _write_folder(tmp_path / "numbered" / c, range(22), shift=1000) for c in ("cam1", "cam2", "cam3")}
+    rc, _, err = _run(capsys, calib, folders, "--out", tmp_path / "numbered_seq", "--offset", "cam2=12", "--step", "3")
+    assert rc == 0 and "the frames all cameras have are 1000..1009" in err, err  # (and the frame rate's warning)
 
 
 def test_a_large_length_difference_is_an_error(tmp_path, calib, capsys):

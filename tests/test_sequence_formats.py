@@ -9,7 +9,7 @@ from PIL import Image
 from common.calibration import save_calibration
 from common.camera import Studio, circle_studio
 from common.errors import InputFileError, UserError
-from common.sequence import expected_path, frame_files, frame_number, load_sequence, read_mask, write_sequence_meta
+from common.sequence import expected_path, frame_files, load_sequence, read_mask, write_sequence_meta
 
 W, H = 64, 48
 MIXED_SIZES = ((320, 240), (400, 300), (480, 360))  # width, height
@@ -47,11 +47,13 @@ def _save(path, array, mode=None):
 
 
 # --------------------------------------------------------------------------- names
-def test_frame_number_is_the_last_run_of_digits():
-    assert frame_number("img_2.jpg") == 2
-    assert frame_number("000010.png") == 10
-    assert frame_number("cam3_take2_0017.tif") == 17
-    assert frame_number("background.png") is None
+def test_a_name_alone_is_numbered_by_its_last_run_of_digits(tmp_path):
+    for name, number in (("img_2.jpg", 2), ("000010.png", 10), ("cam3_take2_0017.tif", 17)):
+        folder = tmp_path / name.split(".")[0]
+        folder.mkdir()
+        (folder / name).write_bytes(b"")
+        (folder / "background.png").write_bytes(b"")  # no digit: no frame
+        assert list(frame_files(folder)) == [number]
 
 
 def test_frame_files_in_natural_order(tmp_path):
@@ -158,7 +160,7 @@ def test_easymocap_layout(tmp_path, capsys, masks_folder, sizes_written):
     assert np.array_equal(seq.silhouettes(2), np.stack([_mask(W, H, k, 2) for k in range(3)]))
     assert seq.images(1).shape == (3, H, W, 3)
     seq.check_files(seq.frames, images=True)
-    assert seq.check_masks(seq.frames) == []
+    assert seq.constant_cameras(seq.frames) == {}
     assert all((c.width, c.height) == (W, H) and not c.size_guessed for c in seq.user_studio)
     assert "guessed" not in capsys.readouterr().err  # the sizes are the images', not guesses
 
@@ -241,16 +243,27 @@ def test_bad_mask_threshold(tmp_path, threshold):
         load_sequence(root, mask_threshold=threshold)
 
 
-def test_masks_all_on_or_off_in_every_frame_warn_once(tmp_path):
+def test_masks_all_on_or_off_in_every_frame_are_found(tmp_path):
     root, studio = _root(tmp_path, ((W, H),) * 3)
     for f in range(4):
         _save(root / "silhouettes" / "cam1" / f"{f:06d}.png", _mask(W, H, 0, f))
         _save(root / "silhouettes" / "cam2" / f"{f:06d}.png", np.zeros((H, W), dtype=bool))
         _save(root / "silhouettes" / "cam3" / f"{f:06d}.png", np.full((H, W), f % 2 == 0))
-    warnings = load_sequence(root).check_masks(range(4))
-    assert len(warnings) == 2
-    assert "cam2" in warnings[0] and "all off in every frame" in warnings[0]
-    assert "cam3" in warnings[1] and "all on or off" in warnings[1]
+    seq = load_sequence(root)
+    assert seq.constant_cameras(range(4)) == {"cam2": "off", "cam3": "on or off"}
+    fewer = seq.without_cameras(["cam2", "cam3"])
+    assert fewer.studio.names == fewer.user_studio.names == ["cam1"] and seq.studio.names == ["cam1", "cam2", "cam3"]
+    assert fewer.silhouettes(1).shape == (1, H, W) and np.array_equal(fewer.silhouettes(1)[0], _mask(W, H, 0, 1))
+    # a check passed is not read again, for the same cameras or fewer; for more it is
+    read = []
+    for s in (seq, fewer):
+        s.mask = lambda cam, frame, s=s, own=s.mask: read.append(cam.name) or own(cam, frame)
+    fewer.check_files(range(4))
+    seq.check_files(range(4))
+    assert read == ["cam1"] * 4 + ["cam1", "cam2", "cam3"] * 4
+    seq.check_files(range(4))
+    fewer.check_files(range(4))
+    assert len(read) == 16
 
 
 # --------------------------------------------------------------------------- mixed sizes

@@ -131,8 +131,8 @@ def _common_range(frames: dict[str, list[int]], offsets: dict[str, int]) -> tupl
 
     frames: each camera's frame numbers (its source numbers less its offset), increasing. The
     frames that the offsets put before the first synchronous one, or after the last, are not
-    counted as cut; those of a folder that starts before the others, or of a recording that
-    goes on after them, are.
+    counted as cut, whatever numbers the sources start from; those of a folder that starts
+    before the others, or of a recording that goes on after them, are.
     """
     base = _first_frame(offsets)
     lo = max(base, *(f[0] for f in frames.values()))
@@ -147,11 +147,14 @@ def _common_range(frames: dict[str, list[int]], offsets: dict[str, int]) -> tupl
 
     if hi <= lo:
         raise UserError(f"--offset: the recordings have no frames in common ({listing()} frames)")
-    # a camera shifted by its offset loses the others' last frames by as many: that is the
-    # offset's doing, not a length that differs
-    shift = {n: max(offsets.values()) - offsets[n] for n in frames}
-    ends = {n: (bisect_left(f, lo) - bisect_left(f, base), len(f) - bisect_left(f, hi)) for n, f in frames.items()}
-    cut = max(start + max(0, end - shift[n]) for n, (start, end) in ends.items())
+    # the frames each camera has before the others' first and after their last; an offset puts a
+    # camera's frames that many later (earlier) against the others', and what that cuts is the
+    # offset's doing, not a recording that differs
+    latest_start = max(f[0] for f in frames.values())
+    ends = {n: (bisect_left(f, latest_start), len(f) - bisect_left(f, hi)) for n, f in frames.items()}
+    low, high = min(offsets.values()), max(offsets.values())
+    cut = max(max(0, start - (offsets[n] - low)) + max(0, end - (high - offsets[n]))
+              for n, (start, end) in ends.items())
     longest = max(len(f) - bisect_left(f, base) for f in frames.values())
     if cut > MAX_TRIM_FRAMES or cut > MAX_TRIM_FRACTION * longest:
         raise UserError(f"--video: frame counts differ between cameras: {listing()} (more than "
@@ -161,7 +164,7 @@ def _common_range(frames: dict[str, list[int]], offsets: dict[str, int]) -> tupl
     if cut:
         warning = (f"recordings differ in length ({listing()} frames); using the frames {lo}..{hi - 1} all cameras "
                    f"have (a camera that started late is out of step: mocap sync finds its --offset)")
-    elif any(start + end for start, end in ends.values()):
+    elif any(end for _, end in ends.values()):
         warning = f"with the offsets ({listing()} frames) the frames all cameras have are {lo}..{hi - 1}"
     return lo, hi, warning
 
