@@ -666,9 +666,10 @@ def standing_out(energies: list, ratio: float = STANDING_OUT_RATIO) -> list[int]
 # A refined frame whose XOR share of its silhouette area is this many times the take's median
 # share is poor, and the frames around it are refined once more (``poor_windows``): silhouette
 # noise and the body's own shape move the share by about a tenth, a run left in a valley of its
-# own (the cartwheel rolling onto its side) by up to a half (docs/accuracy.md, "Poor runs
-# refined again")
-POOR_SHARE_RATIO = 1.2
+# own (the cartwheel rolling onto its side) by up to a half. With the windows' hops a window
+# costs a few frames' search and has lowered every clip's error it was tried on, so the line
+# is at 1.15 (docs/accuracy.md, "Poor runs refined again", "Hops in poor windows")
+POOR_SHARE_RATIO = 1.15
 POOR_MARGIN_FRAMES = 3  # frames refined either side of a run of poor ones
 
 

@@ -368,7 +368,7 @@ PASS_START_HOPS = 120
 # the passes left in a valley of its own is fitted from its neighbour, which is off too; a hop
 # moves one chain and fits all 35 parameters together, which goes down a valley that runs across
 # the chains (docs/accuracy.md, "Hops in poor windows": the cartwheel's frames over 40 mm 11 -> 7
-# with 20, 7 with 40)
+# with 20, 7 with 40 and 80)
 POOR_WINDOW_HOPS = 20
 
 
