@@ -176,16 +176,19 @@ def usable_cameras(seq: Sequence, frames) -> Sequence:
     """``seq`` without the cameras whose mask is all on or all off in every one of ``frames``,
     each named in a warning: such a camera tells nothing of the actor (all on: any body fits;
     all off where the actor is in view: none does, and the hull and the size search carve
-    everything away). Refused when that would leave no camera."""
+    everything away). Refused when that would leave no camera. Every mask of ``frames`` is
+    checked first (``Sequence.check_files``, which reads a sequence's masks once)."""
+    frames = list(frames)
+    seq.check_files(frames)
     constant = seq.constant_cameras(frames)
     if not constant:
         return seq
     where = seq.mask_folder
     if len(constant) == len(seq.studio):
-        raise InputFileError(where, f"every camera's mask is all on or all off in every frame ({len(list(frames))} "
+        raise InputFileError(where, f"every camera's mask is all on or all off in every frame ({len(frames)} "
                                     "frames); check the masks or the mask threshold")
     for name, state in constant.items():
-        print_warning(f"{where / name}: camera {name}'s mask is all {state} in every frame ({len(list(frames))} "
+        print_warning(f"{where / name}: camera {name}'s mask is all {state} in every frame ({len(frames)} "
                       "frames): left out; check the masks or the mask threshold")
     return seq.without_cameras(constant)
 
@@ -593,8 +596,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     time; at the model's own size its first-frame fits are reused by the first frame's search).
     """
     frames = seq.frames[:max_frames] if max_frames else list(seq.frames)
-    seq.check_files(frames)  # every mask there and readable before anything is written
-    seq = usable_cameras(seq, frames)
+    seq = usable_cameras(seq, frames)  # every mask there and readable before anything is written
     if len(seq.studio) < MIN_GOOD_CAMERAS:
         print_warning(f"{len(seq.studio)} camera(s): fewer than {MIN_GOOD_CAMERAS} views leave depth and the "
                       "limbs' sides unresolved; expect joint errors of several centimetres and frames off by up "

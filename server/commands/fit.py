@@ -287,9 +287,7 @@ def open_sequence_to_fit(args):
         raise UserError(f"--out {args.out}: the sequence folder itself; choose a folder of its own for the result")
     if args.frames and args.frames > len(seq.frames):
         print_warning(f"--frames {args.frames}: {seq.path} has {len(seq.frames)} frames; fitting them all")
-    frames = seq.frames[:args.frames] if args.frames else seq.frames
-    seq.check_files(frames)
-    return usable_cameras(seq, frames)
+    return usable_cameras(seq, seq.frames[:args.frames] if args.frames else seq.frames)
 
 
 def run(args) -> int:

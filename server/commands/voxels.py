@@ -73,7 +73,6 @@ def run(args) -> int:
     if bounds is not None and not np.all(bounds[0] < bounds[1]):
         raise UserError(f"--bounds: expected X0 Y0 Z0 below X1 Y1 Z1, got {' '.join(f'{v:g}' for v in args.bounds)}")
     frames = seq.frames[:args.frames] if args.frames else seq.frames
-    seq.check_files(frames)
     seq = usable_cameras(seq, frames)
     if bounds is None:  # around the actor wherever it goes (the studio's middle can miss it)
         sampled = frames[::max(1, -(-len(frames) // BOUNDS_SAMPLES))]
