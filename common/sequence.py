@@ -265,6 +265,7 @@ class Sequence:
         if (warning := below_floor_warning(self.user_studio, self.world)) is not None:
             print_warning(f"{self.path}: {warning}")
         self.studio: Studio = self.world.studio_to_fit(self.user_studio)
+        self.left_out: tuple[str, ...] = ()  # cameras left out (``without_cameras``)
         self.clean_masks = clean_masks
         self._cleaned: OrderedDict = OrderedDict()  # frame -> (packed masks, width, pixels removed per camera)
         self._cleaned_bytes = 0
@@ -450,6 +451,7 @@ class Sequence:
         out = copy.copy(self)
         out.user_studio = Studio(tuple(c for c in self.user_studio if c.name not in names), self.user_studio.source)
         out.studio = Studio(tuple(c for c in self.studio if c.name not in names), self.studio.source)
+        out.left_out = tuple(sorted(set(self.left_out) | (names & set(self.user_studio.names))))
         out._cleaned, out._cleaned_bytes, out._cleaned_lock, out._props = OrderedDict(), 0, threading.Lock(), None
         return out
 

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from common.errors import UserError, print_warning
-from server.output import write_text
+from server.output import counted, write_text
 from server.project import TakeFailed, find_takes, folders_without_takes, frames_done, run_take
 from server.threads import THREADS_ENV, usable_cores
 
@@ -144,7 +144,7 @@ def take_line(row: dict) -> str:
         return f"  {row['name']}: failed: {row['error']}"
     figures = ""
     if row.get("frames"):
-        figures = f", {row['frames']} frames"
+        figures = f", {counted(row['frames'], 'frame')}"
         if row.get("seconds_per_frame"):
             figures += f", {row['seconds_per_frame']:.2f} s/frame"
     kept = "".join(f"; {s['step']}: {s['note']}" for s in row.get("steps", ()) if "note" in s)

@@ -154,6 +154,8 @@ def load_result(result_dir, sequence_dir=None, fps: float | None = None) -> Resu
     cleaned = bool(summary.get("masks_cleaned", True))
     sequence = (load_sequence(seq_path, up=up, clean_masks=cleaned, calibration=summary.get("calibration"))
                 if seq_path is not None else None)
+    if sequence is not None and summary.get("cameras_left_out"):  # drawn as fitted: without them
+        sequence = sequence.without_cameras(summary["cameras_left_out"])
     if fps is None:
         if sequence is None:
             recorded = _recorded_sequence(result_dir, summary) or "(not recorded)"

@@ -48,7 +48,7 @@ from common.search import (FIT_JOBS, LIMBS_LOST, WIDE, VARIANTS, Context, descen
                            is_chain_solve, lowest, refine_frame, run_schedule, search_frame, solve_locally,
                            poor_windows, standing_out, tracking_lost, LIMB_LOSS_ENERGY_RATIO)
 from common.sequence import Sequence
-from server.output import write_text
+from server.output import counted, write_text
 from server.threads import backend_threads
 from server.results import (POSES_FILE, SUMMARY_FILE, prepare_result_folder, read_done_frames,
                             rewrite_complete)
@@ -330,8 +330,11 @@ def track(model: BodyModel, data: FrameData, frame: int, start: np.ndarray, befo
 
 
 def run_settings(model: BodyModel, seq: Sequence, options: FitOptions, init: str) -> dict:
-    """What decides a run's poses: written to run.json, and what ``--resume`` must match."""
-    return {"sequence": str(seq.path.resolve()), **sequence_calibration(seq), "init": init, "world_up": seq.world.up,
+    """What decides a run's poses: written to run.json, and what ``--resume`` must match (the
+    cameras left out named only where there are some, so that older runs resume)."""
+    left_out = {"cameras_left_out": list(seq.left_out)} if seq.left_out else {}
+    return {"sequence": str(seq.path.resolve()), **sequence_calibration(seq), **left_out, "init": init,
+            "world_up": seq.world.up,
             "masks_cleaned": seq.clean_masks, "mask_threshold": seq.mask_threshold,
             "actor_scale": model_scale(model), "options": options.to_wire()}
 
@@ -713,6 +716,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     wall = time.perf_counter() - wall0 + (actor_size.seconds if actor_size else 0.0)
     summary = {
         "sequence": str(seq.path.resolve()), **sequence_calibration(seq),
+        "cameras": list(seq.studio.names), "cameras_left_out": list(seq.left_out),
         "world_up": seq.world.up,
         "masks_cleaned": seq.clean_masks,
         # the volume of the static props removed from the masks (common.consistency), m^3; 0 without
@@ -793,7 +797,7 @@ def refinement_note(summary: dict) -> str:
     extra = f", {'the first ' if n > 1 else ''}{extra}" if extra else ""
     settled = summary.get("frames_settled", 0)
     settled = f", {settled} settled on another frame's pose" if settled else ""
-    return f"({n} pass{'es' if n > 1 else ''}{extra}, {summary.get('frames_refined', 0)} frames improved{settled})"
+    return f"({n} pass{'es' if n > 1 else ''}{extra}, {counted(summary.get('frames_refined', 0), 'frame')} improved{settled})"
 
 
 def tracking_error_note(summary: dict) -> str:

@@ -173,11 +173,16 @@ def test_config_values_are_shown_as_toml(value):
 
 
 @pytest.mark.timeout(30)
-@pytest.mark.parametrize("given, why", [("missing", "no such folder"), ("Config.toml", "not a folder")])
-def test_config_show_refuses_what_is_not_a_folder(tmp_path, capsys, given, why):
-    (tmp_path / "Config.toml").write_text("[fit]\niterations = 2\n")
-    assert main(["config", "show", str(tmp_path / given)]) == 2
-    assert refusal(capsys).endswith(f"{tmp_path / given}: {why}")
+def test_config_show_takes_one_file_and_refuses_what_is_not_there(tmp_path, capsys):
+    """A Config.toml given alone is shown over the defaults, as mocap fit --config reads it; a
+    missing path is refused (a typo must not show the defaults as if they were a take's)."""
+    (tmp_path / "Config.toml").write_text("[fit]\niterations = 2\npreset = 'fast'\n")
+    assert main(["config", "show", str(tmp_path / "Config.toml")]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith(f"{tmp_path / 'Config.toml'}: over the defaults")
+    assert f"[fit] iterations = 2   # {tmp_path / 'Config.toml'}" in out and "# preset fast" in out
+    assert main(["config", "show", str(tmp_path / "missing")]) == 2
+    assert refusal(capsys).endswith(f"{tmp_path / 'missing'}: no such folder or file")
 
 
 def test_run_redoes_only_what_changed(project, capsys):
@@ -195,7 +200,7 @@ def test_run_redoes_only_what_changed(project, capsys):
     assert main(["run", str(take)]) == 0  # what a take is checked by, also when nothing ran
     said = capsys.readouterr().out
     assert "actor size 1.00 x the body model" in said and "masks the body misses" in said
-    assert "0 frames flagged" in said
+    assert "0 frames flagged (report.html)" in said
     (take / "Config.toml").write_text("[export]\nformats = ['csv', 'json']\n")
     changed = run_take(take)
     assert [s["status"] for s in changed["steps"]] == ["up to date", "done", "up to date"]
@@ -586,7 +591,7 @@ def test_run_says_the_fit_quality_without_brackets_in_brackets(tmp_path, monkeyp
     monkeypatch.setattr(run_command, "run_take", lambda *args, **kwargs: done)
     assert main(["run", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert "XOR 40% of the silhouettes, 0 frames flagged" in out
+    assert f"XOR 40% of the silhouettes, 0 frames flagged (mocap report {tmp_path / 'result'})" in out  # no report made
     assert "  of the XOR: body outside the masks 1%, masks the body misses 39% (mostly" in out
     assert not any(line.count("(") > 1 for line in out.splitlines()), out
 

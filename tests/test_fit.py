@@ -15,6 +15,7 @@ from common.fitting import HOP_JOBS, FitOptions, FrameData, full_energy, hop_fit
 from common.search import (POLISHED, Context, Schedule, Stage, descend_outward, fit_frame, run_schedule,
                            solve_locally)
 from server.cli import main
+from server.output import counted
 
 from conftest import SMALL_FRAMES
 
@@ -514,7 +515,7 @@ def test_the_summary_table_shows_refinement_beside_tracking(fresh_result):
     out = io.StringIO()
     print_summary(summary, out)
     table = out.getvalue()
-    assert f"{summary['refine_seconds_per_frame']:.3f} (1 pass, {summary['frames_refined']} frames improved)" in table
+    assert f"{summary['refine_seconds_per_frame']:.3f} (1 pass, {counted(summary['frames_refined'], 'frame')} improved)" in table
     assert (f"{summary['mean_joint_error_mm']:.1f} / {summary['max_joint_error_mm']:.1f} mm (tracking alone "
             f"{summary['tracking_mean_joint_error_mm']:.1f} / "
             f"{summary['tracking_max_joint_error_mm']:.1f} mm)") in table
@@ -740,6 +741,12 @@ def test_a_camera_whose_masks_are_all_off_is_left_out_with_a_warning(broken_copy
     assert len(records) == 2 and len(records[0]["fit_quality"]["xor_share"]) == 3
     summary = json.loads((out / "summary.json").read_text())
     assert set(summary["fit_quality"]["per_camera_mean_xor_share"]) == {"cam1", "cam3", "cam4"}
+    # the result says which cameras it was fitted with, a resume must have the same, and its
+    # pictures are drawn with them
+    assert summary["cameras"] == ["cam1", "cam3", "cam4"] and summary["cameras_left_out"] == ["cam2"]
+    assert json.loads((out / "run.json").read_text())["cameras_left_out"] == ["cam2"]
+    from server.pictures import load_result
+    assert load_result(out).sequence.studio.names == ["cam1", "cam3", "cam4"]
     assert main(["voxels", str(broken_copy), "--out", str(tmp_path / "vox"), "--grid", "16", "--quiet"]) == 0
     assert "cam2's mask is all off in every frame (3 frames): left out" in capsys.readouterr().err
     summary = json.loads((tmp_path / "vox" / "voxels.json").read_text())
@@ -1018,7 +1025,7 @@ def test_a_pass_refits_its_first_frame_from_its_limbs_other_basins(model, five_f
     summary = run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=2)
     assert [(p["direction"], p["search"]) for p in summary["refinement_passes"]] == [("backward", True),
                                                                                      ("forward", False)]
-    assert refinement_note(summary) == f"(2 passes, the first searching, {summary['frames_refined']} frames improved)"
+    assert refinement_note(summary) == f"(2 passes, the first searching, {counted(summary['frames_refined'], 'frame')} improved)"
     records = read_lines(tmp_path / "poses.jsonl")
     spoilt = np.array(records[-1]["params"])
     spoilt[P["l_elbow"]] = PARAM_LIMITS[P["l_elbow"], 1]
@@ -1224,7 +1231,7 @@ def test_a_hopping_pass_refits_a_frame_whose_torso_and_leg_are_off_together(mode
     options = FitOptions(refine_passes=2, refine_hops=10)
     summary = run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=2)
     assert [(p["direction"], p["hops"]) for p in summary["refinement_passes"]] == [("backward", 10), ("forward", 0)]
-    assert refinement_note(summary) == f"(2 passes, the first hopping, {summary['frames_refined']} frames improved)"
+    assert refinement_note(summary) == f"(2 passes, the first hopping, {counted(summary['frames_refined'], 'frame')} improved)"
     records = read_lines(tmp_path / "poses.jsonl")
     frame = records[-1]["frame"]
     data = FrameData(model, seq.studio, seq.silhouettes(frame))

@@ -1,10 +1,11 @@
-"""``mocap config show TAKE``: the settings in force for a take, and where each came from."""
+"""``mocap config show TAKE|FILE``: the settings in force for a take (or given by one Config.toml,
+as ``mocap fit --config FILE`` takes them), and where each came from."""
 from __future__ import annotations
 
 from pathlib import Path
 
 from common.errors import UserError
-from server.config import PRESET_KEYS, SECTIONS, SETTINGS, toml_value
+from server.config import PRESET_KEYS, SECTIONS, SETTINGS, load_config, toml_value
 from server.project import config_files, take_config
 
 
@@ -13,15 +14,20 @@ def register(sub) -> None:
     action = p.add_subparsers(dest="config_command", metavar="ACTION")
     action.required = True
     show = action.add_parser("show", help="every setting, its value and the file it came from")
-    show.add_argument("take", type=Path, help="take (or project) folder")
+    show.add_argument("take", type=Path, metavar="TAKE|FILE",
+                      help="take (or project) folder, or one Config.toml (as mocap fit --config FILE reads it)")
     show.set_defaults(func=run_show)
     keys = action.add_parser("keys", help="every key that a Config.toml may hold, with its meaning")
     keys.set_defaults(func=run_keys)
 
 
 def run_show(args) -> int:
+    if args.take.is_file():  # one file, over the defaults
+        print(f"{args.take}: over the defaults")
+        print("\n".join(load_config([args.take]).lines()))
+        return 0
     if not args.take.is_dir():  # else a typo would show the defaults as if they were the take's
-        raise UserError(f"{args.take}: {'not a folder' if args.take.exists() else 'no such folder'}")
+        raise UserError(f"{args.take}: no such folder or file")
     files = [str(p) for p in config_files(args.take) if p.is_file()]
     print(f"{args.take}: {', '.join(files) if files else 'no Config.toml; all defaults'}")
     print("\n".join(take_config(args.take).lines()))

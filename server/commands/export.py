@@ -25,7 +25,7 @@ from common.export import (
 )
 from common.argtypes import real
 from server.output import (
-    add_overwrite_argument, check_file_target, check_folder_target, replace_file, staged_folder,
+    add_overwrite_argument, check_file_target, check_folder_target, counted, replace_file, staged_folder,
 )
 from server.pictures import load_result
 
@@ -143,6 +143,6 @@ def run(args) -> int:
     elif not args.quiet:
         for w in written:
             done = "left" if w["unchanged"] else "wrote"
-            print(f"{done} {w['path']} ({w['format']}, {w['frames']} frames at {w['rate']:g} fps)"
+            print(f"{done} {w['path']} ({w['format']}, {counted(w['frames'], 'frame')} at {w['rate']:g} fps)"
                   + (": it holds this export already" if w["unchanged"] else ""))
     return 0

@@ -116,7 +116,7 @@ def finish(model, seq, args, summary: dict) -> None:
     exports of the result before it."""
     complete = bool(summary.get("already_complete"))
     if complete:
-        print_warning(f"{args.out}: already complete ({summary['frames']} frames); nothing to resume "
+        print_warning(f"{args.out}: already complete ({counted(summary['frames'], 'frame')}); nothing to resume "
                       "(--overwrite fits it again)")
     records = load_records(args.out)
     stale = [name for name in DERIVED_FILES if (args.out / name).exists()]
@@ -162,7 +162,7 @@ def print_summary(summary: dict, out, result: Path | None = None) -> None:
     if quality:  # without truth the only check of a take: how much of the silhouettes the body explains
         flagged = len(quality.get("frames_flagged", []))
         rows.append(("XOR / silhouette area", f"{quality['mean_xor_share']:.0%} mean, {quality['max_xor_share']:.0%} "
-                                              f"worst; {flagged} of {summary['frames']} frames over "
+                                              f"worst; {flagged} of {counted(summary['frames'], 'frame')} over "
                                               f"{quality['flag_share']:.0%} in a camera (mocap report "
                                               f"{shell_word(result) if result else 'RESULT'} names them)"))
         if "mean_missed_share" in quality:
@@ -286,7 +286,7 @@ def open_sequence_to_fit(args):
     if Path(args.out).resolve() == seq.path.resolve():
         raise UserError(f"--out {args.out}: the sequence folder itself; choose a folder of its own for the result")
     if args.frames and args.frames > len(seq.frames):
-        print_warning(f"--frames {args.frames}: {seq.path} has {len(seq.frames)} frames; fitting them all")
+        print_warning(f"--frames {args.frames}: {seq.path} has {counted(len(seq.frames), 'frame')}; fitting them all")
     return usable_cameras(seq, seq.frames[:args.frames] if args.frames else seq.frames)
 
 

@@ -35,7 +35,7 @@ from common.errors import InputFileError, UserError, print_warning
 from common.sequence import DEFAULT_FPS, FRAME_NAME, check_size, write_sequence_meta
 from common.argtypes import count, real
 from server.frame_sources import FrameSource
-from server.output import add_overwrite_argument, add_units_argument, check_folder_target, staged_folder
+from server.output import add_overwrite_argument, add_units_argument, check_folder_target, counted, staged_folder
 
 # what an earlier import (or segment) left in a sequence folder; a calibration.json there may be
 # the --calibration being imported, and is replaced by its checked copy
@@ -298,6 +298,6 @@ def run(args) -> int:
         write_sequence_meta(staged, frames, float(fps), names, **extra)
     if args.overwrite:  # silhouettes of the images just replaced
         shutil.rmtree(out / "silhouettes", ignore_errors=True)
-    print(f"imported {len(frames)} frames ({frames[0]}..{frames[-1]}) x {len(names)} cameras"
+    print(f"imported {counted(len(frames), 'frame')} ({frames[0]}..{frames[-1]}) x {counted(len(names), 'camera')}"
           + (" and empty-studio frames" if bg_sources else "") + f" -> {out}")
     return 0

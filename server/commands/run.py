@@ -16,6 +16,7 @@ from pathlib import Path
 
 from common.argtypes import one_line
 from common.errors import UserError
+from server.output import counted, shell_word
 from server.project import TakeFailed, run_take
 
 
@@ -57,9 +58,11 @@ def run(args) -> int:
         if "mean_xor_share" in done:  # what a take without truth is checked by (mocap fit's table)
             from server.session import xor_sides  # here: the fitting modules load only where a take has a fit
 
-            print(f"  {done['frames']} frames, actor size {done.get('actor_scale', 1.0):.2f} x the body model, "
+            reported = any(step["step"] == "report" for step in done["steps"])  # [report] enabled = false: none
+            print(f"  {counted(done['frames'], 'frame')}, actor size {done.get('actor_scale', 1.0):.2f} x the body model, "
                   f"XOR {done['mean_xor_share']:.0%} of the silhouettes, "
-                  f"{done.get('frames_flagged', 0)} frames flagged (report.html)")
+                  f"{counted(done.get('frames_flagged', 0), 'frame')} flagged"
+                  + (" (report.html)" if reported else f" (mocap report {shell_word(done['result'])})"))
             if "mean_missed_share" in done:  # a line of its own: the sides carry a note in brackets
                 print(f"  of the XOR: {xor_sides(done)}")
         if any(step["warnings"] for step in done["steps"]):  # said under their steps, above

@@ -16,8 +16,8 @@ from common.errors import InputFileError
 from common.segmentation import METHODS, load_params, make_segmenter, params_dict
 from common.sequence import (IMAGE_SUFFIXES, MASK_FOLDERS, check_size, frame_files, image_size, load_sequence, read_image,
                              write_mask_png, write_sequence_meta)
-from server.output import (add_calibration_argument, add_overwrite_argument, check_folder_target, staged_folder,
-                           write_text)
+from server.output import (add_calibration_argument, add_overwrite_argument, check_folder_target, counted,
+                           staged_folder, write_text)
 
 
 def register(subparsers) -> None:
@@ -86,6 +86,6 @@ def run(args) -> int:
     else:
         write_sequence_meta(root, seq.frames, seq.fps, seq.studio.names, segmentation=record)
     count = len(seq.frames) * len(seq.studio)
-    print(f"segmented {len(seq.frames)} frames x {len(seq.studio)} cameras with {args.method} "
+    print(f"segmented {counted(len(seq.frames), 'frame')} x {counted(len(seq.studio), 'camera')} with {args.method} "
           f"({count / max(seconds, 1e-9):.0f} images/s) -> {root / 'silhouettes'}")
     return 0
