@@ -97,6 +97,15 @@ def frame_step(frames) -> int:
     return max(int(np.gcd.reduce(steps)) if len(steps) else 1, 1)
 
 
+def frames_off_step(frames) -> list[int]:
+    """The frame numbers between the first and the last of ``frames`` (F,) on their
+    ``frame_step`` that ``frames`` lacks (a frame that failed to import or to fit)."""
+    frames = np.unique(np.asarray(frames, dtype=np.int64))
+    if len(frames) < 2:
+        return []
+    return sorted(set(range(int(frames[0]), int(frames[-1]) + 1, frame_step(frames))) - set(frames.tolist()))
+
+
 def sample_rate(frames: np.ndarray, fps: float) -> float:
     """Samples per second of fits at ``frames`` (F,) (frame numbers of a recording at ``fps``):
     ``fps`` over their ``frame_step``, so that a take imported with ``--step 5`` from 50 fps

@@ -63,6 +63,22 @@ def undistort_masks(studio: Studio, masks: np.ndarray) -> tuple[Studio, np.ndarr
     return Studio(tuple(cams), studio.source), pad_stack(out)
 
 
+def recorded_pixels(studio: Studio, flags: np.ndarray) -> np.ndarray:
+    """(K, H, W) bool flags over the ideal pinhole images (``undistort_masks``'s) -> the same
+    over the images as recorded: a recorded pixel is flagged where an ideal pixel sampled from it
+    is, so that masks cleared there and undistorted again are clear at every flagged pixel."""
+    flags = np.asarray(flags, dtype=bool)
+    out = flags.copy()
+    for k, cam in enumerate(studio):
+        if cam.has_distortion:
+            idx = undistort_map(cam)
+            plane = np.zeros(cam.height * cam.width, dtype=bool)
+            plane[idx[flags[k, :cam.height, :cam.width] & (idx >= 0)]] = True
+            out[k] = False
+            out[k, :cam.height, :cam.width] = plane.reshape(cam.height, cam.width)
+    return out
+
+
 def spot_grid(studio: Studio, masks: np.ndarray, grid: int):
     """SPOT lookup tables for a box around the actor; built once per studio and box."""
     from common.voxels import SpotGrid, actor_bounds

@@ -266,6 +266,7 @@ class Sequence:
             print_warning(f"{self.path}: {warning}")
         self.studio: Studio = self.world.studio_to_fit(self.user_studio)
         self.left_out: tuple[str, ...] = ()  # cameras left out (``without_cameras``)
+        self.foreground_left_out: np.ndarray | None = None  # (K, H, W) bool pixels cleared (``without_foreground``)
         self.clean_masks = clean_masks
         self._cleaned: OrderedDict = OrderedDict()  # frame -> (packed masks, width, pixels removed per camera)
         self._cleaned_bytes = 0
@@ -355,7 +356,8 @@ class Sequence:
 
         Camera k's mask is in ``[k, :h_k, :w_k]``; the padding is False.
         """
-        return self.cleaned(frame)[0] if self.clean_masks else self.raw_silhouettes(frame)
+        masks = self.cleaned(frame)[0] if self.clean_masks else self.raw_silhouettes(frame)
+        return masks if self.foreground_left_out is None else masks & ~self.foreground_left_out
 
     def raw_silhouettes(self, frame: int) -> np.ndarray:
         """(K, Hmax, Wmax) bool masks of one frame as the files hold them (``silhouettes`` without
@@ -452,7 +454,17 @@ class Sequence:
         out.user_studio = Studio(tuple(c for c in self.user_studio if c.name not in names), self.user_studio.source)
         out.studio = Studio(tuple(c for c in self.studio if c.name not in names), self.studio.source)
         out.left_out = tuple(sorted(set(self.left_out) | (names & set(self.user_studio.names))))
+        if self.foreground_left_out is not None:
+            out.foreground_left_out = self.foreground_left_out[[c.name not in names for c in self.studio]]
         out._cleaned, out._cleaned_bytes, out._cleaned_lock, out._props = OrderedDict(), 0, threading.Lock(), None
+        return out
+
+    def without_foreground(self, pixels: np.ndarray) -> "Sequence":
+        """The same sequence with the pixels ``pixels`` (K, Hmax, Wmax) bool, over the images as
+        recorded, cleared in every frame's silhouettes (foreground no fitted pose explains:
+        ``common.consistency.unexplained_foreground``)."""
+        out = copy.copy(self)
+        out.foreground_left_out = np.asarray(pixels, dtype=bool)
         return out
 
     def truth(self) -> dict[int, TruthFrame] | None:

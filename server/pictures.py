@@ -34,11 +34,13 @@ from common.body import (
     JOINT_NAMES, SEGMENT_NAMES, SEGMENT_PARENTS, BodyModel, forward_kinematics, rigid_vertices,
 )
 from common.camera import Camera, Studio, look_at
-from common.errors import InputFileError, UserError
+from common.errors import InputFileError, UserError, print_warning
 from common.export import FittedMotion
 from common.sequence import Sequence, load_sequence
+from server.output import staged_folder
 from server.progress import Progress
-from server.results import RUN_FILE, SUMMARY_FILE, frames_text, load_records, read_run_settings
+from server.results import (RUN_FILE, SUMMARY_FILE, frames_text, load_records, read_foreground_left_out,
+                            read_run_settings)
 
 PICTURES_DIR = "pictures"
 GIF_NAME = "sequence.gif"
@@ -147,8 +149,10 @@ def load_result(result_dir, sequence_dir=None, fps: float | None = None) -> Resu
     if summary_path.exists():
         try:
             summary = json.loads(summary_path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise InputFileError(summary_path, f"not valid JSON ({exc})") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:  # read as a result without one: run.json names the sequence
+            print_warning(f"{summary_path}: not valid JSON ({exc}); read without it")
+        if not isinstance(summary, dict):
+            summary = {}
     seq_path = _sequence_path(result_dir, summary, sequence_dir)
     up = records[0].get("world_up", "+z")  # the frame the fit ran in
     cleaned = bool(summary.get("masks_cleaned", True))
@@ -156,6 +160,8 @@ def load_result(result_dir, sequence_dir=None, fps: float | None = None) -> Resu
                 if seq_path is not None else None)
     if sequence is not None and summary.get("cameras_left_out"):  # drawn as fitted: without them
         sequence = sequence.without_cameras(summary["cameras_left_out"])
+    if sequence is not None and (cleared := read_foreground_left_out(result_dir)) is not None:
+        sequence = sequence.without_foreground(cleared)  # the masks as the fit had them
     if fps is None:
         if sequence is None:
             recorded = _recorded_sequence(result_dir, summary) or "(not recorded)"
@@ -687,28 +693,29 @@ def make_result_pictures(result_dir, sequence_dir=None, frames=None, cameras=Non
     the frame rate) only plots and views. quiet: no progress bar. Returns the written paths.
     """
     result = load_result(result_dir, sequence_dir, fps)
-    out_dir = result.path / PICTURES_DIR
-    out_dir.mkdir(exist_ok=True)
-    written = []
-    for name, data in make_plots(result).items():
-        (out_dir / name).write_bytes(data)
-        written.append(out_dir / name)
-    painter = ModelPainter(result.motion.model)
-    frames = list(frames) if frames else default_frames(result)
-    cam_idx = None
-    if result.sequence is not None:
-        cam_idx = camera_indices(result.sequence.studio, cameras or default_cameras(result.sequence.studio))
-    for frame in frames:
-        if cam_idx is not None:
-            strip, _ = overlay_strip(result, painter, frame, cam_idx)
-            path = out_dir / f"overlay_{int(frame):06d}.png"
-            Image.fromarray(strip).save(path)
+    final = result.path / PICTURES_DIR
+    # built beside and swapped in whole: an earlier set (other frames, another rate) leaves nothing
+    with staged_folder(final) as out_dir:
+        written = []
+        for name, data in make_plots(result).items():
+            (out_dir / name).write_bytes(data)
+            written.append(out_dir / name)
+        painter = ModelPainter(result.motion.model)
+        frames = list(frames) if frames else default_frames(result)
+        cam_idx = None
+        if result.sequence is not None:
+            cam_idx = camera_indices(result.sequence.studio, cameras or default_cameras(result.sequence.studio))
+        for frame in frames:
+            if cam_idx is not None:
+                strip, _ = overlay_strip(result, painter, frame, cam_idx)
+                path = out_dir / f"overlay_{int(frame):06d}.png"
+                Image.fromarray(strip).save(path)
+                written.append(path)
+            path = out_dir / f"model_{int(frame):06d}.png"
+            Image.fromarray(model_views(result, painter, frame)).save(path)
             written.append(path)
-        path = out_dir / f"model_{int(frame):06d}.png"
-        Image.fromarray(model_views(result, painter, frame)).save(path)
-        written.append(path)
-    if gif:
-        bar = Progress("gif", len(result.motion.frames), enabled=False if quiet else None)
-        written += write_sequence_animations(result, painter, out_dir / GIF_NAME, out_dir / VIDEO_NAME,
-                                             camera=cam_idx[0] if cam_idx else None, progress=bar)
-    return written
+        if gif:
+            bar = Progress("gif", len(result.motion.frames), enabled=False if quiet else None)
+            written += write_sequence_animations(result, painter, out_dir / GIF_NAME, out_dir / VIDEO_NAME,
+                                                 camera=cam_idx[0] if cam_idx else None, progress=bar)
+    return [final / p.name for p in written]

@@ -1,7 +1,7 @@
 """Takes of a project and ``mocap run``: every step from a take's raw files to its report.
 
 A project is a folder with ``Config.toml`` at its root; a take is a folder below it holding
- - ``videos/<camera>.<ext>`` (or ``videos/<camera>/`` image folders), optionally with
+ - ``videos/<camera>.<ext>`` (or ``videos/<camera>/`` image folders) with
    ``background/<camera>.<ext>`` (or folders) of the empty studio: imported, then segmented;
  - or ``images/<camera>/`` and ``background/<camera>/``: imported the same way;
  - or a ready sequence (``sequence.json``, or ``silhouettes/`` without videos/ or images/): fitted as
@@ -237,13 +237,13 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
         sequence = take / config.get("take", "sequence")
         calibration = find_calibration(take, config)
         videos, backgrounds = imports[source_kind], _sources(take / "background")
-        recordings = {source_kind: videos} | ({"background": backgrounds} if backgrounds else {})
+        # segmentation subtracts the empty studio: a take without it is refused before the import
+        recordings = {source_kind: videos, "background": backgrounds}
         imp = config.section("import")
         command = ["import-video", "--calibration", str(calibration), "--out", str(sequence), "--overwrite",
                    "--video", *[f"{cam}={path}" for cam, path in videos.items()],
                    "--start", str(imp["start"]), "--step", str(imp["step"])]
-        if backgrounds:
-            command += ["--background", *[f"{cam}={path}" for cam, path in backgrounds.items()]]
+        command += ["--background", *[f"{cam}={path}" for cam, path in backgrounds.items()]]
         if imp["stop"]:
             command += ["--stop", str(imp["stop"])]
         if imp["fps"]:

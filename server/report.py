@@ -36,7 +36,7 @@ from server.pictures import (
     png_bytes,
 )
 from server.results import POSES_FILE
-from server.session import refinement_note, tracking_error_note, xor_sides
+from server.session import masks_cleared_note, refinement_note, tracking_error_note, xor_sides
 
 REPORT_NAME = "report.html"
 STRIP_HEIGHT = 180     # pixels per camera picture in the overlay strips
@@ -133,6 +133,8 @@ def summary_rows(result: ResultData) -> list[tuple[str, str]]:
                         ("XOR share per camera", ", ".join(f"{c} {v:.0%}" for c, v in
                                                           quality["per_camera_mean_xor_share"].items())),
                         *([("of which", xor_sides(quality))] if "mean_missed_share" in quality else []),
+                        *([("masks cleared", masks_cleared_note(s["foreground_left_out"]))]
+                          if s.get("foreground_left_out") else []),
                         (f"frames over {quality['flag_share']:.0%} in a camera",
                          f"{len(flagged)} of {len(m.frames)}" + (f" (first: frame {flagged[0]['frame']}, "
                                                                   f"{', '.join(flagged[0]['cameras'])})" if flagged else ""))]

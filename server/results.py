@@ -8,28 +8,36 @@ import os
 import shutil
 from pathlib import Path
 
+import numpy as np
+
 from common.body import PARAM_COUNT
 from common.errors import InputFileError, UserError, print_warning
-from common.export import FORMATS, export_name, frame_step
+from common.export import FORMATS, export_name, frame_step, frames_off_step
 from server.output import check_folder_target, write_text
 
 POSES_FILE = "poses.jsonl"
 SUMMARY_FILE = "summary.json"
 RUN_FILE = "run.json"  # the settings of the run that wrote poses.jsonl, which --resume must match
 MOTION_FILE = "motion.bvh"
+# the pixels a fit cleared from every frame's masks (foreground no fitted pose explains), which
+# its pictures clear too
+FOREGROUND_FILE = "foreground_left_out.npz"
 # a result's files: not run.json, which is written before the first frame, so that a folder
 # holding only that (a run stopped or refused before any frame was fitted) is no result to keep
-RESULT_FILES = (POSES_FILE, SUMMARY_FILE, MOTION_FILE)
+RESULT_FILES = (POSES_FILE, SUMMARY_FILE, MOTION_FILE, FOREGROUND_FILE)
 # made from a result, so stale once it is replaced (mocap report, mocap export's default names)
 DERIVED_FILES = ("report.html", "pictures") + tuple(export_name(f) for f in FORMATS if export_name(f) != MOTION_FILE)
 
 
 def frames_text(frames) -> str:
-    """Fitted frame numbers for a message: '0..195, one in 5', '0..40', or 'none'."""
+    """Fitted frame numbers for a message: '0..195, one in 5', '0..40', '10..38, one in 2,
+    without 18', or 'none'."""
     if len(frames) == 0:
         return "none"
     step = frame_step(frames)
-    return f"{min(frames)}..{max(frames)}" + (f", one in {step}" if step > 1 else "")
+    off = frames_off_step(frames)
+    without = f", without {', '.join(map(str, off[:5]))}{', ...' if len(off) > 5 else ''}" if off else ""
+    return f"{min(frames)}..{max(frames)}" + (f", one in {step}" if step > 1 else "") + without
 
 
 def stopped_note(out_dir: Path) -> str:
@@ -67,14 +75,34 @@ def read_done_frames(path: Path) -> list[dict]:
         if len(params) != PARAM_COUNT or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in params):
             raise InputFileError(path, f"line {n}: params: expected {PARAM_COUNT} finite numbers (frame "
                                        f"{record['frame']}); repair the line, or fit again with --overwrite")
+        bad = joints_problem(record.get("joints", {}))
+        if bad is not None:
+            raise InputFileError(path, f"line {n}: joints: {bad} (frame {record['frame']}); repair the line, "
+                                       "or fit again with --overwrite")
         if done and record["frame"] <= done[-1]["frame"]:
             raise InputFileError(path, f"line {n}: frame {record['frame']} after frame {done[-1]['frame']}: the "
                                        "records are out of order or repeated; repair the file, or fit again with "
                                        "--overwrite")
         done.append(record)
-    if lines[-1].strip():
+    if lines[-1].strip() and (str(path), len(lines)) not in _TORN_WARNED:  # said once, however often it is read
+        _TORN_WARNED.add((str(path), len(lines)))
         print_warning(f"{path}: line {len(lines)} is incomplete (a run stopped while writing it): left out")
     return done
+
+
+_TORN_WARNED: set = set()
+
+
+def joints_problem(joints) -> str | None:
+    """What is wrong with a record's "joints" ({name: [x, y, z]}, metres): "NAME: expected 3
+    finite numbers" for the first joint that is not, None where nothing is."""
+    if not isinstance(joints, dict):
+        return "expected {joint: [x, y, z]}"
+    for name, xyz in joints.items():
+        if not (isinstance(xyz, list) and len(xyz) == 3
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in xyz)):
+            return f"{name}: expected 3 finite numbers"
+    return None
 
 
 def settings_differences(before: dict, now: dict, prefix: str = "") -> list[str]:
@@ -162,3 +190,27 @@ def load_records(out_dir: Path) -> list[dict]:
     if not path.exists():
         raise InputFileError(path, "missing (not a result folder?)")
     return read_done_frames(path)
+
+
+def write_foreground_left_out(out_dir: Path, pixels) -> None:
+    """The pixels (K, H, W) bool a fit cleared from the masks, packed, to ``FOREGROUND_FILE``;
+    the file removed where ``pixels`` is None."""
+    path = Path(out_dir) / FOREGROUND_FILE
+    if pixels is None:
+        path.unlink(missing_ok=True)
+        return
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, packed=np.packbits(pixels, axis=-1), width=pixels.shape[-1])
+    os.replace(tmp, path)
+
+
+def read_foreground_left_out(out_dir: Path):
+    """(K, H, W) bool: the pixels the fit in ``out_dir`` cleared from the masks; None where none."""
+    path = Path(out_dir) / FOREGROUND_FILE
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as saved:
+            return np.unpackbits(saved["packed"], axis=-1, count=int(saved["width"])).astype(bool)
+    except (OSError, ValueError, KeyError) as exc:
+        raise InputFileError(path, f"not a mask file this program wrote ({exc}); fit again with --overwrite") from None

@@ -38,7 +38,9 @@ import numpy as np
 from common import voxels
 from common.body import P, BodyModel, forward_kinematics, joints_dict, load_body_model, rest_params
 from common.errors import InputFileError, UserError, print_warning
-from common.fitting import HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult, fit_rounds
+from common.consistency import UNEXPLAINED_FRAMES_SHARE, unexplained_foreground
+from common.fitting import HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult, fit_rounds, full_energy
+from common.frame import recorded_pixels
 from common.helping_pool import HelpingPool
 from common.proposals import voxel_starts
 from common.retarget import nearest_turn
@@ -51,7 +53,7 @@ from common.sequence import Sequence
 from server.output import counted, write_text
 from server.threads import backend_threads
 from server.results import (POSES_FILE, SUMMARY_FILE, prepare_result_folder, read_done_frames,
-                            rewrite_complete)
+                            rewrite_complete, write_foreground_left_out)
 
 # fewer views leave depth and the limbs' sides unresolved (tools/camera_count_accuracy.py,
 # docs/accuracy.md "Fewer cameras": a walk fits 95/908 mm mean/worst with 1 camera, 63/858 with 2,
@@ -356,8 +358,10 @@ def user_joints(model: BodyModel, seq: Sequence, params: np.ndarray) -> dict:
 
 
 def model_scale(model: BodyModel) -> float:
-    """The actor's size over the body model's own (its height over the default body's)."""
-    return float(model.height / load_body_model().height)
+    """The actor's size over the body model's own: the factor it was scaled by, exactly, so that
+    a resumed run rebuilds the same model from run.json (its height over the default body's
+    differs in the last digits, and a body 1e-7 larger fits another pose in the end)."""
+    return float(model.scale / load_body_model().scale)
 
 SETTLE_FRAMES = 10  # frames tracked after a first-frame search before it is refined backwards (online runs)
 # hops that refit a pass's first frame, which has no neighbour to be refitted from: the
@@ -548,6 +552,62 @@ def refit_standing_out(model: BodyModel, seq: Sequence, records: list[dict], opt
     return out, replaced
 
 
+UNEXPLAINED_ROUNDS = 3  # the foreground found again from the fits it gave, while it grows
+
+
+def unexplained_pixels(model: BodyModel, seq: Sequence, records: list[dict]) -> tuple[np.ndarray | None, float]:
+    """(the pixels (K, H, W) bool of the fit's ideal images that the fitted bodies of ``records``
+    miss in most frames (``common.consistency.unexplained_foreground``) or None, the mean
+    silhouette pixels per frame), against ``seq``'s masks."""
+    missed, area = None, 0
+    for r in records:
+        data = frame_data(model, seq, r["frame"])
+        body = data.whole_image_energy().render(np.asarray(r["params"], dtype=np.float64))
+        miss = (data.masks & ~body).astype(np.int32)
+        missed = miss if missed is None else missed + miss
+        area += int(np.count_nonzero(data.masks))
+    mean_area = area / len(records)
+    return unexplained_foreground(missed, len(records), mean_area), mean_area
+
+
+def leave_out_unexplained(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions,
+                          solver: Solver, stats: RunStats, progress=None) -> tuple[Sequence, list[dict], dict]:
+    """After the passes: the foreground that the fitted bodies miss in most of the take's frames
+    (``unexplained_pixels``: a chair the actor sits on, which is one 3D component with the actor
+    and so no static prop) cleared from every frame's masks (``Sequence.without_foreground``),
+    and the take refined again against them, backwards then forwards, each frame keeping the
+    lowest energy against the cleared masks: a limb laid along the chair's back, which the
+    masks paid for, has to be where the actor is. Where the new fits miss more (the chair's
+    back, once fewer frames' arms lie on it), again, up to UNEXPLAINED_ROUNDS times. Returns
+    the sequence (cleared, or ``seq`` itself where nothing is), the records and, where pixels
+    were cleared, {"share": their number over the mean silhouette area, "frames_replaced": how
+    many frames the passes replaced, "rounds": the rounds of passes} (else {})."""
+    out, flags, rounds, first_area = records, None, 0, 0.0
+    for rounds in range(UNEXPLAINED_ROUNDS):
+        found, mean_area = unexplained_pixels(model, seq, out)
+        first_area = first_area or mean_area
+        if found is None or (flags is not None and not (found & ~flags).any()):
+            break
+        flags = found if flags is None else flags | found
+        cleared = seq.without_foreground(recorded_pixels(seq.studio, flags))
+        out = [dict(r) for r in out]
+        for r in out:  # the energies the passes compare against, at the cleared masks
+            r["energy"] = int(full_energy(model, frame_data(model, cleared, r["frame"]), np.asarray(r["params"])))
+        for backward in (True, False):  # each pass's first frame from its fit and a window's hops
+            out, _ = refine_pass(model, cleared, out, options, solver, stats, backward, progress,
+                                 start_hops=POOR_WINDOW_HOPS)
+    else:
+        rounds = UNEXPLAINED_ROUNDS
+    if flags is None:
+        return seq, records, {}
+    for r, before in zip(out, records):  # a tracking fit first replaced here keeps its energy as tracked
+        if "first_pass" in r and "first_pass" not in before:
+            r["first_pass"] = r["first_pass"] | {"energy": before["energy"]}
+    return (seq.without_foreground(recorded_pixels(seq.studio, flags)), out,
+            {"share": round(float(flags.sum() / first_area), 4), "rounds": rounds,
+             "frames_replaced": sum(a["params"] != b["params"] for a, b in zip(records, out))})
+
+
 def settle_records(model: BodyModel, seq: Sequence, records: list[dict]) -> tuple[list[dict], int, list[dict]]:
     """The refined records with each frame's pose chosen among its neighbours' fits by
     ``common.settle.settle_choice`` (a still actor's frames take one pose where the masks did
@@ -703,9 +763,12 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                        "hop_seconds": stats.hop_seconds - hop_seconds_before,
                        "frames_replaced": replaced, "seconds": time.perf_counter() - t0})
     standing_out_refitted = poor_refined = 0
+    left_out = {}
     if passes:
         records, poor_refined = refine_poor_windows(model, seq, records, options, solver, stats, progress)
         records, standing_out_refitted = refit_standing_out(model, seq, records, options, solver, stats)
+        seq, records, left_out = leave_out_unexplained(model, seq, records, options, solver, stats, progress)
+    write_foreground_left_out(out_dir, seq.foreground_left_out)
     settled, refined = 0, sum(1 for r in records if "first_pass" in r)
     if passes:  # offline runs only: a frame's pose may come from a later frame's fit
         records, settled, quality = settle_records(model, seq, records)
@@ -747,6 +810,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "frames_refined": refined,
         "frames_poor_refined": poor_refined,
         "frames_standing_out_refitted": standing_out_refitted,
+        # foreground no fitted pose explains, cleared from the masks (leave_out_unexplained)
+        "foreground_left_out": left_out,
         "frames_settled": settled,
         "chain_cpu_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_cpu.items()},
         "chain_wall_seconds_per_frame": {c: v / max(len(stats.seconds), 1) for c, v in stats.chain_wall.items()},
@@ -807,6 +872,14 @@ def tracking_error_note(summary: dict) -> str:
 
 # the XOR's missed side this many times its outside side: the masks hold more than the body
 MOSTLY_MISSED = 3.0
+
+
+def masks_cleared_note(left_out: dict) -> str:
+    """What ``leave_out_unexplained`` cleared (summary.json's "foreground_left_out"), as the fit's
+    table and the report say it."""
+    return (f"{left_out['share']:.0%} of the silhouette area that no fitted pose explains in "
+            f"{UNEXPLAINED_FRAMES_SHARE:.0%} of the frames (a prop the actor touches), cleared from the masks; "
+            f"{counted(left_out['frames_replaced'], 'frame')} fitted again")
 
 
 def xor_sides(quality: dict) -> str:

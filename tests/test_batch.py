@@ -869,3 +869,17 @@ def test_why_a_step_runs_is_said_from_its_records(project):
     for odd in ({"fit": None}, {"fit": [1]}, "a string", None):  # records of other shapes: a reason all the same
         recorded(fit, settings=odd)
         assert why_it_runs(take, fit).startswith(("settings changed", "its record is out of date"))
+
+
+@pytest.mark.timeout(60)
+def test_a_take_without_the_empty_studio_is_refused_before_its_import(tmp_path, small_studio, capsys):
+    from common.calibration import save_calibration
+
+    take = tmp_path / "project" / "no_background"
+    for cam in ("cam1", "cam2", "cam3", "cam4"):
+        (take / "videos" / cam).mkdir(parents=True)
+    save_calibration(small_studio, take / "calibration.json")
+    assert main(["run", str(take)]) == 2
+    assert refusal(capsys).endswith(f"{take / 'background'}/: no empty-studio recording for camera(s) cam1, cam2, "
+                                    f"cam3, cam4 of {take / 'calibration.json'}")
+    assert not (take / "sequence").exists()

@@ -82,3 +82,45 @@ def test_bench_cleaning_rows():
     assert len(rows) == 1 and rows[0]["cameras"] == 4 and rows[0]["size"] == [160, 120]
     assert rows[0]["frames_per_second"] > 0 and rows[0]["milliseconds_per_frame"] == 1000 / rows[0]["frames_per_second"]
     assert rows[0]["pixels_removed"] > 0  # Cheung's noise speckles that no other camera supports
+
+
+# ------------------------------------------------------------------ foreground no pose explains
+
+@pytest.mark.timeout(30)
+def test_foreground_missed_in_most_frames_is_unexplained_and_a_short_take_tells_none():
+    from common.consistency import UNEXPLAINED_MIN_FRAMES, unexplained_foreground
+
+    frames = 20
+    missed = np.zeros((2, 40, 50), dtype=np.int32)
+    missed[0, 5:15, 5:15] = 14   # 70% of the frames: a chair's back
+    missed[1, 20:30, 20:30] = 13  # 65%: a limb the fit missed for a while
+    missed[1, 0:2, 0:2] = frames
+    flags = unexplained_foreground(missed, frames, mean_area=2000.0)
+    assert flags is not None and flags.sum() == 100 + 4
+    assert flags[0, 5:15, 5:15].all() and not flags[1, 20:30, 20:30].any()
+    assert unexplained_foreground(missed, frames, mean_area=6000.0) is None  # under 2% of the silhouettes
+    assert unexplained_foreground(missed, UNEXPLAINED_MIN_FRAMES - 1, mean_area=2000.0) is None
+
+
+@pytest.mark.timeout(60)
+def test_pixels_cleared_in_the_recorded_images_are_clear_where_the_fit_looks():
+    """Flags found in the ideal pinhole images the fit works in (``undistort_masks``) are cleared
+    in the images as recorded, so that the cleared masks, undistorted again, are clear there;
+    a camera without distortion takes them as they are."""
+    from common.camera import circle_studio
+    from common.frame import recorded_pixels, undistort_masks
+
+    cams = list(circle_studio(2, 160, 120))
+    cams[0] = replace(cams[0], dist=np.array([-0.3, 0.05, 0.0, 0.0, 0.0]))
+    studio = Studio(tuple(cams))
+    masks = np.zeros((2, 120, 160), dtype=bool)
+    masks[:, 20:100, 30:130] = True
+    _, ideal = undistort_masks(studio, masks)
+    flags = np.zeros_like(ideal)
+    flags[:, 40:70, 60:90] = True
+    flags &= ideal
+    cleared = masks & ~recorded_pixels(studio, flags)
+    _, again = undistort_masks(studio, cleared)
+    assert not (again & flags).any()
+    assert (again == (ideal & ~flags)).mean() > 0.99  # little else goes
+    np.testing.assert_array_equal(recorded_pixels(studio, flags)[1], flags[1])

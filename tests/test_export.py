@@ -22,6 +22,7 @@ from common.export import (
     FittedMotion, actor_from_joints, bvh_to_world_joints, export_motion, params_to_bvh, sample_rate,
 )
 from server.results import frames_text
+from common.export import frames_off_step
 from server.cli import main as cli_main
 
 pytestmark = pytest.mark.timeout(120)
@@ -450,12 +451,12 @@ def test_mocap_export_several_formats_and_rest(tmp_path, result_dir, capsys):
     kp = tmp_path / "kp"
     assert cli_main(["export", str(result_dir), "--format", "keypoints3d", "--out", str(kp), "--fps", "25",
                      "--quiet"]) == 0
-    (kp / "stale.json").write_text("[]")
+    (kp / "000099.json").write_text("[]")  # a frame of a longer take's export
     assert cli_main(["export", str(result_dir), "--format", "keypoints3d", "--out", str(kp), "--fps", "25"]) == 2
     assert "--overwrite" in capsys.readouterr().err
     assert cli_main(["export", str(result_dir), "--format", "keypoints3d", "--out", str(kp), "--fps", "25",
                      "--overwrite", "--quiet"]) == 0
-    assert not (kp / "stale.json").exists() and len(list(kp.iterdir())) == FRAMES
+    assert not (kp / "000099.json").exists() and len(list(kp.iterdir())) == FRAMES
     assert cli_main(["export", str(result_dir), "--format", "glb,fbx", "--fps", "25"]) == 2
     assert "unknown format fbx" in capsys.readouterr().err
 
@@ -488,8 +489,9 @@ def test_the_fitted_frames_rate_is_the_recordings_over_their_step():
     assert sample_rate(np.array([3, 8, 18, 23]), 50.0) == 10.0  # a frame missing: still every 5th
     assert sample_rate(np.array([0, 2, 3]), 30.0) == 30.0
     assert sample_rate(np.array([7]), 25.0) == 25.0
-    assert frames_text([0, 5, 15, 20]) == "0..20, one in 5" and frames_text([3, 4]) == "3..4"
-    assert frames_text([]) == "none"
+    assert frames_text([0, 5, 10, 20]) == "0..20, one in 5, without 15" and frames_text([3, 4]) == "3..4"
+    assert frames_text([0, 5, 10]) == "0..10, one in 5" and frames_text([]) == "none"
+    assert frames_off_step([3, 8, 18, 23]) == [13] and frames_off_step([0, 2, 3]) == [1] and frames_off_step([7]) == []
 
 
 def test_a_take_fitted_every_5th_frame_plays_in_real_time_in_every_format(tmp_path):

@@ -6,9 +6,10 @@ What it holds the fit to (see docs/accuracy.md, "The seated take"): upright in t
 calibration's z-down world, hips and knees bent 60-130 degrees in every frame as a seated
 body's (a standing body's are under 20; fitted 74-76 and 76-84 since the actor's size may be
 1.4 times the model's, 42-51 and 72-80 at 1.3), feet near the floor, still from frame to frame.
-The XOR share (under 30% is the target; 39-42% is fitted, the chair and the horse mask being
-silhouette no body covers) is printed, and held under 45%; its side outside the masks (1%
-fitted) under 5%.
+The chair and the horse mask are silhouette no body covers (39-42% XOR against the masks as
+segmented): the fit clears the foreground its bodies miss in most frames (37% of the silhouette
+area) and refits, and the XOR share against the cleared masks is held under 30% (5-10% fitted),
+its side outside the masks (2% fitted) under 5%.
 """
 import json
 import subprocess
@@ -70,8 +71,8 @@ def test_the_seated_take_fits_seated_upright_and_still(tmp_path):
     player = json.loads(page.split('<script type="application/json" id="player-data">')[1].split("</script>")[0])
     head, pelvis = player["joints"].index("head_top"), player["joints"].index("pelvis")
     assert all(f[3 * head + 2] > f[3 * pelvis + 2] for f in player["fitted"])  # upright in the report's z-up view
-    assert summary["world_up"] == "-z" and summary["fit_quality"]["mean_xor_share"] < 0.45
-    # the XOR is the chair and the mask the body misses, not a body outside the masks (1% fitted)
-    assert summary["fit_quality"]["mean_outside_share"] < 0.05
-    assert "masks the body misses" in page and "mostly foreground no body part covers" in page
+    assert summary["world_up"] == "-z" and summary["fit_quality"]["max_xor_share"] < 0.30
+    # the chair and the mask cleared, not the body: little of it outside the masks (2% fitted)
+    assert summary["foreground_left_out"]["share"] > 0.2 and summary["fit_quality"]["mean_outside_share"] < 0.05
+    assert "masks the body misses" in page and "cleared from the masks" in page
     assert set(summary["fit_quality"]["per_camera_mean_xor_share"]) == set(CAMERAS)

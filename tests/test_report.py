@@ -271,3 +271,16 @@ def test_screenshot_shows_skeletons_and_plots(chromium, report, tmp_path):
     below = first[y + h + 40:]
     assert colour_pixels(below, ((0xE4, 0x57, 0x2E),), tolerance=30) > 200  # joint error curve
     assert np.count_nonzero(np.all(below < 60, axis=-1)) > 2000              # axes and labels
+
+
+def test_pictures_made_again_replace_the_earlier_set_whole(fitted, tmp_path, capsys):
+    """--overwrite swaps in a new pictures folder: an earlier run's overlays of other frames go."""
+    _, res = fitted
+    again = tmp_path / "res"
+    shutil.copytree(res, again)
+    assert mocap_report([str(again), "--quiet", "--no-gif", "--overwrite", "--frames", "0"]) == 0
+    assert mocap_report([str(again), "--quiet", "--no-gif", "--overwrite", "--frames", "1"]) == 0
+    names = {p.name for p in (again / "pictures").iterdir()}
+    assert "overlay_000001.png" in names and "overlay_000000.png" not in names and "sequence.gif" not in names
+    with pytest.raises(UserError, match="--cameras: cam1 given more than once"):
+        mocap_report([str(again), "--no-pictures", "--overwrite", "--cameras", "cam1,cam2,cam1"])

@@ -327,6 +327,10 @@ def test_the_demo_makes_again_only_a_folder_it_made(tmp_path, capsys):
     (lambda lines: [lines[1], lines[0], *lines[2:]], "out of order or repeated"),
     (lambda lines: [lines[0], *lines], "out of order or repeated"),
     (lambda lines: [re.sub(r'("params": \[)[^,]+', r"\1NaN", lines[0], count=1), *lines[1:]], "finite numbers"),
+    (lambda lines: [re.sub(r'("l_knee": \[)[^,]+', r"\1NaN", lines[0], count=1), *lines[1:]],
+     "joints: l_knee: expected 3 finite numbers"),
+    (lambda lines: [re.sub(r'("pelvis": \[)[^,]+', r'\1"x"', lines[0], count=1), *lines[1:]],
+     "joints: pelvis: expected 3 finite numbers"),
 ])
 def test_export_refuses_poses_out_of_order_repeated_or_not_numbers(fitted, tmp_path, capsys, edit, said):
     """Lines swapped or repeated by hand would play backwards or twice; NaN parameters would be
@@ -383,3 +387,54 @@ def test_synth_says_when_the_clip_holds_fewer_frames_than_asked(tmp_path, capsys
     assert code == 2
     one_error_line(err, "--start 99999", "last frame")
     assert not (tmp_path / "s2").exists()
+
+
+@pytest.mark.parametrize("fmt, name, said", [
+    ("bvh", "y.glb", "names a .glb file, and a bvh export is a .bvh file"),
+    ("keypoints3d", "k.json", "names a .json file, and a keypoints3d export is a folder of one JSON file per frame"),
+])
+def test_export_refuses_a_name_that_says_another_format(fitted, tmp_path, capsys, fmt, name, said):
+    code, err = run(capsys, "export", fitted, "--format", fmt, "--out", tmp_path / name)
+    assert code == 2
+    one_error_line(err, f"--out {tmp_path / name}", said)
+    assert not (tmp_path / name).exists()
+    code, err = run(capsys, "export", fitted, "--format", "json", "--out", tmp_path / "m.json")  # its own, by another name
+    assert code == 0, err
+
+
+def test_export_keeps_a_users_files_in_the_keypoints_folder_it_would_replace(fitted, tmp_path, capsys):
+    folder = tmp_path / "kp"
+    folder.mkdir()
+    (folder / "mine.txt").write_text("notes")
+    code, err = run(capsys, "export", fitted, "--format", "keypoints3d", "--out", folder, "--overwrite")
+    assert code == 2
+    one_error_line(err, str(folder), "holds files that are no keypoints3d export (mine.txt)")
+    assert (folder / "mine.txt").read_text() == "notes"
+    (folder / "mine.txt").unlink()
+    assert run(capsys, "export", fitted, "--format", "keypoints3d", "--out", folder)[0] == 0
+    assert run(capsys, "export", fitted, "--format", "keypoints3d", "--out", folder, "--overwrite")[0] == 0
+
+
+def test_export_says_which_frames_are_missing_from_the_step(fitted, tmp_path, capsys):
+    """A frame missing between fitted ones (0, 1, 3): the formats of one fixed rate play the
+    frames after it early, which the export says; its error lines list the frames without it."""
+    poses = fitted / "poses.jsonl"
+    lines = poses.read_text().splitlines()
+    third = json.loads(lines[1]) | {"frame": 3}
+    poses.write_text("\n".join([*lines, json.dumps(third)]) + "\n")
+    code, err = run(capsys, "export", fitted, "--format", "bvh", "--out", tmp_path / "m.bvh")
+    assert code == 0, err
+    assert "frame 2 of the fitted frames' step is missing: bvh (one fixed rate) play" in err
+    code, err = run(capsys, "export", fitted, "--format", "csv", "--out", tmp_path / "m.csv")
+    assert code == 0 and "missing" not in err  # each frame keeps its time
+    code, err = run(capsys, "report", fitted, "--frames", "2", "--no-pictures")
+    assert code == 2 and "(frames fitted: 0..3, without 2)" in err
+
+
+def test_a_damaged_summary_is_read_around(fitted, tmp_path, capsys):
+    """summary.json is written last and only describes the run: a damaged one is said, and the
+    exports are made from poses.jsonl, the sequence named by run.json."""
+    (fitted / "summary.json").write_text("{not json")
+    code, err = run(capsys, "export", fitted, "--format", "bvh", "--out", tmp_path / "m.bvh")
+    assert code == 0, err
+    assert f"warning: {fitted / 'summary.json'}: not valid JSON" in err and (tmp_path / "m.bvh").is_file()

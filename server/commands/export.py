@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import tempfile
 from pathlib import Path
 
-from common.errors import UserError
+from common.errors import UserError, print_warning
 from common.export import (
     ALL_FORMATS as ALL, BVH_RESTS, DEFAULT_BVH_REST, FOLDER_FORMATS, FORMATS, SUFFIXES, export_motion, export_name,
-    named_formats,
+    frames_off_step, named_formats,
 )
 from common.argtypes import real
 from server.output import (
@@ -30,6 +31,29 @@ from server.output import (
 from server.pictures import load_result
 
 FILE_SUFFIXES = {suffix for suffix in SUFFIXES.values() if suffix.startswith(".")}  # the formats written as files
+NAMED_SUFFIXES = FILE_SUFFIXES | {".json", ".gltf"}  # a name ending so says what file it is
+KEYPOINT_FILE = re.compile(r"\d+\.json")  # a keypoints3d export's files: one per frame
+
+
+def check_export_name(fmt: str, path: Path) -> None:
+    """A name given with --out that says another format (``--format bvh --out y.glb``, or a
+    keypoints3d folder named ``k.json``) is refused: a tool would open it as that format."""
+    suffix = path.suffix.lower()
+    own = {SUFFIXES[fmt], *((".json",) if fmt == "json" else ())}
+    if suffix in NAMED_SUFFIXES and suffix not in own:
+        what = "a folder of one JSON file per frame" if fmt in FOLDER_FORMATS else f"a {SUFFIXES[fmt]} file"
+        raise UserError(f"--out {path}: names a {suffix} file, and a {fmt} export is {what}; rename it, or give "
+                        f"the --format it names")
+
+
+def check_keypoints_folder(path: Path) -> None:
+    """A keypoints3d export replaces its folder whole: one holding files no such export writes
+    (a folder of the user's) is refused, --overwrite or not, so that they are not deleted."""
+    if path.is_dir():
+        other = sorted(e.name for e in path.iterdir() if not KEYPOINT_FILE.fullmatch(e.name))
+        if other:
+            raise UserError(f"{path}: holds files that are no keypoints3d export ({', '.join(other[:3])}"
+                            f"{', ...' if len(other) > 3 else ''}); give a folder of its own")
 
 
 def format_list(text: str) -> list[str]:
@@ -107,6 +131,12 @@ def run(args) -> int:
     given = args.out is not None  # else the targets are defaults, which errors name without --out
     result = load_result(args.result, args.sequence, args.fps)
     motion = result.motion
+    fixed_rate = sorted(set(formats) & {"bvh", "c3d", "trc"})
+    if fixed_rate and (off := frames_off_step(motion.frames)):
+        print_warning(f"{args.result}: frame{'s' if len(off) > 1 else ''} {', '.join(map(str, off[:5]))}"
+                      f"{', ...' if len(off) > 5 else ''} of the fitted frames' step "
+                      f"{'are' if len(off) > 1 else 'is'} missing: {', '.join(fixed_rate)} (one fixed rate) "
+                      "play the frames after it early; glTF, MOT, CSV and JSON lines keep each frame's time")
     if several:
         folder = args.out or args.result
         if not folder.exists() and folder.suffix.lower() in FILE_SUFFIXES:  # a file's name, for a folder
@@ -117,6 +147,8 @@ def run(args) -> int:
         targets = [(f, folder / export_name(f)) for f in formats]
     else:
         targets = [(formats[0], args.out or args.result / export_name(formats[0]))]
+        if given:
+            check_export_name(formats[0], args.out)
     unchanged = set()  # targets that hold this export already: left as they are, their times too
     for fmt, path in targets:  # every target checked before the first is written
         if fmt in FOLDER_FORMATS and not path.parent.is_dir():  # as for a file: no folders made on the way
@@ -124,6 +156,7 @@ def run(args) -> int:
         if _unchanged(fmt, path, motion, args.rest):
             unchanged.add(path)
         elif fmt in FOLDER_FORMATS:
+            check_keypoints_folder(path)
             check_folder_target(path, ("*",), overwrite=args.overwrite, what="export", given=given)
         else:
             check_file_target(path, args.overwrite, given=given)

@@ -21,7 +21,7 @@ from server.output import (add_calibration_argument, add_overwrite_argument, add
                            counted, next_steps, replace_file, shell_word)
 from server.results import DERIVED_FILES, MOTION_FILE, RESULT_FILES, earlier_actor_scale, load_records
 from server.session import (ACTOR_SCALES, LocalSolver, choose_actor_scale, refinement_note, run_fit,
-                            tracking_error_note, usable_cameras, xor_sides)
+                            masks_cleared_note, tracking_error_note, usable_cameras, xor_sides)
 from server.threads import resolve_threads
 
 INIT_CHOICES = ("auto", "truth", "standing")
@@ -167,6 +167,8 @@ def print_summary(summary: dict, out, result: Path | None = None) -> None:
                                               f"{shell_word(result) if result else 'RESULT'} names them)"))
         if "mean_missed_share" in quality:
             rows.append(("of which", xor_sides(quality)))
+    if left_out := summary.get("foreground_left_out"):
+        rows.append(("masks cleared", masks_cleared_note(left_out)))
     rows += _cluster_rows(summary)
     width = max(len(k) for k, _ in rows)
     for k, v in rows:

@@ -26,7 +26,14 @@ def _int_list(text: str | None, option: str) -> list[int] | None:
 
 
 def _name_list(text: str | None) -> list[str] | None:
-    return None if text is None else [v.strip() for v in text.split(",") if v.strip()]
+    """--cameras' names; a name given twice refused (it would be drawn twice)."""
+    if text is None:
+        return None
+    names = [v.strip() for v in text.split(",") if v.strip()]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:
+        raise UserError(f"--cameras: {', '.join(twice)} given more than once")
+    return names
 
 
 def register(sub) -> None:
