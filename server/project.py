@@ -575,13 +575,14 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
     with take_lock(take):
         if not overwrite:
             check_replaceable(take, plan)
+        said = set()  # warnings shown to the user in this run
         with open(log_path, "a") as log:
             for step in plan.steps:
                 status = done_status(take, step)
                 if status is None:
                     steps.append({"step": step.name, "status": "failed", "warnings": []})
                     try:
-                        steps[-1].update(_run_step(take, plan, step, log, progress, steps[-1]))
+                        steps[-1].update(_run_step(take, plan, step, log, progress, steps[-1], said))
                     except UserError as exc:
                         raise TakeFailed(str(exc), steps, log_path) from None
                     continue
@@ -599,11 +600,13 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
             **result_figures(plan.result)}
 
 
-def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, entry: dict) -> dict:
+def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, entry: dict, said: set) -> dict:
     """Run one step's commands and leave its record; ``entry`` (the step's line of what was
     done) gets why it runs (``why_it_runs``) and the warnings they print (which go to
-    ``progress`` as they come). A fit that an earlier run started with the same settings and
-    inputs is continued, any other fit replaces what is there."""
+    ``progress`` as they come, each once in a run: ``said`` holds those an earlier step said,
+    as every step that reads a calibration in the wrong units warns of it). A fit that an earlier
+    run started with the same settings and inputs is continued, any other fit replaces what is
+    there."""
     pending, now = _pending_path(take, step.name), _pending(step)  # the inputs fingerprinted once
     resume = step.name == "fit" and (plan.result / "poses.jsonl").exists() and _read_json(pending) == now
     why = entry["why"] = why_it_runs(take, step, now["inputs"], resume)
@@ -618,7 +621,8 @@ def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, entry: dict
 
     def warn(line: str) -> None:
         warnings.append(line)
-        if progress:
+        if progress and line not in said:
+            said.add(line)
             progress(step.name, f"{WARNING_PREFIX}{line}")
 
     for command in step.commands:

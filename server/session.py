@@ -872,6 +872,9 @@ def tracking_error_note(summary: dict) -> str:
 
 # the XOR's missed side this many times its outside side: the masks hold more than the body
 MOSTLY_MISSED = 3.0
+# ... and over this share of the masks: the body is not where the masks are (a calibration in
+# metres read as millimetres put the body 234 m from the seated take's actor: 100% missed)
+LOST_MISSED = 0.8
 
 
 def masks_cleared_note(left_out: dict) -> str:
@@ -888,6 +891,9 @@ def xor_sides(quality: dict) -> str:
     foreground no body explains: props sat on, shadows, a larger actor)."""
     outside, missed = quality["mean_outside_share"], quality["mean_missed_share"]
     text = f"body outside the masks {outside:.0%}, masks the body misses {missed:.0%}"
-    if missed > MOSTLY_MISSED * outside:
+    if missed > LOST_MISSED:  # no pose misses this much of an actor that is where the masks are
+        text += (" (the body is mostly not where the masks are: check the calibration's units and up axis, "
+                 "and the overlays)")
+    elif missed > MOSTLY_MISSED * outside:
         text += " (mostly foreground no body part covers: a prop, shadows, loose clothes; see the overlays)"
     return text

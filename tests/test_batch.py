@@ -883,3 +883,19 @@ def test_a_take_without_the_empty_studio_is_refused_before_its_import(tmp_path, 
     assert refusal(capsys).endswith(f"{take / 'background'}/: no empty-studio recording for camera(s) cam1, cam2, "
                                     f"cam3, cam4 of {take / 'calibration.json'}")
     assert not (take / "sequence").exists()
+
+
+@pytest.mark.timeout(60)
+def test_a_warning_every_step_prints_is_shown_once(project, monkeypatch):
+    """Every step that reads a calibration in the wrong units warns of it: mocap run shows the
+    line once, and each step's record keeps its own."""
+    import server.project as project_module
+
+    def warning_only(command, log, warn):
+        warn("calibration.json: the farthest two cameras stand 8195.0 m apart")
+
+    monkeypatch.setattr(project_module, "run_mocap", warning_only)
+    shown = []
+    done = run_take(project / "walk_a", lambda step, text: shown.append(text))
+    said = [t for t in shown if "8195.0 m apart" in t]
+    assert len(said) == 1 and all(step["warnings"] for step in done["steps"])

@@ -61,5 +61,7 @@ def test_a_pose_off_the_masks_is_outside_and_missed_alike(model, small_studio, d
     assert q["xor_pixels"] == [o + m for o, m in zip(q["outside_pixels"], q["missed_pixels"])]
     summary = quality_summary([{"frame": 0, "fit_quality": q}], small_studio.names)
     assert "mostly" not in xor_sides(summary)  # a wrong pose shows on both sides
+    lost = xor_sides({"mean_outside_share": 0.01, "mean_missed_share": 0.99})  # the body far from the masks
+    assert "the body is mostly not where the masks are: check the calibration's units" in lost and "a prop" not in lost
     older = {k: v for k, v in q.items() if k not in ("outside_pixels", "missed_pixels")}  # written before the sides
     assert "mean_missed_share" not in quality_summary([{"frame": 0, "fit_quality": older}], small_studio.names)
