@@ -330,6 +330,11 @@ def check_recordings(plan: TakePlan) -> None:
             what = "empty-studio recording" if folder == "background" else "recording"
             raise UserError(f"{plan.take / folder}/: no {what} for camera(s) {', '.join(missing)} of "
                             f"{plan.calibration}")
+    for step in plan.steps:  # [import] offsets name cameras too
+        unknown = [c for c in step.settings.get("import", {}).get("offsets", {}) if c not in cameras]
+        if unknown:
+            raise UserError(f"[import] offsets: no camera {', '.join(unknown)} in {plan.calibration} "
+                            f"(cameras: {', '.join(cameras)})")
 
 
 def _record_path(take: Path, step: str) -> Path:

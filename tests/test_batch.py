@@ -872,7 +872,7 @@ def test_why_a_step_runs_is_said_from_its_records(project):
 
 
 @pytest.mark.timeout(60)
-def test_a_take_without_the_empty_studio_is_refused_before_its_import(tmp_path, small_studio, capsys):
+def test_a_take_without_the_empty_studio_or_with_offsets_of_no_camera_is_refused_before_its_import(tmp_path, small_studio, capsys):
     from common.calibration import save_calibration
 
     take = tmp_path / "project" / "no_background"
@@ -882,6 +882,13 @@ def test_a_take_without_the_empty_studio_is_refused_before_its_import(tmp_path, 
     assert main(["run", str(take)]) == 2
     assert refusal(capsys).endswith(f"{take / 'background'}/: no empty-studio recording for camera(s) cam1, cam2, "
                                     f"cam3, cam4 of {take / 'calibration.json'}")
+    assert not (take / "sequence").exists()
+    for cam in ("cam1", "cam2", "cam3", "cam4"):
+        (take / "background" / cam).mkdir(parents=True)
+    (take / "Config.toml").write_text("[import]\noffsets = { cam5 = 3 }\n")  # as misspelt: said before the import too
+    assert main(["run", str(take)]) == 2
+    assert refusal(capsys).endswith(f"[import] offsets: no camera cam5 in {take / 'calibration.json'} (cameras: "
+                                    "cam1, cam2, cam3, cam4)")
     assert not (take / "sequence").exists()
 
 
