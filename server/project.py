@@ -36,6 +36,7 @@ import hashlib
 import io
 import json
 import os
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -605,6 +606,21 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
             **result_figures(plan.result)}
 
 
+# the options a step's error may tell a user to pass, and the Config.toml key mocap run sets them by
+OPTION_KEYS = {"--units": "[calibration] units", "--up": "[calibration] up", "--offset": "[import] offsets",
+               "--start": "[import] start", "--stop": "[import] stop", "--step": "[import] step",
+               "--fps": "[import] fps", "--missing-frames": "[import] missing_frames",
+               "--actor-height": "[fit] actor_height", "--init": "[fit] init", "--frames": "[fit] frames"}
+
+
+def config_key_note(message: str) -> str:
+    """" (in Config.toml: --units is [calibration] units)" for the options a step's error names,
+    which a user of mocap run never typed; "" where it names none."""
+    named = [f"{option} is {key}" for option, key in OPTION_KEYS.items()
+             if re.search(rf"(?<![\w-]){re.escape(option)}(?![\w-])", message)]
+    return f" (in Config.toml: {'; '.join(named)})" if named else ""
+
+
 def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, entry: dict, said: set) -> dict:
     """Run one step's commands and leave its record; ``entry`` (the step's line of what was
     done) gets why it runs (``why_it_runs``) and the warnings they print (which go to
@@ -636,7 +652,7 @@ def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, entry: dict
         try:
             run_mocap(command, log, warn)
         except UserError as exc:
-            raise UserError(f"{step.name}: {exc}") from None
+            raise UserError(f"{step.name}: {exc}{config_key_note(str(exc))}") from None
     _note_made(take, plan, step)
     write_text(record, json.dumps(_record(step), indent=1))
     pending.unlink()

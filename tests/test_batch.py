@@ -906,3 +906,16 @@ def test_a_warning_every_step_prints_is_shown_once(project, monkeypatch):
     done = run_take(project / "walk_a", lambda step, text: shown.append(text))
     said = [t for t in shown if "8195.0 m apart" in t]
     assert len(said) == 1 and all(step["warnings"] for step in done["steps"])
+
+
+@pytest.mark.timeout(30)
+def test_a_steps_error_names_the_config_key_of_the_option_it_names():
+    """mocap run's user set the import's and the fit's options in Config.toml, never on a command
+    line: an error that says to pass --units also says which key that is."""
+    from server.project import config_key_note
+
+    said = "units: camera 'cam1' stands 5929.8 units from the origin; pass --units mm (or cm; --units m)"
+    assert config_key_note(said) == " (in Config.toml: --units is [calibration] units)"
+    assert config_key_note("--offset cam5: no camera of that name") == " (in Config.toml: --offset is [import] offsets)"
+    assert config_key_note("--video cam3: only 3.56 s of the 4.18 s") == ""
+    assert config_key_note("--frames-per-second") == ""  # an option only where it is one word
