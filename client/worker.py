@@ -369,18 +369,17 @@ class Worker:
     # ------------------------------------------------------------------ compute thread
 
     def _compute_loop(self) -> None:
-        cache: tuple[tuple[str, int], FrameData] | None = None
+        cache: tuple[Frame, FrameData] | None = None  # the FRAME last unpacked: one sent again (its masks changed) is new
         while True:
             job = self._jobs.get()
             if job is None:
                 return
             if job.session != self.session:  # the server restarted meanwhile: nobody wants this
                 continue
-            key = (job.session, job.frame.frame)
             if job.solve is None:
                 try:
-                    if cache is None or cache[0] != key:
-                        cache = (key, self._frame_data(job.frame))
+                    if cache is None or cache[0] is not job.frame:
+                        cache = (job.frame, self._frame_data(job.frame))
                 except Exception as exc:  # reported with the first SOLVE that needs it
                     log.warning("cannot use FRAME %d: %s", job.frame.frame, exc)
                 continue
@@ -390,8 +389,8 @@ class Worker:
                 time.sleep(self.stall_seconds)
             try:
                 options = FitOptions.from_wire(solve.options)
-                if cache is None or cache[0] != key:
-                    cache = (key, self._frame_data(job.frame))
+                if cache is None or cache[0] is not job.frame:
+                    cache = (job.frame, self._frame_data(job.frame))
                 for chain in solve.chains:
                     r = solve_job(cache[1].model, cache[1], chain, np.asarray(solve.params), options,
                                   solve.iteration, solve.frame)

@@ -418,4 +418,4 @@ def unexplained_foreground(missed: np.ndarray, frames: int, mean_area: float) ->
     if frames < UNEXPLAINED_MIN_FRAMES:
         return None
     flags = np.asarray(missed) >= UNEXPLAINED_FRAMES_SHARE * frames
-    return flags if flags.sum() >= UNEXPLAINED_MIN_AREA * mean_area else None
+    return flags if flags.any() and flags.sum() >= UNEXPLAINED_MIN_AREA * mean_area else None

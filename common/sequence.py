@@ -448,14 +448,12 @@ class Sequence:
 
     def without_cameras(self, names) -> "Sequence":
         """The same sequence with the cameras ``names`` left out (the world frame is still the
-        one all cameras gave)."""
+        one all cameras gave); before ``without_foreground``, whose pixels are the cameras'."""
         names = set(names)
         out = copy.copy(self)
         out.user_studio = Studio(tuple(c for c in self.user_studio if c.name not in names), self.user_studio.source)
         out.studio = Studio(tuple(c for c in self.studio if c.name not in names), self.studio.source)
         out.left_out = tuple(sorted(set(self.left_out) | (names & set(self.user_studio.names))))
-        if self.foreground_left_out is not None:
-            out.foreground_left_out = self.foreground_left_out[[c.name not in names for c in self.studio]]
         out._cleaned, out._cleaned_bytes, out._cleaned_lock, out._props = OrderedDict(), 0, threading.Lock(), None
         return out
 

@@ -63,6 +63,7 @@ cluster ``server.local_cluster``.
 """
 from __future__ import annotations
 
+import hashlib
 import logging
 import queue
 import secrets
@@ -147,7 +148,7 @@ class _Peer:
     request: int | None = None     # the one request it works on
     stalled: bool = False          # its request timed out; no work until it answers
     retired: bool = False          # it failed a request: never given work again this session
-    frame_sent: int | None = None  # the FRAME it holds
+    frame_sent: tuple | None = None  # the FRAME it holds: (frame number, its masks' digest)
 
 
 @dataclass
@@ -252,7 +253,7 @@ class ClusterSolver:
         self._peers: dict[bytes, _Peer] = {}
         self._idle: list[bytes] = []  # least recently busy first
         self._round: _Round | None = None
-        self._frame: tuple[int, list] | None = None  # (frame, encoded FRAME)
+        self._frame: tuple[tuple, list] | None = None  # ((frame, its masks' digest), encoded FRAME)
         self._next_request = 0
         self._clients_seen: set = set()
         self._banned: set = set()  # client ids that sent a result that failed its check
@@ -359,13 +360,15 @@ class ClusterSolver:
         self._data, self._current_frame = data, int(frame)
         self._frame_options = options
         self._here = solve_locally(data.model, data, options, int(frame), self._pool)
+        silhouettes = packbits_masks(data.masks)
         msg = Frame(session=self.session, frame=int(frame), cameras=camera_specs(data.studio),
-                    silhouettes=packbits_masks(data.masks), previous_params=np.asarray(start).tolist(),
+                    silhouettes=silhouettes, previous_params=np.asarray(start).tolist(),
                     body_scale=data.model.scale, body_fingerprint=data.model.fingerprint)
         parts = encode(msg)
         with self._lock:
             self._server["encode_seconds"] += time.perf_counter() - t0
-        self._post(("frame", int(frame), parts))
+        # a frame is sent again where its masks changed (foreground cleared once the take is fitted)
+        self._post(("frame", (int(frame), hashlib.blake2b(silhouettes, digest_size=16).digest()), parts))
 
     def solve(self, chains: list, params, iteration: int, options=None) -> Callable[[], list]:
         chains = list(chains)

@@ -39,8 +39,8 @@ from common.export import FittedMotion
 from common.sequence import Sequence, load_sequence
 from server.output import staged_folder
 from server.progress import Progress
-from server.results import (RUN_FILE, SUMMARY_FILE, frames_text, load_records, read_foreground_left_out,
-                            read_run_settings)
+from server.results import (FOREGROUND_FILE, RUN_FILE, SUMMARY_FILE, frames_text, load_records,
+                            read_foreground_left_out, read_run_settings)
 
 PICTURES_DIR = "pictures"
 GIF_NAME = "sequence.gif"
@@ -161,6 +161,11 @@ def load_result(result_dir, sequence_dir=None, fps: float | None = None) -> Resu
     if sequence is not None and summary.get("cameras_left_out"):  # drawn as fitted: without them
         sequence = sequence.without_cameras(summary["cameras_left_out"])
     if sequence is not None and (cleared := read_foreground_left_out(result_dir)) is not None:
+        if cleared.shape != (len(sequence.studio), *sequence.studio.padded_shape):
+            raise InputFileError(result_dir / FOREGROUND_FILE, f"cleared pixels for {cleared.shape[0]} cameras of "
+                                 f"{cleared.shape[2]}x{cleared.shape[1]}, where {sequence.path} has "
+                                 f"{len(sequence.studio)} of {sequence.studio.padded_shape[1]}x"
+                                 f"{sequence.studio.padded_shape[0]}: not the sequence this result was fitted to")
         sequence = sequence.without_foreground(cleared)  # the masks as the fit had them
     if fps is None:
         if sequence is None:

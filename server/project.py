@@ -45,7 +45,7 @@ from common.errors import WARNING_PREFIX, UserError
 from common.export import export_name, named_formats
 from server.config import CONFIG_FILE, Config, load_config
 from server.output import write_text
-from server.results import DERIVED_FILES, MOTION_FILE, RUN_FILE
+from server.results import DERIVED_FILES, FOREGROUND_FILE, MOTION_FILE, RUN_FILE
 
 STATE_DIR = ".mocap"  # per take: step records, the lock, the log of the last run
 MADE_FILE = "made.json"  # in STATE_DIR: every output a run made, as it left it
@@ -282,7 +282,7 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
                       (result / "poses.jsonl", result / "summary.json"),
                       # the preset is in the keys it set, and its name alone refits nothing
                       {"fit": {k: v for k, v in fit.items() if k != "preset"}, "calibration": calib_settings},
-                      also_writes=(result / RUN_FILE, result / MOTION_FILE),
+                      also_writes=(result / RUN_FILE, result / MOTION_FILE, result / FOREGROUND_FILE),
                       # mocap fit --overwrite drops what was made from the result it replaces
                       clears=tuple(result / name for name in DERIVED_FILES)))
     formats = named_formats(config.get("export", "formats"))

@@ -199,6 +199,7 @@ def write_foreground_left_out(out_dir: Path, pixels) -> None:
     if pixels is None:
         path.unlink(missing_ok=True)
         return
+    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp.npz")
     np.savez_compressed(tmp, packed=np.packbits(pixels, axis=-1), width=pixels.shape[-1])
     os.replace(tmp, path)

@@ -482,6 +482,13 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     return out, len(replaced)
 
 
+def tracking_fit(r: dict) -> dict:
+    """A record's fit as tracking left it, for its "first_pass" when a later step replaces it:
+    params, joints and tracking's energy (its "tracked_energy" where its energy was taken again
+    against cleared masks, ``leave_out_unexplained``)."""
+    return {"params": r["params"], "joints": r["joints"], "energy": r.get("tracked_energy", r["energy"])}
+
+
 def record_fit(r: dict) -> FrameResult:
     """A record's pose and energy as the fit a refinement starts from (nothing spent on it here)."""
     return FrameResult(np.asarray(r["params"], dtype=np.float64), int(r["energy"]), 0, 0)
@@ -494,7 +501,7 @@ def keep_refit(model: BodyModel, seq: Sequence, r: dict, again: FrameResult, sec
     r["refine_evaluations"] = r.get("refine_evaluations", 0) + again.evaluations
     if not again.energy < r["energy"]:
         return False
-    r.setdefault("first_pass", {"params": r["params"], "joints": r["joints"], "energy": r["energy"]})
+    r.setdefault("first_pass", tracking_fit(r))
     r["params"] = [float(v) for v in again.params]
     r["joints"] = user_joints(model, seq, again.params)
     r["energy"] = int(again.energy)
@@ -553,6 +560,9 @@ def refit_standing_out(model: BodyModel, seq: Sequence, records: list[dict], opt
 
 
 UNEXPLAINED_ROUNDS = 3  # the foreground found again from the fits it gave, while it grows
+# hops that refit each of the passes' first frames, from its own fit: with PASS_START_HOPS (120)
+# the posture takes beside a prop came out no better, a third slower (docs/accuracy.md)
+UNEXPLAINED_START_HOPS = 20
 
 
 def unexplained_pixels(model: BodyModel, seq: Sequence, records: list[dict]) -> tuple[np.ndarray | None, float]:
@@ -578,34 +588,33 @@ def leave_out_unexplained(model: BodyModel, seq: Sequence, records: list[dict], 
     and the take refined again against them, backwards then forwards, each frame keeping the
     lowest energy against the cleared masks: a limb laid along the chair's back, which the
     masks paid for, has to be where the actor is. Where the new fits miss more (the chair's
-    back, once fewer frames' arms lie on it), again, up to UNEXPLAINED_ROUNDS times. Returns
-    the sequence (cleared, or ``seq`` itself where nothing is), the records and, where pixels
-    were cleared, {"share": their number over the mean silhouette area, "frames_replaced": how
-    many frames the passes replaced, "rounds": the rounds of passes} (else {})."""
-    out, flags, rounds, first_area = records, None, 0, 0.0
+    back, once fewer frames' arms lie on it), again, up to UNEXPLAINED_ROUNDS times. A record's
+    "energy" is then against the cleared masks, and one that no pass replaced keeps tracking's
+    under "tracked_energy" (``tracked_record``). Returns the sequence (cleared, or ``seq``
+    itself where nothing is), the records and, where pixels were cleared, {"share": their number
+    over the mean silhouette area, "frames_replaced": how many frames changed pose, "rounds":
+    the rounds of passes} (else {})."""
+    out, flags, cleared, rounds = records, None, seq, 0
     for rounds in range(UNEXPLAINED_ROUNDS):
         found, mean_area = unexplained_pixels(model, seq, out)
-        first_area = first_area or mean_area
         if found is None or (flags is not None and not (found & ~flags).any()):
             break
         flags = found if flags is None else flags | found
         cleared = seq.without_foreground(recorded_pixels(seq.studio, flags))
         out = [dict(r) for r in out]
         for r in out:  # the energies the passes compare against, at the cleared masks
+            if "first_pass" not in r:
+                r.setdefault("tracked_energy", r["energy"])
             r["energy"] = int(full_energy(model, frame_data(model, cleared, r["frame"]), np.asarray(r["params"])))
-        for backward in (True, False):  # each pass's first frame from its fit and a window's hops
+        for backward in (True, False):
             out, _ = refine_pass(model, cleared, out, options, solver, stats, backward, progress,
-                                 start_hops=POOR_WINDOW_HOPS)
+                                 start_hops=UNEXPLAINED_START_HOPS)
     else:
         rounds = UNEXPLAINED_ROUNDS
     if flags is None:
         return seq, records, {}
-    for r, before in zip(out, records):  # a tracking fit first replaced here keeps its energy as tracked
-        if "first_pass" in r and "first_pass" not in before:
-            r["first_pass"] = r["first_pass"] | {"energy": before["energy"]}
-    return (seq.without_foreground(recorded_pixels(seq.studio, flags)), out,
-            {"share": round(float(flags.sum() / first_area), 4), "rounds": rounds,
-             "frames_replaced": sum(a["params"] != b["params"] for a, b in zip(records, out))})
+    return cleared, out, {"share": round(float(flags.sum() / mean_area), 4), "rounds": rounds,
+                          "frames_replaced": sum(a["params"] != b["params"] for a, b in zip(records, out))}
 
 
 def settle_records(model: BodyModel, seq: Sequence, records: list[dict]) -> tuple[list[dict], int, list[dict]]:
@@ -639,7 +648,7 @@ def settle_records(model: BodyModel, seq: Sequence, records: list[dict]) -> tupl
             continue
         moved += 1
         r = out[t]
-        r.setdefault("first_pass", {"params": r["params"], "joints": r["joints"], "energy": r["energy"]})
+        r.setdefault("first_pass", tracking_fit(r))
         r["params"] = records[s]["params"]
         r["joints"] = records[s]["joints"]
         r["energy"] = int(energies[t, c])
@@ -830,7 +839,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
 
 # what refinement and settling add to a record (``refine_pass``, ``settle_records``), and the
 # quality measured at the end
-AFTER_TRACKING_FIELDS = ("first_pass", "refine_seconds", "refine_evaluations", "settled_from", "fit_quality")
+AFTER_TRACKING_FIELDS = ("first_pass", "refine_seconds", "refine_evaluations", "settled_from", "fit_quality",
+                         "tracked_energy")
 
 
 def tracked_record(record: dict) -> dict:
@@ -839,6 +849,8 @@ def tracked_record(record: dict) -> dict:
     (each pass rewrites poses.jsonl whole) is refined again from tracking's fits when resumed,
     so it ends as the run would have; the same record where tracking's fit was kept."""
     out = {k: v for k, v in record.items() if k not in AFTER_TRACKING_FIELDS}
+    if "tracked_energy" in record:
+        out["energy"] = record["tracked_energy"]
     return out | record.get("first_pass", {})
 
 
@@ -882,7 +894,7 @@ def masks_cleared_note(left_out: dict) -> str:
     table and the report say it."""
     return (f"{left_out['share']:.0%} of the silhouette area that no fitted pose explains in "
             f"{UNEXPLAINED_FRAMES_SHARE:.0%} of the frames (a prop the actor touches), cleared from the masks; "
-            f"{counted(left_out['frames_replaced'], 'frame')} fitted again")
+            f"{counted(left_out['frames_replaced'], 'frame')} changed pose")
 
 
 def xor_sides(quality: dict) -> str:

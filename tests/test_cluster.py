@@ -402,3 +402,44 @@ def test_fit_table_shows_the_servers_rounds_per_frame():
     assert rows["rounds"] == ("4.0 a frame, 0.240 s for 0.400 s of their jobs' CPU; the server alone between "
                               "them 0.020 s/frame, 1.8 rounds of short jobs kept")
     assert rows["local-1 compute/wait/transfer"] == "0.100 / 0.050 / 0.020 s/frame, 9 chains"
+
+
+@pytest.mark.timeout(300)
+def test_masks_cleared_after_the_passes_give_the_same_poses_on_a_cluster(model, seq_path, tmp_path, monkeypatch):
+    """Foreground no fitted pose explains is cleared once the take is fitted and the take refined
+    again against the cleared masks (``leave_out_unexplained``): a frame's masks change under
+    the same frame number, and the clients must be sent them again and use them (a client held
+    a frame's masks by its number, and refined the next round's first frame against the old)."""
+    import common.consistency as consistency
+    from server.session import LocalSolver
+
+    # the small take's body model misses the skinned actor's edges in every frame: cleared here
+    monkeypatch.setattr(consistency, "UNEXPLAINED_MIN_FRAMES", 3)
+    monkeypatch.setattr(consistency, "UNEXPLAINED_MIN_AREA", 0.0)
+    options = FitOptions(refine_passes=1)
+    seq = load_sequence(seq_path)
+    single = run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options))
+    assert single["foreground_left_out"]["share"] > 0 and (tmp_path / "single" / "foreground_left_out.npz").is_file()
+    # the pictures draw the masks the fit had: the same pixels cleared
+    from common.errors import InputFileError
+    from server.pictures import load_result
+    from server.results import read_foreground_left_out, write_foreground_left_out
+
+    shown = load_result(tmp_path / "single").sequence
+    cleared = read_foreground_left_out(tmp_path / "single")
+    assert cleared.any() and not (shown.silhouettes(seq.frames[0]) & cleared).any()
+    write_foreground_left_out(tmp_path / "other", cleared[:2])  # another take's
+    (tmp_path / "other" / "poses.jsonl").write_text((tmp_path / "single" / "poses.jsonl").read_text())
+    (tmp_path / "other" / "run.json").write_text((tmp_path / "single" / "run.json").read_text())
+    with pytest.raises(InputFileError, match="not the sequence this result was fitted to"):
+        load_result(tmp_path / "other")
+    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    try:
+        with thread_workers(model, solver.endpoint, 2):
+            solver.wait_for_clients(2, timeout=10)
+            cluster = run_fit(model, seq, tmp_path / "cluster", options, solver)
+    finally:
+        solver.close(shutdown="done")
+    np.testing.assert_array_equal(poses(tmp_path / "cluster"), poses(tmp_path / "single"))
+    assert cluster["foreground_left_out"] == single["foreground_left_out"]
+    assert cluster["timing"]["rejected"] == 0

@@ -1704,3 +1704,19 @@ def test_chain_totals_compare_each_solve_with_itself():
     assert totals["left_arm"]["energy"] == 8800 + 8790 + 23764
     assert totals["left_arm"]["evaluations"] == 160 and totals["right_leg"]["energy"] == 4900
     assert all(t["energy"] <= t["energy_before"] for t in totals.values())
+
+
+@pytest.mark.timeout(30)
+def test_a_record_put_back_as_tracked_has_trackings_energy():
+    """A fit resumed after its refinement was written starts again from tracking's records: a
+    record whose energy was taken again against cleared masks (``leave_out_unexplained``) gets
+    tracking's back, and a fit that replaces it keeps tracking's energy as its first pass."""
+    from server.session import tracked_record, tracking_fit
+
+    x = [0.0] * PARAM_COUNT
+    record = {"frame": 3, "params": x, "joints": {}, "energy": 900, "tracked_energy": 1200,
+              "fit_quality": {"xor_share": [0.1]}}
+    assert tracked_record(record) == {"frame": 3, "params": x, "joints": {}, "energy": 1200}
+    assert tracking_fit(record)["energy"] == 1200
+    replaced = record | {"params": [1.0] * PARAM_COUNT, "energy": 800, "first_pass": tracking_fit(record)}
+    assert tracked_record(replaced) == {"frame": 3, "params": x, "joints": {}, "energy": 1200}
