@@ -2,7 +2,8 @@
 
 ``ClusterSolver`` is the ``Solver`` of ``server.session.run_fit`` that hands limb chains to
 clients (``python -m client``) connected to a ROUTER socket. Per frame it sends every client
-the packed silhouettes once (FRAME); per iteration it sends each idle client one chain to
+the packed silhouettes once (FRAME; again where a frame's masks changed, as when foreground no
+pose explains is cleared once a take is fitted); per iteration it sends each idle client one chain to
 solve from the current pose (SOLVE) and gathers the RESULTs, while the caller fits the head.
 
 Work sharing: chains wait in a queue and go one at a time to idle clients, longest idle
