@@ -129,6 +129,17 @@ def test_a_round_stays_where_it_is_solved_sooner():
             solver.close()
 
 
+def fit_on_two_clients(model, seq, out, options) -> dict:
+    """``run_fit`` of ``seq`` into ``out`` by a server and two clients on threads; its summary."""
+    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
+    try:
+        with thread_workers(model, solver.endpoint, 2):
+            solver.wait_for_clients(2, timeout=10)
+            return run_fit(model, seq, out, options, solver)
+    finally:
+        solver.close(shutdown="done")
+
+
 @pytest.mark.timeout(300)
 @pytest.mark.parametrize("search, hops", [(False, 0), (True, 0), (False, 10)])
 def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_path, search, hops):
@@ -141,13 +152,7 @@ def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_pat
     options = FitOptions(refine_passes=2, refine_search=search, refine_hops=hops)
     seq = load_sequence(seq_path)
     single = run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options))
-    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
-    try:
-        with thread_workers(model, solver.endpoint, 2):
-            solver.wait_for_clients(2, timeout=10)
-            cluster = run_fit(model, seq, tmp_path / "cluster", options, solver)
-    finally:
-        solver.close(shutdown="done")
+    cluster = fit_on_two_clients(model, seq, tmp_path / "cluster", options)
     assert cluster["frames"] == len(seq.frames) == 3
     np.testing.assert_array_equal(poses(tmp_path / "cluster"), poses(tmp_path / "single"))
     assert cluster["timing"]["rejected"] == 0  # limb solves, searches and hops: honest results check
@@ -433,13 +438,7 @@ def test_masks_cleared_after_the_passes_give_the_same_poses_on_a_cluster(model, 
     (tmp_path / "other" / "run.json").write_text((tmp_path / "single" / "run.json").read_text())
     with pytest.raises(InputFileError, match="not the sequence this result was fitted to"):
         load_result(tmp_path / "other")
-    solver = ClusterSolver(options, bind=LOCAL_BIND, heartbeat_interval=THREAD_HEARTBEAT)
-    try:
-        with thread_workers(model, solver.endpoint, 2):
-            solver.wait_for_clients(2, timeout=10)
-            cluster = run_fit(model, seq, tmp_path / "cluster", options, solver)
-    finally:
-        solver.close(shutdown="done")
+    cluster = fit_on_two_clients(model, seq, tmp_path / "cluster", options)
     np.testing.assert_array_equal(poses(tmp_path / "cluster"), poses(tmp_path / "single"))
     assert cluster["foreground_left_out"] == single["foreground_left_out"]
     assert cluster["timing"]["rejected"] == 0
