@@ -246,6 +246,14 @@ def load_config(files: list[Path]) -> Config:
     return Config(values, sources)
 
 
+# a setting's command-line option where it is not --key-with-dashes
+OPTION_NAMES = {("calibration", "file"): "--calibration", ("import", "offsets"): "--offset",
+                ("fit", "clean_masks"): "--no-clean-masks"}
+# the options of mocap run's steps (import-video, segment, fit) -> the Config.toml key that sets them
+OPTION_KEYS = {OPTION_NAMES.get((s.section, s.key), "--" + s.key.replace("_", "-")): f"[{s.section}] {s.key}"
+               for s in SETTINGS if s.section in ("calibration", "import", "segmentation", "fit")}
+
+
 # [section] key -> mocap fit's option (dest), and how a file's value becomes the option's value
 FIT_OPTION_DESTS = {
     ("fit", "frames"): ("frames", lambda v: v or None), ("fit", "energy"): ("energy", None),

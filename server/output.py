@@ -51,6 +51,16 @@ def shell_word(path) -> str:
     return shlex.quote(str(path))
 
 
+SHOWN_NUMBERS = 5  # numbers a message lists before "and N more"
+
+
+def listed(numbers) -> str:
+    """"3, 8, 13" or "3, 8, 13, 18, 23 and 4 more": frame numbers for a message."""
+    numbers = list(numbers)
+    shown = ", ".join(str(n) for n in numbers[:SHOWN_NUMBERS])
+    return shown + (f" and {len(numbers) - SHOWN_NUMBERS} more" if len(numbers) > SHOWN_NUMBERS else "")
+
+
 def counted(n: int, noun: str) -> str:
     """"1 client", "4 clients": a count with its noun (plural by an s)."""
     return f"{n} {noun}{'' if n == 1 else 's'}"

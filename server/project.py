@@ -43,7 +43,7 @@ from pathlib import Path
 
 from common.errors import WARNING_PREFIX, UserError
 from common.export import export_name, named_formats
-from server.config import CONFIG_FILE, Config, load_config
+from server.config import CONFIG_FILE, OPTION_KEYS, Config, load_config
 from server.output import write_text
 from server.results import DERIVED_FILES, FOREGROUND_FILE, MOTION_FILE, RUN_FILE
 
@@ -604,13 +604,6 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
     return {"name": take.name, "path": str(take), "status": "done" if ran else "skipped", "steps": steps,
             "result": str(plan.result), "log": str(log_path), "seconds": time.perf_counter() - t0,
             **result_figures(plan.result)}
-
-
-# the options a step's error may tell a user to pass, and the Config.toml key mocap run sets them by
-OPTION_KEYS = {"--units": "[calibration] units", "--up": "[calibration] up", "--offset": "[import] offsets",
-               "--start": "[import] start", "--stop": "[import] stop", "--step": "[import] step",
-               "--fps": "[import] fps", "--missing-frames": "[import] missing_frames",
-               "--actor-height": "[fit] actor_height", "--init": "[fit] init", "--frames": "[fit] frames"}
 
 
 def config_key_note(message: str) -> str:

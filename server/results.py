@@ -13,7 +13,7 @@ import numpy as np
 from common.body import PARAM_COUNT
 from common.errors import InputFileError, UserError, print_warning
 from common.export import FORMATS, export_name, frame_step, frames_off_step
-from server.output import check_folder_target, write_text
+from server.output import check_folder_target, listed, write_text
 
 POSES_FILE = "poses.jsonl"
 SUMMARY_FILE = "summary.json"
@@ -36,7 +36,7 @@ def frames_text(frames) -> str:
         return "none"
     step = frame_step(frames)
     off = frames_off_step(frames)
-    without = f", without {', '.join(map(str, off[:5]))}{', ...' if len(off) > 5 else ''}" if off else ""
+    without = f", without {listed(off)}" if off else ""
     return f"{min(frames)}..{max(frames)}" + (f", one in {step}" if step > 1 else "") + without
 
 

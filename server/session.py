@@ -595,10 +595,11 @@ def leave_out_unexplained(model: BodyModel, seq: Sequence, records: list[dict], 
     over the mean silhouette area, "frames_replaced": how many frames changed pose, "rounds":
     the rounds of passes} (else {})."""
     out, flags, cleared, rounds = records, None, seq, 0
-    for rounds in range(UNEXPLAINED_ROUNDS):
+    while rounds < UNEXPLAINED_ROUNDS:
         found, mean_area = unexplained_pixels(model, seq, out)
         if found is None or (flags is not None and not (found & ~flags).any()):
             break
+        rounds += 1
         flags = found if flags is None else flags | found
         cleared = seq.without_foreground(recorded_pixels(seq.studio, flags))
         out = [dict(r) for r in out]
@@ -609,8 +610,6 @@ def leave_out_unexplained(model: BodyModel, seq: Sequence, records: list[dict], 
         for backward in (True, False):
             out, _ = refine_pass(model, cleared, out, options, solver, stats, backward, progress,
                                  start_hops=UNEXPLAINED_START_HOPS)
-    else:
-        rounds = UNEXPLAINED_ROUNDS
     if flags is None:
         return seq, records, {}
     return cleared, out, {"share": round(float(flags.sum() / mean_area), 4), "rounds": rounds,

@@ -26,7 +26,7 @@ from common.export import (
 )
 from common.argtypes import real
 from server.output import (
-    add_overwrite_argument, check_file_target, check_folder_target, counted, replace_file, staged_folder,
+    add_overwrite_argument, check_file_target, check_folder_target, counted, listed, replace_file, staged_folder,
 )
 from server.pictures import load_result
 
@@ -133,8 +133,7 @@ def run(args) -> int:
     motion = result.motion
     fixed_rate = sorted(set(formats) & {"bvh", "c3d", "trc"})
     if fixed_rate and (off := frames_off_step(motion.frames)):
-        print_warning(f"{args.result}: frame{'s' if len(off) > 1 else ''} {', '.join(map(str, off[:5]))}"
-                      f"{', ...' if len(off) > 5 else ''} of the fitted frames' step "
+        print_warning(f"{args.result}: frame{'s' if len(off) > 1 else ''} {listed(off)} of the fitted frames' step "
                       f"{'are' if len(off) > 1 else 'is'} missing: {', '.join(fixed_rate)} (one fixed rate) "
                       "play the frames after it early; glTF, MOT, CSV and JSON lines keep each frame's time")
     if several:

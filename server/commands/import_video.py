@@ -35,7 +35,8 @@ from common.errors import InputFileError, UserError, print_warning
 from common.sequence import DEFAULT_FPS, FRAME_NAME, check_size, write_sequence_meta
 from common.argtypes import count, real
 from server.frame_sources import FrameSource
-from server.output import add_overwrite_argument, add_units_argument, check_folder_target, counted, staged_folder
+from server.output import (add_overwrite_argument, add_units_argument, check_folder_target, counted, listed,
+                           staged_folder)
 
 # what an earlier import (or segment) left in a sequence folder; a calibration.json there may be
 # the --calibration being imported, and is replaced by its checked copy
@@ -45,7 +46,6 @@ MAX_TRIM_FRAMES = 10  # recordings may differ in length by at most this many fra
 MAX_TRIM_FRACTION = 0.05  # ... and this fraction of the longest, and are then cut to the common range
 HOLD_BYTES = 1 << 30  # decoded frames kept in memory from counting to writing; beyond, a video is decoded twice
 MISSING_FRAMES = ("error", "skip")  # --missing-frames: what a frame number some cameras lack is
-SHOWN_FRAMES = 5  # frame numbers a message lists before "and N more"
 
 
 def register(subparsers) -> None:
@@ -188,11 +188,6 @@ def _lacking(numbered: dict[str, list[int]], wanted: range) -> dict[int, list[st
     return out
 
 
-def _listed(numbers: list[int]) -> str:
-    shown = ", ".join(str(n) for n in numbers[:SHOWN_FRAMES])
-    return shown + (f" and {len(numbers) - SHOWN_FRAMES} more" if len(numbers) > SHOWN_FRAMES else "")
-
-
 def _write_rgb(path: Path, image: np.ndarray) -> None:
     Image.fromarray(image).save(path, compress_level=PNG_COMPRESS_LEVEL)
 
@@ -252,7 +247,7 @@ def run(args) -> int:
         others = ", ".join(n for n in names if n not in cams)
         more = len(missing) - len(lack)
         more = f"; {more} more frame numbers lack some camera's image" if more else ""
-        what = f"frame {i} is" if len(lack) == 1 else f"{len(lack)} frames {_listed(lack)} are"
+        what = f"frame {i} is" if len(lack) == 1 else f"{len(lack)} frames {listed(lack)} are"
         # a video lacks the frames a damaged stretch lost; a folder, files
         how = "missing here" if src.files is not None else "lost (a damaged stretch, or a gap in its timestamps)"
         raise InputFileError(src.where(i + offsets[src.camera]),
@@ -267,8 +262,8 @@ def run(args) -> int:
         print_warning(warning)
     if missing:
         each = {n: [i for i, cams in missing.items() if n in cams] for n in names}
-        print_warning(f"--missing-frames skip: left out of every camera: frame numbers {_listed(list(missing))} ("
-                      + "; ".join(f"{n} lacks {_listed(lack)}" for n, lack in each.items() if lack) + ")")
+        print_warning(f"--missing-frames skip: left out of every camera: frame numbers {listed(list(missing))} ("
+                      + "; ".join(f"{n} lacks {listed(lack)}" for n, lack in each.items() if lack) + ")")
 
     fps = args.fps or sources[names[0]].fps
     if fps is None:
