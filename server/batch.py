@@ -181,11 +181,13 @@ def _clear_line() -> None:
 def quality_cell(take: dict) -> str:
     """A take's fit quality as the tables say it: 'XOR% (outside%)', the mean XOR share of the
     silhouettes and its side of the body outside them (a wrong pose shows there; foreground no
-    body covers, a prop, only in the XOR); '' before a fit."""
+    body covers, a prop, only in the XOR), and the share of the masks that no fitted pose explains,
+    cleared before it; '' before a fit."""
     if "mean_xor_share" not in take:
         return ""
     outside = f" ({take['mean_outside_share']:.0%})" if "mean_outside_share" in take else ""
-    return f"{take['mean_xor_share']:.0%}{outside}"
+    cleared = f", {take['cleared_share']:.0%} cleared" if "cleared_share" in take else ""
+    return f"{take['mean_xor_share']:.0%}{outside}{cleared}"
 
 
 def summary_table(record: dict) -> list[str]:

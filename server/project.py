@@ -6,6 +6,10 @@ A project is a folder with ``Config.toml`` at its root; a take is a folder below
  - or ``images/<camera>/`` and ``background/<camera>/``: imported the same way;
  - or a ready sequence (``sequence.json``, or ``silhouettes/`` without videos/ or images/): fitted as
    it is, at its own frame rate; segmented first where it has ``images/`` and no ``silhouettes/``;
+ - or a lab's own layout, a folder per camera: ``<camera>/video.<ext>`` (or a ``video/`` image
+   folder) with ``<camera>/background.<ext>``, and each camera's calibration file beside them
+   (``<camera>/config.xml``): imported like videos/, the take folder read as the calibration
+   where it holds no other (the board description and notes beside them are passed over);
 plus a calibration (``[calibration] file``, else ``calibration.json``, ``calibration.toml``,
 ``Calib.toml``, a ``calibration/`` folder or EasyMocap's ``intri.yml`` + ``extri.yml``, in the
 take and then in the project; two of them in one folder are refused, naming both).
@@ -41,6 +45,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from common.calibration import full_camera_files
 from common.errors import WARNING_PREFIX, UserError
 from common.export import export_name, named_formats
 from server.config import CONFIG_FILE, OPTION_KEYS, Config, load_config
@@ -53,11 +58,34 @@ CALIBRATION_NAMES = ("calibration.json", "calibration.toml", "Calib.toml", "cali
 EASYMOCAP_FILES = ("intri.yml", "extri.yml")
 SEQUENCE_MARKERS = ("sequence.json", "silhouettes")
 SOURCE_FOLDERS = ("videos", "images")
+CAMERA_FOLDER_STEMS = ("video", "background")  # a lab's own layout: <camera>/video.avi, <camera>/background.avi
 STEPS = ("import", "segment", "fit", "export", "report")
 
 
 def is_take(folder: Path) -> bool:
-    return folder.is_dir() and any((folder / name).exists() for name in SOURCE_FOLDERS + SEQUENCE_MARKERS)
+    return folder.is_dir() and (any((folder / name).exists() for name in SOURCE_FOLDERS + SEQUENCE_MARKERS)
+                                or bool(camera_folder_sources(folder)[0]))
+
+
+def camera_folder_sources(take: Path) -> tuple[dict[str, Path], dict[str, Path]]:
+    """({camera: recording}, {camera: empty-studio recording}) of a take laid out a folder per
+    camera (``<camera>/video.<ext>`` or ``<camera>/video/``, ``<camera>/background.<ext>``): a
+    camera's folder is one holding a recording, so the sequence a run imports into the take is
+    none. Two recordings of one kind in one camera's folder are refused, naming them."""
+    found: tuple[dict[str, Path], dict[str, Path]] = ({}, {})
+    for sub in _sub_folders(take):
+        named = {stem: [p for p in sorted(sub.iterdir()) if p.stem == stem and not p.name.startswith(".")
+                        and (p.is_file() or any(p.iterdir()))]  # an empty video/ is a misspelt videos/
+                 for stem in CAMERA_FOLDER_STEMS}
+        if not named[CAMERA_FOLDER_STEMS[0]]:
+            continue
+        for (stem, paths), sources in zip(named.items(), found):
+            if len(paths) > 1:
+                raise UserError(f"{sub}: holds {len(paths)} {stem} recordings: "
+                                f"{', '.join(p.name for p in paths)}; keep one")
+            if paths:
+                sources[sub.name] = paths[0]
+    return found
 
 
 def find_takes(project: Path) -> list[Path]:
@@ -109,7 +137,10 @@ def take_config(take: Path) -> Config:
     return load_config(config_files(take))
 
 
-def find_calibration(take: Path, config: Config) -> Path:
+def find_calibration(take: Path, config: Config, camera_folders: bool = False) -> Path:
+    """The calibration of a take: [calibration] file, else one in the take, else, for a take laid
+    out a folder per camera (``camera_folders``), the camera files in those folders, else one in
+    the project."""
     given = config.get("calibration", "file")
     if given:
         if not Path(given).exists():
@@ -126,8 +157,11 @@ def find_calibration(take: Path, config: Config) -> Path:
                             "[calibration] file")
         if found:
             return found[0]
+        if folder == take and camera_folders and any(full_camera_files(take)):
+            return take
+    per_camera = ", camera files in its cameras' folders" if camera_folders else ""
     raise UserError(f"{take}: no calibration (looked for {', '.join(CALIBRATION_NAMES)} and intri.yml + extri.yml "
-                    "in the take and the project; or set [calibration] file)")
+                    f"in the take and the project{per_camera}; or set [calibration] file)")
 
 
 def _sources(folder: Path) -> dict[str, Path]:
@@ -222,6 +256,9 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     calib_settings = config.section("calibration")
     imports = {name: _sources(take / name) for name in SOURCE_FOLDERS}
     source_kind = next((k for k, v in imports.items() if v), None)
+    per_camera, per_camera_backgrounds = camera_folder_sources(take) if source_kind is None else ({}, {})
+    if per_camera:  # a lab's own layout, imported as videos/ would be
+        source_kind, imports["videos"] = "videos", per_camera
     recordings, calibration = {}, None
     calibration_file = None  # a ready sequence's: its own, or the take's or project's where it holds none
     if (take / "sequence.json").is_file() or ((take / "silhouettes").exists() and source_kind is None):
@@ -233,11 +270,15 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
             # not the sequence's own sequence.json: segment adds its record there and keeps the rest
             steps.append(_segment_step(sequence, config, also_writes=(), calibration=calibration_file))
     elif source_kind is None:
-        raise UserError(f"{take}: not a take (no videos/, images/, sequence.json or silhouettes/)")
+        raise UserError(f"{take}: not a take (no videos/, images/, sequence.json, silhouettes/ or "
+                        "<camera>/video.<ext>)")
     else:
         sequence = take / config.get("take", "sequence")
-        calibration = find_calibration(take, config)
-        videos, backgrounds = imports[source_kind], _sources(take / "background")
+        calibration = find_calibration(take, config, camera_folders=bool(per_camera))
+        videos = imports[source_kind]
+        backgrounds = per_camera_backgrounds if per_camera else _sources(take / "background")
+        # a take read as its own calibration: its camera files, not the outputs the run writes into it
+        calibration_inputs = [p for files in full_camera_files(take) for p in files] if calibration == take else [calibration]
         # segmentation subtracts the empty studio: a take without it is refused before the import
         recordings = {source_kind: videos, "background": backgrounds}
         imp = config.section("import")
@@ -255,7 +296,7 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
             command += ["--missing-frames", imp["missing_frames"]]
         if calib_settings["units"]:
             command += ["--units", calib_settings["units"]]
-        steps.append(Step("import", (tuple(command),), (calibration, *videos.values(), *backgrounds.values()),
+        steps.append(Step("import", (tuple(command),), (*calibration_inputs, *videos.values(), *backgrounds.values()),
                           # not sequence.json: the segment step adds its record there
                           (sequence / "images", sequence / "calibration.json"),
                           {"import": imp, "calibration": calib_settings},
@@ -661,7 +702,7 @@ def _read_json(path: Path):
 
 def result_figures(result: Path) -> dict:
     """Frames, seconds per frame, the actor's size, the fit quality (the mean XOR share, its two
-    sides, the frames flagged) and accuracy (where there was truth) of a result folder."""
+    sides, the frames flagged, the share of the masks cleared before it) and accuracy (where there was truth) of a result folder."""
     try:
         summary = json.loads((result / "summary.json").read_text())
     except (OSError, ValueError):
@@ -680,6 +721,8 @@ def result_figures(result: Path) -> dict:
             out[key] = quality[key]
     if "frames_flagged" in quality:
         out["frames_flagged"] = len(quality["frames_flagged"])
+    if summary.get("foreground_left_out"):  # the XOR shares are against the masks so cleared
+        out["cleared_share"] = summary["foreground_left_out"]["share"]
     return out
 
 

@@ -523,6 +523,44 @@ def test_a_take_that_is_an_imported_sequence_is_fitted_as_it_is(tmp_path, model,
 
 
 @pytest.mark.timeout(150)
+def test_a_take_laid_out_a_folder_per_camera_runs_as_it_is(tmp_path, model, small_studio, capsys):
+    """A lab's own layout (the real seated take's: cam1/video.avi, cam1/background.avi,
+    cam1/config.xml, a board description at the top) is a take: imported from each camera's
+    folder with the take read as its calibration, the board passed over; the outputs written
+    into the take do not make its import run again."""
+    from common.calibration import save_calibration
+
+    root = tmp_path / "project"
+    root.mkdir()
+    (root / "Config.toml").write_text(QUICK_CONFIG)
+    recorded = make_image_take(tmp_path / "recorded", model, small_studio)
+    take = root / "lab_take"
+    save_calibration(small_studio, tmp_path / "xml", fmt="opencv-xml")
+    for cam in small_studio.names:
+        shutil.copytree(recorded / "images" / cam, take / cam / "video")
+        shutil.copytree(recorded / "background" / cam, take / cam / "background")
+        shutil.copy(tmp_path / "xml" / f"{cam}.xml", take / cam / "config.xml")
+    (take / "checkerboard.xml").write_text('<?xml version="1.0"?>\n<opencv_storage><CheckerBoardWidth>8'
+                                           '</CheckerBoardWidth></opencv_storage>\n')
+    assert find_takes(root) == [take]
+    plan = plan_take(take)
+    (imported,) = plan.steps[0].commands
+    assert imported[imported.index("--calibration") + 1] == str(take)
+    assert f"cam2={take / 'cam2' / 'video'}" in imported and f"cam2={take / 'cam2' / 'background'}" in imported
+    done = run_take(take)
+    assert [s["step"] for s in done["steps"]] == ["import", "segment", "fit", "export"] and done["frames"] == 1
+    assert any("skipped (no camera fields): checkerboard.xml" in w for w in done["steps"][0]["warnings"])
+    assert {s["status"] for s in run_take(take)["steps"]} == {"up to date"}
+    (take / "cam3" / "config.xml").write_text((take / "cam3" / "config.xml").read_text() + "\n")  # recalibrated
+    assert [s["status"] for s in run_take(take)["steps"]] == ["done"] * 4
+    shutil.copy(take / "cam3" / "background" / sorted(os.listdir(take / "cam3" / "background"))[0],
+                take / "cam3" / "background.png")
+    assert main(["run", str(take)]) == 2
+    assert refusal(capsys).endswith(f"{take / 'cam3'}: holds 2 background recordings: background, background.png; "
+                                    "keep one")
+
+
+@pytest.mark.timeout(150)
 def test_run_says_each_step_s_warnings(tmp_path, model, small_studio, capsys):
     """A step's warnings (here the import's frame rate taken for image folders) are said under
     the step, with the log named; in --json they are a list per step and the output stays JSON;
@@ -594,6 +632,11 @@ def test_run_says_the_fit_quality_without_brackets_in_brackets(tmp_path, monkeyp
     assert f"XOR 40% of the silhouettes, 0 frames flagged (mocap report {tmp_path / 'result'})" in out  # no report made
     assert "  of the XOR: body outside the masks 1%, masks the body misses 39% (mostly" in out
     assert not any(line.count("(") > 1 for line in out.splitlines()), out
+    done.update(mean_xor_share=0.06, mean_outside_share=0.02, mean_missed_share=0.04, cleared_share=0.37)
+    assert main(["run", str(tmp_path)]) == 0  # the shares are of the masks with a chair cleared: said so
+    out = capsys.readouterr().out
+    assert "XOR 6% of the silhouettes once the 37% no fitted pose explains was cleared, 0 frames flagged" in out
+    assert not any(line.count("(") > 1 for line in out.splitlines()), out
 
 
 @pytest.mark.timeout(30)
@@ -621,9 +664,12 @@ def test_the_batch_table_says_each_take_s_fit_quality():
     takes = [{"name": "seated", "status": "done", "frames": 22, "seconds_per_frame": 1.5,
               "mean_xor_share": 0.40, "mean_outside_share": 0.01, "mean_missed_share": 0.39},
              {"name": "old", "status": "skipped", "frames": 5, "mean_xor_share": 0.2},
-             {"name": "broken", "status": "failed", "error": "cam2: missing"}]
-    header, seated, old, broken = summary_table({"takes": takes})
+             {"name": "broken", "status": "failed", "error": "cam2: missing"},
+             {"name": "chair", "status": "done", "frames": 22, "mean_xor_share": 0.06, "mean_outside_share": 0.02,
+              "cleared_share": 0.37}]
+    header, seated, old, broken, chair = summary_table({"takes": takes})
     assert "XOR (outside)" in header and "40% (1%)" in seated and "20%" in old and "(" not in old
+    assert "6% (2%), 37% cleared" in chair and "cleared" not in seated
     assert broken.split()[3] == "-" and broken.rstrip().endswith("failed: cam2: missing")
 
 

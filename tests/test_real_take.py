@@ -1,6 +1,8 @@
 """The real 4-camera seated take (../shared/data/real/uu_seated_4cam), end to end with the
 project's commands only: calib convert (--units mm), import-video (every 10th frame),
-segment, fit. Skipped without ../shared. Slow (about 4 minutes on 2 cores): `make real-test`.
+segment, fit; and ``mocap run`` of a copy of the take as it came (a folder per camera), with
+a Config.toml for the units and frames. Skipped without ../shared. Slow (about 5 minutes on 2
+cores): `make real-test`.
 
 What it holds the fit to (see docs/accuracy.md, "The seated take"): upright in the
 calibration's z-down world, hips and knees bent 60-130 degrees in every frame as a seated
@@ -12,6 +14,7 @@ area) and refits, and the XOR share against the cleared masks is held under 30% 
 its side outside the masks (2% fitted) under 5%.
 """
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -76,3 +79,23 @@ def test_the_seated_take_fits_seated_upright_and_still(tmp_path):
     assert summary["foreground_left_out"]["share"] > 0.2 and summary["fit_quality"]["mean_outside_share"] < 0.05
     assert "masks the body misses" in page and "cleared from the masks" in page
     assert set(summary["fit_quality"]["per_camera_mean_xor_share"]) == set(CAMERAS)
+
+
+def test_mocap_run_takes_the_recording_as_it_came(tmp_path):
+    """The lab's own layout (cam1/video.avi, background.avi, config.xml; checkerboard.xml) is a
+    take for mocap run, given the units and frames in Config.toml: it comes out seated."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    from posture_report import posture_figures
+
+    take = tmp_path / "project" / "seated"
+    shutil.copytree(REAL, take)
+    (take.parent / "Config.toml").write_text('[calibration]\nunits = "mm"\n[import]\nstep = 10\nstop = 200\n'
+                                             "[report]\nenabled = false\n")
+    out = mocap("run", take).stdout
+    assert "seated: done" in out and "20 frames" in out and "no fitted pose explains was cleared" in out
+    records = [json.loads(line) for line in (take / "result" / "poses.jsonl").read_text().splitlines()]
+    fig = posture_figures(records, json.loads((take / "result" / "summary.json").read_text())["actor_scale"])
+    for side in ("l", "r"):
+        for joint in ("hip", "knee"):
+            assert np.all(np.array(fig[f"{side}_{joint}_bend_deg"]) > 60), joint
+    assert "seated: skipped" in mocap("run", take).stdout  # the outputs it wrote into the take are no cameras

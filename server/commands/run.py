@@ -60,7 +60,9 @@ def run(args) -> int:
 
             reported = any(step["step"] == "report" for step in done["steps"])  # [report] enabled = false: none
             print(f"  {counted(done['frames'], 'frame')}, actor size {done.get('actor_scale', 1.0):.2f} x the body model, "
-                  f"XOR {done['mean_xor_share']:.0%} of the silhouettes, "
+                  f"XOR {done['mean_xor_share']:.0%} of the silhouettes"
+                  + (f" once the {done['cleared_share']:.0%} no fitted pose explains was cleared"
+                     if "cleared_share" in done else "") + ", "
                   f"{counted(done.get('frames_flagged', 0), 'frame')} flagged"
                   + (" (report.html)" if reported else f" (mocap report {shell_word(done['result'])})"))
             if "mean_missed_share" in done:  # a line of its own: the sides carry a note in brackets
