@@ -41,7 +41,7 @@ from common.proposals import midway, same_pose_near  # noqa: E402
 from common.search import fit_frame  # noqa: E402
 from common.sequence import load_sequence, write_sequence_meta  # noqa: E402
 from common.scoring import joint_errors_mm  # noqa: E402
-from server.results import load_records  # noqa: E402
+from server.results import load_records, read_foreground_left_out  # noqa: E402
 from server.session import LocalSolver, run_fit  # noqa: E402
 
 WINDOW = 20  # frames in the first and last windows of the drift comparison
@@ -53,15 +53,24 @@ def joint_error_mm(model, params, truth_frame) -> float:
     return float(joint_errors_mm(forward_kinematics(model, np.asarray(params)).joints[0], truth_frame).mean())
 
 
-def energies_against_truth(model, seq, truth, records, every: int) -> None:
+def energies_against_truth(model, seq, truth, records, every: int, as_segmented=None) -> None:
+    """Per frame: the fit's energy and the truth's, against ``seq``'s masks (the cleared ones
+    where the fit cleared foreground), and then the share of the true body's silhouette pixels
+    that were cleared (``as_segmented``: the sequence with its masks as segmented)."""
     lower = 0
     for r in records[::every]:
         data = FrameData(model, seq.studio, seq.silhouettes(r["frame"]))
         t = truth[r["frame"]]
         e_truth = full_energy(model, data, t.params)
         lower += e_truth < r["energy"]
-        print(f"frame {r['frame']:5d}  fit {r['energy']:7d}  truth {e_truth:7d}  "
-              f"{100.0 * (r['energy'] - e_truth) / e_truth:+5.1f}%  error {joint_error_mm(model, r['params'], t):5.1f} mm")
+        line = (f"frame {r['frame']:5d}  fit {r['energy']:7d}  truth {e_truth:7d}  "
+                f"{100.0 * (r['energy'] - e_truth) / e_truth:+5.1f}%  error {joint_error_mm(model, r['params'], t):5.1f} mm")
+        if as_segmented is not None:
+            segmented = as_segmented.silhouettes(r["frame"])
+            body = FrameData(model, seq.studio, segmented).whole_image_energy().render(np.asarray(t.params))
+            body &= FrameData(model, seq.studio, segmented).masks
+            line += f"  the true body's mask cleared {np.count_nonzero(body & ~data.masks) / max(body.sum(), 1):.1%}"
+        print(line)
     print(f"the truth's energy is lower in {lower} of {len(records[::every])} frames")
 
 
@@ -167,15 +176,21 @@ def main(argv=None) -> int:
     ap.add_argument("--chains", type=frame_list, default=[], metavar="F1,F2,...",
                     help="these frames fitted from the truth, and each chain alone put at the truth")
     args = ap.parse_args(argv)
-    model = load_body_model()
-    seq = load_sequence(args.sequence)
+    summary = json.loads((args.result / "summary.json").read_text())
+    model = load_body_model().scaled(summary["actor_scale"])  # the actor the run fitted
+    seq = as_segmented = load_sequence(args.sequence)
+    cleared = read_foreground_left_out(args.result)
+    if cleared is not None:  # the records' energies are against the masks the fit cleared
+        seq = as_segmented.without_foreground(cleared)
+        print(f"against the masks the fit used: {summary['foreground_left_out']['share']:.1%} of the silhouette "
+              "area cleared")
     truth = seq.truth()
     if not truth:
         raise SystemExit(f"{args.sequence}: no truth.jsonl")
     records = load_records(args.result)
     # the run's own options, so that the restart fits as the run did
-    options = FitOptions.from_wire(json.loads((args.result / "summary.json").read_text())["options"])
-    energies_against_truth(model, seq, truth, records, args.every)
+    options = FitOptions.from_wire(summary["options"])
+    energies_against_truth(model, seq, truth, records, args.every, as_segmented if cleared is not None else None)
     lag(truth, records)
     errors = [joint_error_mm(model, r["params"], truth[r["frame"]]) for r in records]
     print(f"first {WINDOW} / last {WINDOW} frames: {np.mean(errors[:WINDOW]):.1f} / {np.mean(errors[-WINDOW:]):.1f} mm")
