@@ -278,7 +278,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
         videos = imports[source_kind]
         backgrounds = per_camera_backgrounds if per_camera else _sources(take / "background")
         # a take read as its own calibration: its camera files, not the outputs the run writes into it
-        calibration_inputs = [p for files in full_camera_files(take) for p in files] if calibration == take else [calibration]
+        calibration_inputs = ([p for files in full_camera_files(take) for p in files] if calibration == take
+                              else [calibration])
         # segmentation subtracts the empty studio: a take without it is refused before the import
         recordings = {source_kind: videos, "background": backgrounds}
         imp = config.section("import")
@@ -702,7 +703,8 @@ def _read_json(path: Path):
 
 def result_figures(result: Path) -> dict:
     """Frames, seconds per frame, the actor's size, the fit quality (the mean XOR share, its two
-    sides, the frames flagged, the share of the masks cleared before it) and accuracy (where there was truth) of a result folder."""
+    sides, the frames flagged, the share of the masks cleared before it) and accuracy (where
+    there was truth) of a result folder."""
     try:
         summary = json.loads((result / "summary.json").read_text())
     except (OSError, ValueError):

@@ -594,12 +594,11 @@ def leave_out_unexplained(model: BodyModel, seq: Sequence, records: list[dict], 
     itself where nothing is), the records and, where pixels were cleared, {"share": their number
     over the mean silhouette area, "frames_replaced": how many frames changed pose, "rounds":
     the rounds of passes, "round_shares": the share each round added} (else {})."""
-    out, flags, cleared, rounds, added = records, None, seq, 0, []
-    while rounds < UNEXPLAINED_ROUNDS:
+    out, flags, cleared, added = records, None, seq, []
+    while len(added) < UNEXPLAINED_ROUNDS:
         found, mean_area = unexplained_pixels(model, seq, out)
         if found is None or (flags is not None and not (found & ~flags).any()):
             break
-        rounds += 1
         added.append(round(float((found if flags is None else found & ~flags).sum() / mean_area), 4))
         flags = found if flags is None else flags | found
         cleared = seq.without_foreground(recorded_pixels(seq.studio, flags))
@@ -613,7 +612,8 @@ def leave_out_unexplained(model: BodyModel, seq: Sequence, records: list[dict], 
                                  start_hops=UNEXPLAINED_START_HOPS)
     if flags is None:
         return seq, records, {}
-    return cleared, out, {"share": round(float(flags.sum() / mean_area), 4), "rounds": rounds, "round_shares": added,
+    return cleared, out, {"share": round(float(flags.sum() / mean_area), 4), "rounds": len(added),
+                          "round_shares": added,
                           "frames_replaced": sum(a["params"] != b["params"] for a, b in zip(records, out))}
 
 
