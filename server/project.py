@@ -8,8 +8,8 @@ A project is a folder with ``Config.toml`` at its root; a take is a folder below
    it is, at its own frame rate; segmented first where it has ``images/`` and no ``silhouettes/``;
  - or a lab's own layout, a folder per camera: ``<camera>/video.<ext>`` (or a ``video/`` image
    folder) with ``<camera>/background.<ext>``, and each camera's calibration file beside them
-   (``<camera>/config.xml``): imported like videos/, the take folder read as the calibration
-   where it holds no other (the board description and notes beside them are passed over);
+   (``<camera>/config.xml``): imported like videos/, those files read as the calibration (the
+   board description and notes beside them passed over; another calibration in the take refused);
 plus a calibration (``[calibration] file``, else ``calibration.json``, ``calibration.toml``,
 ``Calib.toml``, a ``calibration/`` folder or EasyMocap's ``intri.yml`` + ``extri.yml``, in the
 take and then in the project; two of them in one folder are refused, naming both).
@@ -49,7 +49,7 @@ from common.calibration import full_camera_files
 from common.errors import WARNING_PREFIX, UserError
 from common.export import export_name, named_formats
 from server.config import CONFIG_FILE, OPTION_KEYS, Config, load_config
-from server.output import write_text
+from server.output import counted, write_text
 from server.results import DERIVED_FILES, FOREGROUND_FILE, MOTION_FILE, RUN_FILE
 
 STATE_DIR = ".mocap"  # per take: step records, the lock, the log of the last run
@@ -74,7 +74,7 @@ def camera_folder_sources(take: Path) -> tuple[dict[str, Path], dict[str, Path]]
     none. Two recordings of one kind in one camera's folder are refused, naming them."""
     found: tuple[dict[str, Path], dict[str, Path]] = ({}, {})
     for sub in _sub_folders(take):
-        named = {stem: [p for p in sorted(sub.iterdir()) if p.stem == stem and not p.name.startswith(".")
+        named = {stem: [p for p in sorted(sub.iterdir()) if p.stem.lower() == stem and not p.name.startswith(".")
                         and (p.is_file() or any(p.iterdir()))]  # an empty video/ is a misspelt videos/
                  for stem in CAMERA_FOLDER_STEMS}
         if not named[CAMERA_FOLDER_STEMS[0]]:
@@ -138,9 +138,9 @@ def take_config(take: Path) -> Config:
 
 
 def find_calibration(take: Path, config: Config, camera_folders: bool = False) -> Path:
-    """The calibration of a take: [calibration] file, else one in the take, else, for a take laid
-    out a folder per camera (``camera_folders``), the camera files in those folders, else one in
-    the project."""
+    """The calibration of a take: [calibration] file, else one in the take (for a take laid out a
+    folder per camera, ``camera_folders``, the camera files in those folders are one), else one
+    in the project."""
     given = config.get("calibration", "file")
     if given:
         if not Path(given).exists():
@@ -148,17 +148,17 @@ def find_calibration(take: Path, config: Config, camera_folders: bool = False) -
         return Path(given)
     project = project_of(take)
     for folder in [take] + ([project] if project else []):  # a take's own calibration before the project's
-        found = [folder / name for name in CALIBRATION_NAMES if (folder / name).exists()]
+        found = [(folder / name, name) for name in CALIBRATION_NAMES if (folder / name).exists()]
         if all((folder / name).is_file() for name in EASYMOCAP_FILES):
-            found.append(folder)
-        if len(found) > 1:  # two in one folder: which was meant (or last edited) is not ours to guess
-            names = [p.name if p != folder else " + ".join(EASYMOCAP_FILES) for p in found]
-            raise UserError(f"{folder}: holds {len(found)} calibrations: {', '.join(names)}; keep one, or set "
-                            "[calibration] file")
-        if found:
-            return found[0]
+            found.append((folder, " + ".join(EASYMOCAP_FILES)))
         if folder == take and camera_folders and any(full_camera_files(take)):
-            return take
+            # the cameras' own files are a calibration too, read as calib convert reads the take
+            found.append((take, "the camera files in its cameras' folders"))
+        if len(found) > 1:  # two in one folder: which was meant (or last edited) is not ours to guess
+            raise UserError(f"{folder}: holds {len(found)} calibrations: {', '.join(name for _, name in found)}; "
+                            "keep one, or set [calibration] file")
+        if found:
+            return found[0][0]
     per_camera = ", camera files in its cameras' folders" if camera_folders else ""
     raise UserError(f"{take}: no calibration (looked for {', '.join(CALIBRATION_NAMES)} and intri.yml + extri.yml "
                     f"in the take and the project{per_camera}; or set [calibration] file)")
@@ -238,6 +238,7 @@ class TakePlan:
     recordings: dict[str, dict[str, Path]] = field(default_factory=dict)
     calibration: Path | None = None
     units: str = ""
+    per_camera: bool = False  # laid out a folder per camera (``camera_folder_sources``)
 
 
 def plan_take(take: Path, config: Config | None = None) -> TakePlan:
@@ -270,8 +271,10 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
             # not the sequence's own sequence.json: segment adds its record there and keeps the rest
             steps.append(_segment_step(sequence, config, also_writes=(), calibration=calibration_file))
     elif source_kind is None:
+        below = _takes_in(take)  # a project's folder given for one of its takes
         raise UserError(f"{take}: not a take (no videos/, images/, sequence.json, silhouettes/ or "
-                        "<camera>/video.<ext>)")
+                        "<camera>/video.<ext>)" + (f"; it holds {counted(len(below), 'take')}: mocap batch {take} "
+                                                  "runs them all" if below else ""))
     else:
         sequence = take / config.get("take", "sequence")
         calibration = find_calibration(take, config, camera_folders=bool(per_camera))
@@ -336,7 +339,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
         command = ["report", str(result), "--overwrite", "--quiet"] + ([] if report["gif"] else ["--no-gif"])
         steps.append(Step("report", (tuple(command),), (result / "poses.jsonl", result / "summary.json"),
                           (result / "report.html",), {"report": report}, also_writes=(result / "pictures",)))
-    return TakePlan(take, sequence, result, tuple(steps), recordings, calibration, calib_settings["units"])
+    return TakePlan(take, sequence, result, tuple(steps), recordings, calibration, calib_settings["units"],
+                    bool(per_camera))
 
 
 def _segment_step(sequence: Path, config: Config, also_writes: tuple[Path, ...], calibration: Path | None = None) -> Step:
@@ -369,6 +373,12 @@ def check_recordings(plan: TakePlan) -> None:
             if camera not in cameras:
                 raise UserError(f"{path}: no camera {camera} in {plan.calibration} (cameras: {', '.join(cameras)})")
         missing = [c for c in cameras if c not in given]
+        if missing and plan.per_camera:  # name what a camera's folder must hold, and what it holds
+            named = f"{'background' if folder == 'background' else 'video'}.<ext>"
+            held = [f"{c}/ holds {', '.join(sorted(p.name for p in (plan.take / c).iterdir())) or 'nothing'}"
+                    for c in missing if (plan.take / c).is_dir()]
+            raise UserError(f"{plan.take}: no {named} for camera(s) {', '.join(missing)} of {plan.calibration}"
+                            + (f" ({'; '.join(held)})" if held else ""))
         if missing:
             what = "empty-studio recording" if folder == "background" else "recording"
             raise UserError(f"{plan.take / folder}/: no {what} for camera(s) {', '.join(missing)} of "
@@ -611,12 +621,16 @@ def run_take(take: Path, progress=None, overwrite: bool = False) -> dict:
     ``note`` naming the outputs kept as edited), and the ``warnings`` its commands printed this
     run; ``log``: the file that holds the commands' whole output. ``progress(step, state)`` is
     told "running (WHY)" as a step starts (``why_it_runs``, also each run step's "why"),
-    "warning: LINE" for each warning it prints, or the status of a step that is done. Raises TakeFailed with the failing step's message, or UserError
+    "warning: LINE" for each warning it prints, or the status of a step that is done. Raises
+    TakeFailed with the failing step's message, or UserError
     before anything is written where the recordings do not match the calibration, or where a
     step would replace an output no run made (``overwrite`` allows it)."""
     take = Path(take).resolve()
     plan = plan_take(take)
-    check_recordings(plan)
+    try:
+        check_recordings(plan)
+    except UserError as exc:  # the calibration read as the import will read it: its advice names options
+        raise UserError(f"{exc}{config_key_note(str(exc))}") from None
     t0 = time.perf_counter()
     steps = []
     log_path = take / STATE_DIR / "run.log"
@@ -676,6 +690,7 @@ def _run_step(take: Path, plan: TakePlan, step: Step, log, progress, entry: dict
     log.write(f"{step.name}: running ({why})\n")
 
     def warn(line: str) -> None:
+        line += config_key_note(line)  # its advice names options, as its errors' does
         warnings.append(line)
         if progress and line not in said:
             said.add(line)

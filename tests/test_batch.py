@@ -452,7 +452,7 @@ def test_batch_reports_a_refused_take_and_overwrite_replaces_it(project):
     assert run_take_task(str(take), overwrite=True)["status"] == "done" and len(poses(take)) == 3
 
 
-def test_a_take_whose_calibration_needs_units_runs_from_its_images(tmp_path, model, small_studio):
+def test_a_take_whose_calibration_needs_units_runs_from_its_images(tmp_path, model, small_studio, capsys):
     """[calibration] units reaches the import step too: a calibration in millimetres that does
     not say so is imported, segmented and fitted under mocap run."""
     from common.calibration import load_calibration, studio_to_json
@@ -469,6 +469,9 @@ def test_a_take_whose_calibration_needs_units_runs_from_its_images(tmp_path, mod
     for cam in doc["cameras"]:
         cam["t"] = [1000 * v for v in cam["t"]]
     (take / "calibration.json").write_text(json.dumps(doc))
+    (take.parent / "Config.toml").write_text(PROJECT_CONFIG)
+    assert main(["run", str(take)]) == 2  # refused before the import, saying where the units are set
+    assert refusal(capsys).endswith("(in Config.toml: --units is [calibration] units)")
     (take.parent / "Config.toml").write_text(PROJECT_CONFIG.replace("[report]", "[report]\nenabled = false")
                                              + '\n[calibration]\nunits = "mm"\n')
     (imported,) = plan_take(take).steps[0].commands
@@ -558,6 +561,16 @@ def test_a_take_laid_out_a_folder_per_camera_runs_as_it_is(tmp_path, model, smal
     assert main(["run", str(take)]) == 2
     assert refusal(capsys).endswith(f"{take / 'cam3'}: holds 2 background recordings: background, background.png; "
                                     "keep one")
+    (take / "cam3" / "background.png").unlink()
+    (take / "cam3" / "background").rename(take / "cam3" / "empty")  # named as the lab named it
+    assert main(["run", str(take)]) == 2
+    assert refusal(capsys).endswith(f"{take}: no background.<ext> for camera(s) cam3 of {take} "
+                                    "(cam3/ holds config.xml, empty, video)")
+    (take / "cam3" / "empty").rename(take / "cam3" / "background")
+    save_calibration(small_studio, take / "calibration.json")  # converted beside the cameras' files: which is meant?
+    assert main(["run", str(take)]) == 2
+    assert refusal(capsys).endswith(f"{take}: holds 2 calibrations: calibration.json, the camera files in its "
+                                    "cameras' folders; keep one, or set [calibration] file")
 
 
 @pytest.mark.timeout(150)
@@ -677,7 +690,7 @@ def test_find_takes(project):
     from server.project import folders_without_takes
 
     assert [t.name for t in find_takes(project)] == ["broken", "walk_a", "walk_b"]
-    with pytest.raises(UserError, match="not a take"):
+    with pytest.raises(UserError, match="not a take .*; it holds 3 takes: mocap batch .* runs them all"):
         plan_take(project)
     assert folders_without_takes(project) == []
     (project / "empty").mkdir()

@@ -23,7 +23,8 @@ from server.project import TakeFailed, run_take
 def register(sub) -> None:
     p = sub.add_parser("run", help="every step of a take (import, segment, fit, export, report) as its "
                                    "Config.toml says; steps already up to date are skipped")
-    p.add_argument("take", type=Path, help="take folder (videos/, images/ or a sequence, in a project)")
+    p.add_argument("take", type=Path, help="take folder (videos/, images/, a sequence, or a folder per camera "
+                   "holding video.<ext> and background.<ext>; in a project)")
     p.add_argument("--overwrite", action="store_true",
                    help="where a step runs, replace outputs that mocap run did not make, or that changed since "
                         "it made them (default: refuse the take, so that nothing is lost; outputs edited by "
