@@ -343,6 +343,21 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
                     bool(per_camera))
 
 
+def plan_lines(plan: TakePlan) -> list[str]:
+    """What ``mocap run`` would read and do for a take (``mocap config show``): its recordings'
+    layout and cameras, the calibration read, the steps."""
+    videos = next(iter(plan.recordings.values()), {})
+    layout = ("a folder per camera" if plan.per_camera else f"{next(iter(plan.recordings))}/" if videos
+              else "a ready sequence")
+    given = [c[c.index("--calibration") + 1] for step in plan.steps for c in step.commands if "--calibration" in c]
+    calibration = given[0] if given else f"the sequence's own ({plan.sequence})"
+    if plan.per_camera and calibration == str(plan.take):
+        calibration = f"the camera files in its cameras' folders ({plan.take})"
+    return [f"recordings: {layout}" + (f" ({', '.join(videos)})" if videos else ""),
+            f"calibration: {calibration}" + (f" in {plan.units}" if plan.units else ""),
+            f"steps: {', '.join(step.name for step in plan.steps)}; result: {plan.result}"]
+
+
 def _segment_step(sequence: Path, config: Config, also_writes: tuple[Path, ...], calibration: Path | None = None) -> Step:
     """``also_writes``: the sequence.json that the segmentation's record goes into, where an import
     made it; ``calibration``: where the sequence holds none of its own."""

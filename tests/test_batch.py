@@ -550,6 +550,10 @@ def test_a_take_laid_out_a_folder_per_camera_runs_as_it_is(tmp_path, model, smal
     (imported,) = plan.steps[0].commands
     assert imported[imported.index("--calibration") + 1] == str(take)
     assert f"cam2={take / 'cam2' / 'video'}" in imported and f"cam2={take / 'cam2' / 'background'}" in imported
+    assert main(["config", "show", str(take)]) == 0  # what the run will read, said
+    shown = capsys.readouterr().out
+    assert "take: recordings: a folder per camera (cam1, cam2, cam3, cam4)\n" in shown
+    assert f"take: calibration: the camera files in its cameras' folders ({take})\n" in shown
     done = run_take(take)
     assert [s["step"] for s in done["steps"]] == ["import", "segment", "fit", "export"] and done["frames"] == 1
     assert any("skipped (no camera fields): checkerboard.xml" in w for w in done["steps"][0]["warnings"])
