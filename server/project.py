@@ -385,6 +385,9 @@ def check_recordings(plan: TakePlan) -> None:
     cameras = load_calibration(plan.calibration, units=plan.units or None, warn=lambda line: None).names
     for folder, given in plan.recordings.items():
         for camera, path in given.items():
+            if camera not in cameras and plan.per_camera and plan.calibration == plan.take:
+                raise UserError(f"{plan.take / camera}/: no calibration file beside its recording (.xml with K, R, "
+                                f"t or P, .txt with a 3x4 P; cameras with one: {', '.join(cameras)})")
             if camera not in cameras:
                 raise UserError(f"{path}: no camera {camera} in {plan.calibration} (cameras: {', '.join(cameras)})")
         missing = [c for c in cameras if c not in given]

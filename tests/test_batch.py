@@ -571,6 +571,11 @@ def test_a_take_laid_out_a_folder_per_camera_runs_as_it_is(tmp_path, model, smal
     assert refusal(capsys).endswith(f"{take}: no background.<ext> for camera(s) cam3 of {take} "
                                     "(cam3/ holds config.xml, empty, video)")
     (take / "cam3" / "empty").rename(take / "cam3" / "background")
+    (take / "cam4" / "config.xml").rename(tmp_path / "cam4.xml")
+    assert main(["run", str(take)]) == 2
+    assert refusal(capsys).endswith(f"{take / 'cam4'}/: no calibration file beside its recording (.xml with K, R, "
+                                    "t or P, .txt with a 3x4 P; cameras with one: cam1, cam2, cam3)")
+    (tmp_path / "cam4.xml").rename(take / "cam4" / "config.xml")
     save_calibration(small_studio, take / "calibration.json")  # converted beside the cameras' files: which is meant?
     assert main(["run", str(take)]) == 2
     assert refusal(capsys).endswith(f"{take}: holds 2 calibrations: calibration.json, the camera files in its "
