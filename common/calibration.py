@@ -501,7 +501,7 @@ def folder_calibrations(folder) -> list[tuple[str, Path, str]]:
             found.append(("json", p, p.name))
         elif p.suffix.lower() == ".toml" and _is_calibration_toml(p):
             found.append(("toml", p, p.name))
-    for files in full_camera_files(folder):
+    for files in _full_camera_files(folder):
         if files:
             names = [f.relative_to(folder).as_posix() for f in files]
             shown = ", ".join(names) if len(names) <= 3 else f"{names[0]}, ..., {names[-1]}"
@@ -1007,13 +1007,16 @@ def _camera_files(folder: Path, warn: Warn | None = None) -> list[tuple[str, Pat
     return sorted(entries, key=lambda e: natural_key(e[0]))
 
 
-def full_camera_files(folder: Path) -> tuple[list[Path], list[Path]]:
+def _full_camera_files(folder: Path) -> tuple[list[Path], list[Path]]:
     """The files holding a whole camera at the top of ``folder``, and in its sub-folders (all of
     them, even two in one sub-folder: that is refused when read)."""
-    top = [p for p in _camera_candidates(folder) if _file_kind(p) in FULL_KINDS]
-    subs = [p for sub in sorted(d for d in folder.iterdir() if d.is_dir())
-            for p in _camera_candidates(sub) if _file_kind(p) in FULL_KINDS]
-    return top, subs
+    return (camera_files_in(folder),
+            [p for sub in sorted(d for d in folder.iterdir() if d.is_dir()) for p in camera_files_in(sub)])
+
+
+def camera_files_in(folder: Path) -> list[Path]:
+    """The files directly in ``folder`` that hold a whole camera (K, R, t or P), in natural order."""
+    return [p for p in _camera_candidates(folder) if _file_kind(p) in FULL_KINDS]
 
 
 def _sub_folder_cameras(folder: Path) -> tuple[list[tuple[str, Path, str]], list[Path]]:

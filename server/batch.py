@@ -22,7 +22,7 @@ from pathlib import Path
 
 from common.errors import UserError, print_warning
 from server.output import counted, write_text
-from server.project import TakeFailed, find_takes, folders_without_takes, frames_done, run_take
+from server.project import TAKE_LAYOUTS, TakeFailed, find_takes, folders_without_takes, frames_done, run_take
 from server.threads import THREADS_ENV, usable_cores
 
 BATCH_FILE = "batch.json"
@@ -77,10 +77,10 @@ def run_batch(project: Path, workers: int | None = None, scheduler: str | None =
     project = Path(project).resolve()
     takes = find_takes(project)
     if not takes:
-        raise UserError(f"{project}: no takes (folders with videos/, images/, sequence.json or silhouettes/)")
+        raise UserError(f"{project}: no takes (folders with {TAKE_LAYOUTS})")
     others = folders_without_takes(project)
     if others and not quiet:
-        print_warning(f"{project}: skipped, no take in them (no videos/, images/, sequence.json or silhouettes/): "
+        print_warning(f"{project}: skipped, no take in them (no {TAKE_LAYOUTS}): "
                       + ", ".join(p.relative_to(project).as_posix() for p in others))
     t0 = time.perf_counter()
     client, cluster = start_client(workers, scheduler)

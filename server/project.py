@@ -45,9 +45,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from common.calibration import full_camera_files
+from common.calibration import camera_files_in
 from common.errors import WARNING_PREFIX, UserError
 from common.export import export_name, named_formats
+from common.sequence import IMAGE_SUFFIXES
 from server.config import CONFIG_FILE, OPTION_KEYS, Config, load_config
 from server.output import counted, write_text
 from server.results import DERIVED_FILES, FOREGROUND_FILE, MOTION_FILE, RUN_FILE
@@ -59,32 +60,60 @@ EASYMOCAP_FILES = ("intri.yml", "extri.yml")
 SEQUENCE_MARKERS = ("sequence.json", "silhouettes")
 SOURCE_FOLDERS = ("videos", "images")
 CAMERA_FOLDER_STEMS = ("video", "background")  # a lab's own layout: <camera>/video.avi, <camera>/background.avi
+# what a camera's folder's video.<ext> may be, besides images (a reference clip named video.json is not)
+VIDEO_SUFFIXES = (".avi", ".mp4", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm", ".wmv", ".mts", ".m2ts")
+MIN_CAMERA_FOLDERS = 2  # with a video and a background each: fewer is a clip kept somewhere, not a studio
+TAKE_LAYOUTS = "videos/, images/, sequence.json, silhouettes/ or a folder per camera with video.<ext>"
 STEPS = ("import", "segment", "fit", "export", "report")
 
 
+def _holds_take_markers(folder: Path) -> bool:
+    return any((folder / name).exists() for name in SOURCE_FOLDERS + SEQUENCE_MARKERS)
+
+
 def is_take(folder: Path) -> bool:
-    return folder.is_dir() and (any((folder / name).exists() for name in SOURCE_FOLDERS + SEQUENCE_MARKERS)
-                                or bool(camera_folder_sources(folder)[0]))
+    return folder.is_dir() and (_holds_take_markers(folder) or bool(_camera_folders(folder)))
+
+
+def _is_recording(path: Path) -> bool:
+    """A camera folder's video or image file, or its folder of images."""
+    if path.name.startswith("."):
+        return False
+    if path.is_dir():
+        return any(p.suffix.lower() in IMAGE_SUFFIXES for p in path.iterdir())
+    return path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES + IMAGE_SUFFIXES
+
+
+def _camera_folders(take: Path) -> dict[str, dict[str, list[Path]]]:
+    """{camera: {stem: [its recordings so named]}} of a take laid out a folder per camera: the
+    sub-folders holding a video recording (not a take's own: the sequence a run imports into the
+    take), where at least MIN_CAMERA_FOLDERS of them hold an empty-studio recording too (clips
+    named video.mp4 kept here and there make no take of a project's folder); else {}."""
+    found = {}
+    for sub in _sub_folders(take):
+        if _holds_take_markers(sub):
+            continue
+        named = {stem: [p for p in sorted(sub.iterdir()) if p.stem.lower() == stem and _is_recording(p)]
+                 for stem in CAMERA_FOLDER_STEMS}
+        if named[CAMERA_FOLDER_STEMS[0]]:
+            found[sub.name] = named
+    whole = sum(all(named.values()) for named in found.values())
+    return found if whole >= MIN_CAMERA_FOLDERS else {}
 
 
 def camera_folder_sources(take: Path) -> tuple[dict[str, Path], dict[str, Path]]:
     """({camera: recording}, {camera: empty-studio recording}) of a take laid out a folder per
-    camera (``<camera>/video.<ext>`` or ``<camera>/video/``, ``<camera>/background.<ext>``): a
-    camera's folder is one holding a recording, so the sequence a run imports into the take is
+    camera (``<camera>/video.<ext>`` or ``<camera>/video/`` of images, ``<camera>/background.<ext>``);
+    a camera's folder is one holding a recording, so the sequence a run imports into the take is
     none. Two recordings of one kind in one camera's folder are refused, naming them."""
     found: tuple[dict[str, Path], dict[str, Path]] = ({}, {})
-    for sub in _sub_folders(take):
-        named = {stem: [p for p in sorted(sub.iterdir()) if p.stem.lower() == stem and not p.name.startswith(".")
-                        and (p.is_file() or any(p.iterdir()))]  # an empty video/ is a misspelt videos/
-                 for stem in CAMERA_FOLDER_STEMS}
-        if not named[CAMERA_FOLDER_STEMS[0]]:
-            continue
+    for camera, named in _camera_folders(take).items():
         for (stem, paths), sources in zip(named.items(), found):
             if len(paths) > 1:
-                raise UserError(f"{sub}: holds {len(paths)} {stem} recordings: "
+                raise UserError(f"{take / camera}: holds {len(paths)} {stem} recordings: "
                                 f"{', '.join(p.name for p in paths)}; keep one")
             if paths:
-                sources[sub.name] = paths[0]
+                sources[camera] = paths[0]
     return found
 
 
@@ -137,10 +166,10 @@ def take_config(take: Path) -> Config:
     return load_config(config_files(take))
 
 
-def find_calibration(take: Path, config: Config, camera_folders: bool = False) -> Path:
+def find_calibration(take: Path, config: Config, camera_files: list[Path] | None = None) -> Path:
     """The calibration of a take: [calibration] file, else one in the take (for a take laid out a
-    folder per camera, ``camera_folders``, the camera files in those folders are one), else one
-    in the project."""
+    folder per camera, the ``camera_files`` in those folders are one: the take is read as
+    ``mocap calib convert TAKE`` reads it; None: another layout), else one in the project."""
     given = config.get("calibration", "file")
     if given:
         if not Path(given).exists():
@@ -151,7 +180,7 @@ def find_calibration(take: Path, config: Config, camera_folders: bool = False) -
         found = [(folder / name, name) for name in CALIBRATION_NAMES if (folder / name).exists()]
         if all((folder / name).is_file() for name in EASYMOCAP_FILES):
             found.append((folder, " + ".join(EASYMOCAP_FILES)))
-        if folder == take and camera_folders and any(full_camera_files(take)):
+        if folder == take and camera_files:
             # the cameras' own files are a calibration too, read as calib convert reads the take
             found.append((take, "the camera files in its cameras' folders"))
         if len(found) > 1:  # two in one folder: which was meant (or last edited) is not ours to guess
@@ -159,9 +188,20 @@ def find_calibration(take: Path, config: Config, camera_folders: bool = False) -
                             "keep one, or set [calibration] file")
         if found:
             return found[0][0]
-    per_camera = ", camera files in its cameras' folders" if camera_folders else ""
+    per_camera = ", camera files in its cameras' folders" if camera_files is not None else ""
     raise UserError(f"{take}: no calibration (looked for {', '.join(CALIBRATION_NAMES)} and intri.yml + extri.yml "
                     f"in the take and the project{per_camera}; or set [calibration] file)")
+
+
+def calibration_read(calibration: Path, take: Path | None = None, camera_files: list[Path] | None = None) -> list[Path]:
+    """The files a calibration is read from, whose changes make its steps run again: a take read
+    as its own calibration is its ``camera_files``, and EasyMocap's folder (a take's or a
+    project's, which hold the run's outputs too) its two files; any other path as it is."""
+    if calibration == take and camera_files:
+        return camera_files
+    if calibration.is_dir() and all((calibration / name).is_file() for name in EASYMOCAP_FILES):
+        return [calibration / name for name in EASYMOCAP_FILES]
+    return [calibration]
 
 
 def _sources(folder: Path) -> dict[str, Path]:
@@ -272,17 +312,15 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
             steps.append(_segment_step(sequence, config, also_writes=(), calibration=calibration_file))
     elif source_kind is None:
         below = _takes_in(take)  # a project's folder given for one of its takes
-        raise UserError(f"{take}: not a take (no videos/, images/, sequence.json, silhouettes/ or "
-                        "<camera>/video.<ext>)" + (f"; it holds {counted(len(below), 'take')}: mocap batch {take} "
-                                                  "runs them all" if below else ""))
+        raise UserError(f"{take}: not a take (no {TAKE_LAYOUTS})"
+                        + (f"; it holds {counted(len(below), 'take')}: mocap batch {take} runs them all"
+                           if below else ""))
     else:
         sequence = take / config.get("take", "sequence")
-        calibration = find_calibration(take, config, camera_folders=bool(per_camera))
+        camera_files = [f for camera in per_camera for f in camera_files_in(take / camera)] if per_camera else None
+        calibration = find_calibration(take, config, camera_files)
         videos = imports[source_kind]
         backgrounds = per_camera_backgrounds if per_camera else _sources(take / "background")
-        # a take read as its own calibration: its camera files, not the outputs the run writes into it
-        calibration_inputs = ([p for files in full_camera_files(take) for p in files] if calibration == take
-                              else [calibration])
         # segmentation subtracts the empty studio: a take without it is refused before the import
         recordings = {source_kind: videos, "background": backgrounds}
         imp = config.section("import")
@@ -300,7 +338,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
             command += ["--missing-frames", imp["missing_frames"]]
         if calib_settings["units"]:
             command += ["--units", calib_settings["units"]]
-        steps.append(Step("import", (tuple(command),), (*calibration_inputs, *videos.values(), *backgrounds.values()),
+        inputs = (*calibration_read(calibration, take, camera_files), *videos.values(), *backgrounds.values())
+        steps.append(Step("import", (tuple(command),), inputs,
                           # not sequence.json: the segment step adds its record there
                           (sequence / "images", sequence / "calibration.json"),
                           {"import": imp, "calibration": calib_settings},
@@ -322,8 +361,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     command += ["--refine-search"] if fit["refine_search"] else []
     command += ["--track-moved-on"] if fit["track_moved_on"] else []
     command += ["--calibration", str(calibration_file)] if calibration_file else []
-    calibration_file = calibration_file or sequence / "calibration.json"
-    steps.append(Step("fit", (tuple(command),), (calibration_file, sequence / "silhouettes", sequence / "sequence.json"),
+    calibration_files = calibration_read(calibration_file or sequence / "calibration.json", take)
+    steps.append(Step("fit", (tuple(command),), (*calibration_files, sequence / "silhouettes", sequence / "sequence.json"),
                       (result / "poses.jsonl", result / "summary.json"),
                       # the preset is in the keys it set, and its name alone refits nothing
                       {"fit": {k: v for k, v in fit.items() if k != "preset"}, "calibration": calib_settings},
@@ -364,13 +403,18 @@ def _segment_step(sequence: Path, config: Config, also_writes: tuple[Path, ...],
     given = ("--calibration", str(calibration)) if calibration else ()
     return Step("segment", (("segment", str(sequence), "--method", config.get("segmentation", "method"),
                              "--overwrite", *given),),
-                (sequence / "images", sequence / "background", *([calibration] if calibration else [])),
+                (sequence / "images", sequence / "background",
+                 *(calibration_read(calibration) if calibration else [])),
                 (sequence / "silhouettes",), {"segmentation": config.section("segmentation")}, also_writes=also_writes)
 
 
 def holds_calibration(sequence: Path) -> bool:
     """Whether a sequence folder holds its own calibration (calibration.json, or EasyMocap's two files)."""
     return (sequence / "calibration.json").is_file() or all((sequence / n).is_file() for n in EASYMOCAP_FILES)
+
+
+def _shown_names(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))
 
 
 def check_recordings(plan: TakePlan) -> None:
@@ -393,7 +437,7 @@ def check_recordings(plan: TakePlan) -> None:
         missing = [c for c in cameras if c not in given]
         if missing and plan.per_camera:  # name what a camera's folder must hold, and what it holds
             named = f"{'background' if folder == 'background' else 'video'}.<ext>"
-            held = [f"{c}/ holds {', '.join(sorted(p.name for p in (plan.take / c).iterdir())) or 'nothing'}"
+            held = [f"{c}/ holds {', '.join(_shown_names(plan.take / c)) or 'nothing'}"
                     for c in missing if (plan.take / c).is_dir()]
             raise UserError(f"{plan.take}: no {named} for camera(s) {', '.join(missing)} of {plan.calibration}"
                             + (f" ({'; '.join(held)})" if held else ""))

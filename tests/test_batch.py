@@ -580,6 +580,11 @@ def test_a_take_laid_out_a_folder_per_camera_runs_as_it_is(tmp_path, model, smal
     assert main(["run", str(take)]) == 2
     assert refusal(capsys).endswith(f"{take}: holds 2 calibrations: calibration.json, the camera files in its "
                                     "cameras' folders; keep one, or set [calibration] file")
+    for cam in small_studio.names:  # the cameras' files moved to a calibration/ folder: that one is read
+        (take / cam / "config.xml").unlink()
+    (take / "calibration.json").unlink()
+    save_calibration(small_studio, take / "calibration", fmt="opencv-xml")
+    assert plan_take(take).calibration == take / "calibration"
 
 
 @pytest.mark.timeout(150)
@@ -708,6 +713,18 @@ def test_find_takes(project):
     (project / "day2" / "walk_d" / "sequence.json").write_text("{}")
     (project / "calibration").mkdir()  # the project's calibration folder is no missing take
     assert [p.relative_to(project).as_posix() for p in folders_without_takes(project)] == ["day2/walk_c", "empty"]
+    # clips named video.* kept here and there make no take of a folder, nor hide the takes below it
+    (project / "day2" / "walk_c" / "video" / "cam1.avi").write_bytes(b"")
+    for folder in ("notes", "old"):
+        (project / folder).mkdir()
+        (project / folder / "video.mp4").write_bytes(b"")
+    (project / "walk_a" / "cam1").mkdir()
+    (project / "walk_a" / "cam1" / "video.mp4").write_bytes(b"")
+    (project / "walk_a" / "cam2").mkdir()
+    (project / "walk_a" / "cam2" / "video.json").write_text("{}")
+    assert [t.relative_to(project).as_posix() for t in find_takes(project)] == ["broken", "day2/walk_d", "walk_a",
+                                                                              "walk_b"]
+    assert "day2/walk_c" in [p.relative_to(project).as_posix() for p in folders_without_takes(project)]
     assert folders_without_takes(project / "walk_a") == []
 
 
@@ -735,6 +752,9 @@ def test_two_calibrations_in_one_folder_of_a_take_are_refused(tmp_path, small_st
     save_calibration(small_studio, take, fmt="easymocap")
     with pytest.raises(UserError, match=r"holds 2 calibrations: calibration.json, intri.yml \+ extri.yml"):
         plan_take(take)
+    (take / "calibration.json").unlink()  # EasyMocap's files in the take: they decide the import, not the take
+    (imported,) = [step for step in plan_take(take).steps if step.name == "import"]
+    assert take / "intri.yml" in imported.inputs and take not in imported.inputs
 
 
 @pytest.mark.slow

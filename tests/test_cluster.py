@@ -425,9 +425,8 @@ def test_masks_cleared_after_the_passes_give_the_same_poses_on_a_cluster(model, 
     seq = load_sequence(seq_path)
     single = run_fit(model, seq, tmp_path / "single", options, LocalSolver(model, options))
     assert single["foreground_left_out"]["share"] > 0 and (tmp_path / "single" / "foreground_left_out.npz").is_file()
-    left_out = single["foreground_left_out"]
-    assert len(left_out["round_shares"]) == left_out["rounds"] and sum(left_out["round_shares"]) == \
-        pytest.approx(left_out["share"], abs=1e-3)
+    left_out = single["foreground_left_out"]  # what each round added, adding up to what was cleared
+    assert sum(left_out["round_shares"]) == pytest.approx(left_out["share"], abs=1e-3)
     # the pictures draw the masks the fit had: the same pixels cleared
     from common.errors import InputFileError
     from server.pictures import load_result

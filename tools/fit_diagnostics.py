@@ -66,9 +66,8 @@ def energies_against_truth(model, seq, truth, records, every: int, as_segmented=
         line = (f"frame {r['frame']:5d}  fit {r['energy']:7d}  truth {e_truth:7d}  "
                 f"{100.0 * (r['energy'] - e_truth) / e_truth:+5.1f}%  error {joint_error_mm(model, r['params'], t):5.1f} mm")
         if as_segmented is not None:
-            segmented = as_segmented.silhouettes(r["frame"])
-            body = FrameData(model, seq.studio, segmented).whole_image_energy().render(np.asarray(t.params))
-            body &= FrameData(model, seq.studio, segmented).masks
+            segmented = FrameData(model, seq.studio, as_segmented.silhouettes(r["frame"]))
+            body = segmented.whole_image_energy().render(np.asarray(t.params)) & segmented.masks
             line += f"  the true body's mask cleared {np.count_nonzero(body & ~data.masks) / max(body.sum(), 1):.1%}"
         print(line)
     print(f"the truth's energy is lower in {lower} of {len(records[::every])} frames")
@@ -177,7 +176,7 @@ def main(argv=None) -> int:
                     help="these frames fitted from the truth, and each chain alone put at the truth")
     args = ap.parse_args(argv)
     summary = json.loads((args.result / "summary.json").read_text())
-    model = load_body_model().scaled(summary["actor_scale"])  # the actor the run fitted
+    model = load_body_model().scaled(summary.get("actor_scale", 1.0))  # the actor the run fitted
     seq = as_segmented = load_sequence(args.sequence)
     cleared = read_foreground_left_out(args.result)
     if cleared is not None:  # the records' energies are against the masks the fit cleared

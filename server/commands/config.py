@@ -6,7 +6,7 @@ from pathlib import Path
 
 from common.errors import UserError
 from server.config import PRESET_KEYS, SECTIONS, SETTINGS, load_config, toml_value
-from server.project import config_files, is_take, plan_lines, plan_take, take_config
+from server.project import check_recordings, config_files, is_take, plan_lines, plan_take, take_config
 
 
 def register(sub) -> None:
@@ -31,9 +31,11 @@ def run_show(args) -> int:
     files = [str(p) for p in config_files(args.take) if p.is_file()]
     print(f"{args.take}: {', '.join(files) if files else 'no Config.toml; all defaults'}")
     print("\n".join(take_config(args.take).lines()))
-    if is_take(args.take):  # what mocap run would read under these settings
+    if is_take(args.take):  # what mocap run would read under these settings, checked as it checks them
         try:
-            print("\n".join(f"take: {line}" for line in plan_lines(plan_take(args.take))))
+            plan = plan_take(args.take)
+            check_recordings(plan)
+            print("\n".join(f"take: {line}" for line in plan_lines(plan)))
         except UserError as exc:
             print(f"take: mocap run would refuse it: {exc}")
     return 0
