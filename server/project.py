@@ -193,7 +193,8 @@ def find_calibration(take: Path, config: Config, camera_files: list[Path] | None
                     f"in the take and the project{per_camera}; or set [calibration] file)")
 
 
-def calibration_read(calibration: Path, take: Path | None = None, camera_files: list[Path] | None = None) -> list[Path]:
+def calibration_read(calibration: Path, take: Path | None = None,
+                     camera_files: list[Path] | None = None) -> list[Path]:
     """The files a calibration is read from, whose changes make its steps run again: a take read
     as its own calibration is its ``camera_files``, and EasyMocap's folder (a take's or a
     project's, which hold the run's outputs too) its two files; any other path as it is."""
@@ -362,7 +363,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     command += ["--track-moved-on"] if fit["track_moved_on"] else []
     command += ["--calibration", str(calibration_file)] if calibration_file else []
     calibration_files = calibration_read(calibration_file or sequence / "calibration.json", take)
-    steps.append(Step("fit", (tuple(command),), (*calibration_files, sequence / "silhouettes", sequence / "sequence.json"),
+    steps.append(Step("fit", (tuple(command),),
+                      (*calibration_files, sequence / "silhouettes", sequence / "sequence.json"),
                       (result / "poses.jsonl", result / "summary.json"),
                       # the preset is in the keys it set, and its name alone refits nothing
                       {"fit": {k: v for k, v in fit.items() if k != "preset"}, "calibration": calib_settings},

@@ -64,7 +64,8 @@ def energies_against_truth(model, seq, truth, records, every: int, as_segmented=
         e_truth = full_energy(model, data, t.params)
         lower += e_truth < r["energy"]
         line = (f"frame {r['frame']:5d}  fit {r['energy']:7d}  truth {e_truth:7d}  "
-                f"{100.0 * (r['energy'] - e_truth) / e_truth:+5.1f}%  error {joint_error_mm(model, r['params'], t):5.1f} mm")
+                f"{100.0 * (r['energy'] - e_truth) / e_truth:+5.1f}%  "
+                f"error {joint_error_mm(model, r['params'], t):5.1f} mm")
         if as_segmented is not None:
             segmented = FrameData(model, seq.studio, as_segmented.silhouettes(r["frame"]))
             body = segmented.whole_image_energy().render(np.asarray(t.params)) & segmented.masks
