@@ -1014,6 +1014,21 @@ def _full_camera_files(folder: Path) -> tuple[list[Path], list[Path]]:
             [p for sub in sorted(d for d in folder.iterdir() if d.is_dir()) for p in camera_files_in(sub)])
 
 
+def calibration_files(path) -> list[Path]:
+    """The files a read of the calibration at ``path`` uses, whose changes change what is read:
+    a file itself; EasyMocap's two files; a folder's single-file calibrations and its camera
+    files (at the top and one sub-folder down), never the folder, which may hold what a run
+    writes beside them (a take read as its own calibration)."""
+    path = Path(path)
+    if not path.is_dir():
+        return [path]
+    if all((path / name).is_file() for name in EASYMOCAP_FILES):
+        return [path / name for name in EASYMOCAP_FILES]
+    single = [inner for kind, inner, _ in folder_calibrations(path) if kind not in ("camera", "easymocap")]
+    top, subs = _full_camera_files(path)
+    return single + top + subs
+
+
 def camera_files_in(folder: Path) -> list[Path]:
     """The files directly in ``folder`` that hold a whole camera (K, R, t or P), in natural order."""
     return [p for p in _camera_candidates(folder) if _file_kind(p) in FULL_KINDS]

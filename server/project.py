@@ -45,7 +45,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from common.calibration import camera_files_in
+from common.calibration import calibration_files, camera_files_in
 from common.errors import WARNING_PREFIX, UserError
 from common.export import export_name, named_formats
 from common.sequence import IMAGE_SUFFIXES
@@ -61,9 +61,11 @@ SEQUENCE_MARKERS = ("sequence.json", "silhouettes")
 SOURCE_FOLDERS = ("videos", "images")
 CAMERA_FOLDER_STEMS = ("video", "background")  # a lab's own layout: <camera>/video.avi, <camera>/background.avi
 # what a camera's folder's video.<ext> may be, besides images (a reference clip named video.json is not)
-VIDEO_SUFFIXES = (".avi", ".mp4", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm", ".wmv", ".mts", ".m2ts")
+VIDEO_SUFFIXES = (".avi", ".mp4", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm", ".wmv", ".mts", ".m2ts", ".ts",
+                  ".mxf", ".3gp", ".flv", ".ogv", ".mjpeg", ".y4m")
 MIN_CAMERA_FOLDERS = 2  # with a video and a background each: fewer is a clip kept somewhere, not a studio
-TAKE_LAYOUTS = "videos/, images/, sequence.json, silhouettes/ or a folder per camera with video.<ext>"
+TAKE_LAYOUTS = ("videos/, images/, sequence.json, silhouettes/ or two camera folders or more with video.<ext> and "
+                "background.<ext>")
 STEPS = ("import", "segment", "fit", "export", "report")
 
 
@@ -72,7 +74,10 @@ def _holds_take_markers(folder: Path) -> bool:
 
 
 def is_take(folder: Path) -> bool:
-    return folder.is_dir() and (_holds_take_markers(folder) or bool(_camera_folders(folder)))
+    try:
+        return folder.is_dir() and (_holds_take_markers(folder) or bool(_camera_folders(folder)))
+    except OSError:  # a folder this user may not read is no take of theirs
+        return False
 
 
 def _is_recording(path: Path) -> bool:
@@ -84,19 +89,28 @@ def _is_recording(path: Path) -> bool:
     return path.is_file() and path.suffix.lower() in VIDEO_SUFFIXES + IMAGE_SUFFIXES
 
 
-def _camera_folders(take: Path) -> dict[str, dict[str, list[Path]]]:
-    """{camera: {stem: [its recordings so named]}} of a take laid out a folder per camera: the
-    sub-folders holding a video recording (not a take's own: the sequence a run imports into the
-    take), where at least MIN_CAMERA_FOLDERS of them hold an empty-studio recording too (clips
-    named video.mp4 kept here and there make no take of a project's folder); else {}."""
+def _video_folders(take: Path) -> dict[str, dict[str, list[Path]]]:
+    """{camera: {stem: [its recordings so named]}} of the sub-folders holding a video recording
+    (not a take's own: the sequence a run imports into the take; not one this user may not read)."""
     found = {}
     for sub in _sub_folders(take):
-        if _holds_take_markers(sub):
+        try:
+            if _holds_take_markers(sub):
+                continue
+            named = {stem: [p for p in sorted(sub.iterdir()) if p.stem.lower() == stem and _is_recording(p)]
+                     for stem in CAMERA_FOLDER_STEMS}
+        except OSError:
             continue
-        named = {stem: [p for p in sorted(sub.iterdir()) if p.stem.lower() == stem and _is_recording(p)]
-                 for stem in CAMERA_FOLDER_STEMS}
         if named[CAMERA_FOLDER_STEMS[0]]:
             found[sub.name] = named
+    return found
+
+
+def _camera_folders(take: Path) -> dict[str, dict[str, list[Path]]]:
+    """``_video_folders`` of a take laid out a folder per camera: where at least
+    MIN_CAMERA_FOLDERS of them hold an empty-studio recording too (clips named video.mp4 kept
+    here and there make no take of a project's folder); else {}."""
+    found = _video_folders(take)
     whole = sum(all(named.values()) for named in found.values())
     return found if whole >= MIN_CAMERA_FOLDERS else {}
 
@@ -191,18 +205,6 @@ def find_calibration(take: Path, config: Config, camera_files: list[Path] | None
     per_camera = ", camera files in its cameras' folders" if camera_files is not None else ""
     raise UserError(f"{take}: no calibration (looked for {', '.join(CALIBRATION_NAMES)} and intri.yml + extri.yml "
                     f"in the take and the project{per_camera}; or set [calibration] file)")
-
-
-def calibration_read(calibration: Path, take: Path | None = None,
-                     camera_files: list[Path] | None = None) -> list[Path]:
-    """The files a calibration is read from, whose changes make its steps run again: a take read
-    as its own calibration is its ``camera_files``, and EasyMocap's folder (a take's or a
-    project's, which hold the run's outputs too) its two files; any other path as it is."""
-    if calibration == take and camera_files:
-        return camera_files
-    if calibration.is_dir() and all((calibration / name).is_file() for name in EASYMOCAP_FILES):
-        return [calibration / name for name in EASYMOCAP_FILES]
-    return [calibration]
 
 
 def _sources(folder: Path) -> dict[str, Path]:
@@ -313,9 +315,12 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
             steps.append(_segment_step(sequence, config, also_writes=(), calibration=calibration_file))
     elif source_kind is None:
         below = _takes_in(take)  # a project's folder given for one of its takes
+        partial = [f"{camera}/" for camera, named in _video_folders(take).items() if not all(named.values())]
         raise UserError(f"{take}: not a take (no {TAKE_LAYOUTS})"
                         + (f"; it holds {counted(len(below), 'take')}: mocap batch {take} runs them all"
-                           if below else ""))
+                           if below else "")
+                        + (f"; {', '.join(partial)} hold video.<ext> but no background.<ext> (the empty studio)"
+                           if partial else ""))
     else:
         sequence = take / config.get("take", "sequence")
         camera_files = [f for camera in per_camera for f in camera_files_in(take / camera)] if per_camera else None
@@ -339,7 +344,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
             command += ["--missing-frames", imp["missing_frames"]]
         if calib_settings["units"]:
             command += ["--units", calib_settings["units"]]
-        inputs = (*calibration_read(calibration, take, camera_files), *videos.values(), *backgrounds.values())
+        # the files read, not a take read as its own calibration, which the run writes into
+        inputs = (*calibration_files(calibration), *videos.values(), *backgrounds.values())
         steps.append(Step("import", (tuple(command),), inputs,
                           # not sequence.json: the segment step adds its record there
                           (sequence / "images", sequence / "calibration.json"),
@@ -362,9 +368,14 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     command += ["--refine-search"] if fit["refine_search"] else []
     command += ["--track-moved-on"] if fit["track_moved_on"] else []
     command += ["--calibration", str(calibration_file)] if calibration_file else []
-    calibration_files = calibration_read(calibration_file or sequence / "calibration.json", take)
+    if calibration_file:
+        calibration_read = calibration_files(calibration_file)
+    elif sequence == take and not (take / "calibration.json").is_file():
+        calibration_read = calibration_files(take)  # a ready sequence's own EasyMocap files
+    else:
+        calibration_read = [sequence / "calibration.json"]
     steps.append(Step("fit", (tuple(command),),
-                      (*calibration_files, sequence / "silhouettes", sequence / "sequence.json"),
+                      (*calibration_read, sequence / "silhouettes", sequence / "sequence.json"),
                       (result / "poses.jsonl", result / "summary.json"),
                       # the preset is in the keys it set, and its name alone refits nothing
                       {"fit": {k: v for k, v in fit.items() if k != "preset"}, "calibration": calib_settings},
@@ -406,7 +417,7 @@ def _segment_step(sequence: Path, config: Config, also_writes: tuple[Path, ...],
     return Step("segment", (("segment", str(sequence), "--method", config.get("segmentation", "method"),
                              "--overwrite", *given),),
                 (sequence / "images", sequence / "background",
-                 *(calibration_read(calibration) if calibration else [])),
+                 *(calibration_files(calibration) if calibration else [])),
                 (sequence / "silhouettes",), {"segmentation": config.section("segmentation")}, also_writes=also_writes)
 
 

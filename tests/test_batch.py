@@ -570,7 +570,12 @@ def test_a_take_laid_out_a_folder_per_camera_runs_as_it_is(tmp_path, model, smal
     assert main(["run", str(take)]) == 2
     assert refusal(capsys).endswith(f"{take}: no background.<ext> for camera(s) cam3 of {take} "
                                     "(cam3/ holds config.xml, empty, video)")
-    (take / "cam3" / "empty").rename(take / "cam3" / "background")
+    for cam in ("cam1", "cam2"):  # too few empty-studio recordings to be a take: the folders named
+        (take / cam / "background").rename(take / cam / "empty")
+    assert main(["run", str(take)]) == 2
+    assert refusal(capsys).endswith("; cam1/, cam2/, cam3/ hold video.<ext> but no background.<ext> (the empty studio)")
+    for cam in ("cam1", "cam2", "cam3"):
+        (take / cam / "empty").rename(take / cam / "background")
     (take / "cam4" / "config.xml").rename(tmp_path / "cam4.xml")
     assert main(["run", str(take)]) == 2
     assert refusal(capsys).endswith(f"{take / 'cam4'}/: no calibration file beside its recording (.xml with K, R, "
@@ -755,6 +760,9 @@ def test_two_calibrations_in_one_folder_of_a_take_are_refused(tmp_path, small_st
     (take / "calibration.json").unlink()  # EasyMocap's files in the take: they decide the import, not the take
     (imported,) = [step for step in plan_take(take).steps if step.name == "import"]
     assert take / "intri.yml" in imported.inputs and take not in imported.inputs
+    (take.parent / "Config.toml").write_text(PROJECT_CONFIG + '\n[calibration]\nfile = "take"\n')  # a folder set
+    (imported,) = [step for step in plan_take(take).steps if step.name == "import"]
+    assert take / "extri.yml" in imported.inputs and take not in imported.inputs
 
 
 @pytest.mark.slow

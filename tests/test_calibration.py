@@ -1123,3 +1123,26 @@ def test_a_3x3_intrinsics_text_beside_a_projection_is_skipped(tmp_path, capsys):
     studio = load_calibration(tmp_path)
     assert studio.names == ["a", "b"]
     assert "skipped (no camera fields): a/K.txt, b/K.txt" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(30)
+def test_the_files_a_calibration_is_read_from(tmp_path):
+    """What decides whether a calibration changed: its files, never a folder that may hold what a
+    run writes beside them (a take read as its own calibration, EasyMocap's files in a take)."""
+    from common.calibration import calibration_files, save_calibration
+
+    studio = circle_studio(3)
+    take = tmp_path / "take"
+    save_calibration(studio, tmp_path / "xml", fmt="opencv-xml")
+    for cam in studio.names:
+        (take / cam).mkdir(parents=True)
+        shutil.copy(tmp_path / "xml" / f"{cam}.xml", take / cam / "config.xml")
+        (take / cam / "notes.txt").write_text("focus set by hand")
+    (take / "sequence").mkdir()
+    (take / "sequence" / "calibration.json").write_text("{}")  # what a run writes there
+    assert calibration_files(take) == [take / cam / "config.xml" for cam in studio.names]
+    save_calibration(studio, tmp_path / "easymocap", fmt="easymocap")
+    assert calibration_files(tmp_path / "easymocap") == [tmp_path / "easymocap" / "intri.yml",
+                                                         tmp_path / "easymocap" / "extri.yml"]
+    save_calibration(studio, tmp_path / "calibration.json")
+    assert calibration_files(tmp_path / "calibration.json") == [tmp_path / "calibration.json"]

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from common.errors import UserError
 from server.config import PRESET_KEYS, SECTIONS, SETTINGS, load_config, toml_value
-from server.project import check_recordings, config_files, is_take, plan_lines, plan_take, take_config
+from server.project import check_recordings, config_files, config_key_note, is_take, plan_lines, plan_take, take_config
 
 
 def register(sub) -> None:
@@ -37,7 +37,7 @@ def run_show(args) -> int:
             check_recordings(plan)
             print("\n".join(f"take: {line}" for line in plan_lines(plan)))
         except UserError as exc:
-            print(f"take: mocap run would refuse it: {exc}")
+            print(f"take: mocap run would refuse it: {exc}{config_key_note(str(exc))}")
     return 0
 
 
