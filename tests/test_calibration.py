@@ -1146,3 +1146,23 @@ def test_the_files_a_calibration_is_read_from(tmp_path):
                                                          tmp_path / "easymocap" / "extri.yml"]
     save_calibration(studio, tmp_path / "calibration.json")
     assert calibration_files(tmp_path / "calibration.json") == [tmp_path / "calibration.json"]
+
+
+@pytest.mark.timeout(30)
+def test_a_camera_folder_without_its_camera_file_says_so(tmp_path, capsys):
+    """The lab's layout with cam3's config.xml missing: its intrinsics-only file is the folder's
+    one candidate, and the error says no other file there holds a camera."""
+    from common.calibration import save_calibration
+
+    studio = circle_studio(3)
+    save_calibration(studio, tmp_path / "xml", fmt="opencv-xml")
+    for cam in studio.names:
+        (tmp_path / "lab" / cam).mkdir(parents=True)
+        shutil.copy(tmp_path / "xml" / f"{cam}.xml", tmp_path / "lab" / cam / "config.xml")
+        (tmp_path / "lab" / cam / "intrinsics.xml").write_text(
+            '<?xml version="1.0"?>\n<opencv_storage><CameraMatrix type_id="opencv-matrix"><rows>3</rows>'
+            '<cols>3</cols><dt>d</dt><data>300 0 160 0 300 120 0 0 1</data></CameraMatrix></opencv_storage>\n')
+    (tmp_path / "lab" / "cam3" / "config.xml").unlink()
+    rc, _, err = cli(capsys, "calib", "show", tmp_path / "lab")
+    assert rc == 2 and err.strip().endswith("no other file in cam3/ holds a whole camera (K, R, t or P)"), err
+    assert f"{tmp_path / 'lab' / 'cam3' / 'intrinsics.xml'}: " in err
