@@ -1099,7 +1099,7 @@ def _read_camera_files(path: Path, scale: float, size, warn: Warn) -> Studio:
             raise CalibrationError(str(path), "<folder>", "no camera files (.xml with K, R, t or P; .txt with a 3x4 P)")
     else:
         entries = [(path.stem, path, "")]
-    read = [_read_broken_as_it_is(name, p, kind, scale, size) for name, p, kind in entries]
+    read = [_read_camera_entry(name, p, kind, scale, size) for name, p, kind in entries]
     skewed = [cam.name for cam, from_p in read if from_p and abs(cam.K[0, 1]) > SKEW_WARNING * cam.K[0, 0]]
     if skewed:
         warn(f"{path}: the projection matrices of {', '.join(skewed)} decompose with a skew above "
@@ -1107,7 +1107,7 @@ def _read_camera_files(path: Path, scale: float, size, warn: Warn) -> Studio:
     return Studio(tuple(cam for cam, _ in read), str(path))
 
 
-def _read_broken_as_it_is(name: str, path: Path, kind: str, scale: float, size) -> tuple[Camera, bool]:
+def _read_camera_entry(name: str, path: Path, kind: str, scale: float, size) -> tuple[Camera, bool]:
     """``_read_camera_file``; where a camera's folder holds no whole camera and the file read in
     its place is refused (an intrinsics-only file beside a missing config.xml), the error says
     that no other file there would do."""

@@ -271,8 +271,9 @@ class Step:
 
 @dataclass(frozen=True)
 class TakePlan:
-    """``recordings``: {take folder name: {camera: source}} of a take that is imported, and the
-    ``calibration`` they are imported with (in ``units``)."""
+    """``recordings``: {take folder name: {camera: source}} of a take that is imported;
+    ``calibration``: what it is imported with (in ``units``), or a ready sequence read with where
+    it holds none of its own (None where it does)."""
 
     take: Path
     sequence: Path
@@ -391,8 +392,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
         command = ["report", str(result), "--overwrite", "--quiet"] + ([] if report["gif"] else ["--no-gif"])
         steps.append(Step("report", (tuple(command),), (result / "poses.jsonl", result / "summary.json"),
                           (result / "report.html",), {"report": report}, also_writes=(result / "pictures",)))
-    return TakePlan(take, sequence, result, tuple(steps), recordings, calibration, calib_settings["units"],
-                    bool(per_camera))
+    return TakePlan(take, sequence, result, tuple(steps), recordings, calibration or calibration_file,
+                    calib_settings["units"], bool(per_camera))
 
 
 def plan_lines(plan: TakePlan) -> list[str]:
@@ -401,9 +402,8 @@ def plan_lines(plan: TakePlan) -> list[str]:
     videos = next(iter(plan.recordings.values()), {})
     layout = ("a folder per camera" if plan.per_camera else f"{next(iter(plan.recordings))}/" if videos
               else "a ready sequence")
-    given = [c[c.index("--calibration") + 1] for step in plan.steps for c in step.commands if "--calibration" in c]
-    calibration = given[0] if given else f"the sequence's own ({plan.sequence})"
-    if plan.per_camera and calibration == str(plan.take):
+    calibration = str(plan.calibration) if plan.calibration else f"the sequence's own ({plan.sequence})"
+    if plan.per_camera and plan.calibration == plan.take:
         calibration = f"the camera files in its cameras' folders ({plan.take})"
     return [f"recordings: {layout}" + (f" ({', '.join(videos)})" if videos else ""),
             f"calibration: {calibration}" + (f" in {plan.units}" if plan.units else ""),

@@ -597,10 +597,11 @@ def leave_out_unexplained(model: BodyModel, seq: Sequence, records: list[dict], 
     out, flags, cleared, added = records, None, seq, []
     while len(added) < UNEXPLAINED_ROUNDS:
         found, mean_area = unexplained_pixels(model, seq, out)
-        if found is None or (flags is not None and not (found & ~flags).any()):
+        new = found if found is None or flags is None else found & ~flags
+        if new is None or not new.any():
             break
-        added.append(round(float((found if flags is None else found & ~flags).sum() / mean_area), 4))
-        flags = found if flags is None else flags | found
+        added.append(round(float(new.sum() / mean_area), 4))
+        flags = new if flags is None else flags | new
         cleared = seq.without_foreground(recorded_pixels(seq.studio, flags))
         out = [dict(r) for r in out]
         for r in out:  # the energies the passes compare against, at the cleared masks
