@@ -503,10 +503,16 @@ def folder_calibrations(folder) -> list[tuple[str, Path, str]]:
             found.append(("toml", p, p.name))
     for files in _full_camera_files(folder):
         if files:
-            names = [f.relative_to(folder).as_posix() for f in files]
-            shown = ", ".join(names) if len(names) <= 3 else f"{names[0]}, ..., {names[-1]}"
-            found.append(("camera", folder, f"{len(names)} camera file{'s' * (len(names) > 1)} ({shown})"))
+            found.append(("camera", folder, camera_files_named(folder, files)))
     return found
+
+
+def camera_files_named(folder: Path, files: list[Path]) -> str:
+    """``files`` (camera files in ``folder`` or its sub-folders) in a few words: "4 camera files
+    (cam1/config.xml, ..., cam4/config.xml)"."""
+    names = [f.relative_to(folder).as_posix() for f in files]
+    shown = ", ".join(names) if len(names) <= 3 else f"{names[0]}, ..., {names[-1]}"
+    return f"{len(names)} camera file{'s' * (len(names) > 1)} ({shown})"
 
 
 def _refuse_several(folder: Path, found: list[tuple[str, Path, str]]) -> None:

@@ -8,8 +8,9 @@ A project is a folder with ``Config.toml`` at its root; a take is a folder below
    it is, at its own frame rate; segmented first where it has ``images/`` and no ``silhouettes/``;
  - or a lab's own layout, a folder per camera: ``<camera>/video.<ext>`` (or a ``video/`` image
    folder) with ``<camera>/background.<ext>``, and each camera's calibration file beside them
-   (``<camera>/config.xml``): imported like videos/, those files read as the calibration (the
-   board description and notes beside them passed over; another calibration in the take refused);
+   (``<camera>/config.xml``) or at the take's top (``<camera>.xml``, a .qca.txt, a Pose2Sim
+   .toml): imported like videos/, the take read as its calibration as ``mocap calib convert``
+   reads it (the board description and notes beside them passed over; two calibrations refused);
 plus a calibration (``[calibration] file``, else ``calibration.json``, ``calibration.toml``,
 ``Calib.toml``, a ``calibration/`` folder or EasyMocap's ``intri.yml`` + ``extri.yml``, in the
 take and then in the project; two of them in one folder are refused, naming both).
@@ -45,7 +46,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from common.calibration import calibration_files, camera_files_in
+from common.calibration import calibration_files, camera_files_in, camera_files_named, folder_calibrations
 from common.errors import WARNING_PREFIX, UserError
 from common.export import export_name, named_formats
 from common.sequence import IMAGE_SUFFIXES
@@ -180,10 +181,12 @@ def take_config(take: Path) -> Config:
     return load_config(config_files(take))
 
 
-def find_calibration(take: Path, config: Config, camera_files: list[Path] | None = None) -> Path:
-    """The calibration of a take: [calibration] file, else one in the take (for a take laid out a
-    folder per camera, the ``camera_files`` in those folders are one: the take is read as
-    ``mocap calib convert TAKE`` reads it; None: another layout), else one in the project."""
+def find_calibration(take: Path, config: Config, cameras: list[str] | None = None) -> Path:
+    """The calibration of a take: [calibration] file, else one in the take, else one in the
+    project. A take laid out a folder per camera (``cameras``: its cameras' folders; None: another
+    layout) is read as ``mocap calib convert TAKE`` reads it: a calibration file at its top by any
+    name (a .qca.txt, a Pose2Sim .toml), camera files at its top named by camera, or the camera
+    files in its cameras' folders."""
     given = config.get("calibration", "file")
     if given:
         if not Path(given).exists():
@@ -194,17 +197,25 @@ def find_calibration(take: Path, config: Config, camera_files: list[Path] | None
         found = [(folder / name, name) for name in CALIBRATION_NAMES if (folder / name).exists()]
         if all((folder / name).is_file() for name in EASYMOCAP_FILES):
             found.append((folder, " + ".join(EASYMOCAP_FILES)))
-        if folder == take and camera_files:
-            # the cameras' own files are a calibration too, read as calib convert reads the take
-            found.append((take, "the camera files in its cameras' folders"))
+        if folder == take and cameras is not None:
+            found = [f for f in found if f[0].is_dir()]  # the files by name are among the take's own
+            found += [(path, what) for kind, path, what in folder_calibrations(take) if kind not in ("camera", "easymocap")]
+            found += [(take, camera_files_named(take, files)) for files in take_camera_files(take, cameras) if files]
         if len(found) > 1:  # two in one folder: which was meant (or last edited) is not ours to guess
             raise UserError(f"{folder}: holds {len(found)} calibrations: {', '.join(name for _, name in found)}; "
                             "keep one, or set [calibration] file")
         if found:
             return found[0][0]
-    per_camera = ", camera files in its cameras' folders" if camera_files is not None else ""
+    per_camera = ", calibration or camera files at its top or in its cameras' folders" if cameras is not None else ""
     raise UserError(f"{take}: no calibration (looked for {', '.join(CALIBRATION_NAMES)} and intri.yml + extri.yml "
                     f"in the take and the project{per_camera}; or set [calibration] file)")
+
+
+def take_camera_files(take: Path, cameras: list[str]) -> tuple[list[Path], list[Path]]:
+    """The camera files (K, R, t or P) at the top of a take laid out a folder per camera, and
+    those in its cameras' folders (never in its other folders: a calibration/ folder is one
+    calibration, not a camera)."""
+    return camera_files_in(take), [f for camera in cameras for f in camera_files_in(take / camera)]
 
 
 def _sources(folder: Path) -> dict[str, Path]:
@@ -324,8 +335,7 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
                            if partial else ""))
     else:
         sequence = take / config.get("take", "sequence")
-        camera_files = [f for camera in per_camera for f in camera_files_in(take / camera)] if per_camera else None
-        calibration = find_calibration(take, config, camera_files)
+        calibration = find_calibration(take, config, list(per_camera) if per_camera else None)
         videos = imports[source_kind]
         backgrounds = per_camera_backgrounds if per_camera else _sources(take / "background")
         # segmentation subtracts the empty studio: a take without it is refused before the import
@@ -404,7 +414,8 @@ def plan_lines(plan: TakePlan) -> list[str]:
               else "a ready sequence")
     calibration = str(plan.calibration) if plan.calibration else f"the sequence's own ({plan.sequence})"
     if plan.per_camera and plan.calibration == plan.take:
-        calibration = f"the camera files in its cameras' folders ({plan.take})"
+        files = [f for found in take_camera_files(plan.take, list(videos)) for f in found]  # one set: planned
+        calibration = f"{camera_files_named(plan.take, files)} in {plan.take}"
     return [f"recordings: {layout}" + (f" ({', '.join(videos)})" if videos else ""),
             f"calibration: {calibration}" + (f" in {plan.units}" if plan.units else ""),
             f"steps: {', '.join(step.name for step in plan.steps)}; result: {plan.result}"]
@@ -443,8 +454,12 @@ def check_recordings(plan: TakePlan) -> None:
     for folder, given in plan.recordings.items():
         for camera, path in given.items():
             if camera not in cameras and plan.per_camera and plan.calibration == plan.take:
-                raise UserError(f"{plan.take / camera}/: no calibration file beside its recording (.xml with K, R, "
-                                f"t or P, .txt with a 3x4 P; cameras with one: {', '.join(cameras)})")
+                at_top = camera_files_in(plan.take)  # cameras named by their files, not their folders
+                raise UserError(f"{plan.take / camera}/: no calibration file " + (
+                    f"{camera}.xml or .txt at the top of {plan.take} (cameras there: {', '.join(cameras)}; name each "
+                    "file as its camera's folder)" if at_top else
+                    f"beside its recording (.xml with K, R, t or P, .txt with a 3x4 P; cameras with one: "
+                    f"{', '.join(cameras)})"))
             if camera not in cameras:
                 raise UserError(f"{path}: no camera {camera} in {plan.calibration} (cameras: {', '.join(cameras)})")
         missing = [c for c in cameras if c not in given]

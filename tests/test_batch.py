@@ -553,7 +553,7 @@ def test_a_take_laid_out_a_folder_per_camera_runs_as_it_is(tmp_path, model, smal
     assert main(["config", "show", str(take)]) == 0  # what the run will read, said
     shown = capsys.readouterr().out
     assert "take: recordings: a folder per camera (cam1, cam2, cam3, cam4)\n" in shown
-    assert f"take: calibration: the camera files in its cameras' folders ({take})\n" in shown
+    assert (f"take: calibration: 4 camera files (cam1/config.xml, ..., cam4/config.xml) in {take}\n" in shown)
     done = run_take(take)
     assert [s["step"] for s in done["steps"]] == ["import", "segment", "fit", "export"] and done["frames"] == 1
     assert any("skipped (no camera fields): checkerboard.xml" in w for w in done["steps"][0]["warnings"])
@@ -583,13 +583,26 @@ def test_a_take_laid_out_a_folder_per_camera_runs_as_it_is(tmp_path, model, smal
     (tmp_path / "cam4.xml").rename(take / "cam4" / "config.xml")
     save_calibration(small_studio, take / "calibration.json")  # converted beside the cameras' files: which is meant?
     assert main(["run", str(take)]) == 2
-    assert refusal(capsys).endswith(f"{take}: holds 2 calibrations: calibration.json, the camera files in its "
-                                    "cameras' folders; keep one, or set [calibration] file")
-    for cam in small_studio.names:  # the cameras' files moved to a calibration/ folder: that one is read
-        (take / cam / "config.xml").unlink()
+    assert refusal(capsys).endswith(f"{take}: holds 2 calibrations: calibration.json, 4 camera files "
+                                    "(cam1/config.xml, ..., cam4/config.xml); keep one, or set [calibration] file")
     (take / "calibration.json").unlink()
+    for cam in small_studio.names:  # the cameras' files at the take's top, named by camera: read there
+        (take / cam / "config.xml").rename(take / f"{cam}.xml")
+    assert plan_take(take).calibration == take
+    assert main(["config", "show", str(take)]) == 0
+    assert f"take: calibration: 4 camera files (cam1.xml, ..., cam4.xml) in {take}\n" in capsys.readouterr().out
+    (take / "cam4.xml").rename(take / "camera4.xml")  # named otherwise than its camera's folder
+    assert main(["run", str(take)]) == 2
+    assert refusal(capsys).endswith(f"{take / 'cam4'}/: no calibration file cam4.xml or .txt at the top of {take} "
+                                    "(cameras there: cam1, cam2, cam3, camera4; name each file as its camera's folder)")
+    for cam in small_studio.names:  # moved to a calibration/ folder: that one is read
+        (take / (f"{cam}.xml" if cam != "cam4" else "camera4.xml")).unlink()
     save_calibration(small_studio, take / "calibration", fmt="opencv-xml")
     assert plan_take(take).calibration == take / "calibration"
+    shutil.rmtree(take / "calibration")  # or a Pose2Sim file of another name at the top
+    save_calibration(small_studio, take / "rig.toml", fmt="pose2sim")
+    assert plan_take(take).calibration == take / "rig.toml"
+    assert [s["status"] for s in run_take(take)["steps"]] == ["done"] * 4
 
 
 @pytest.mark.timeout(150)
