@@ -65,7 +65,7 @@ Whoever gave the units, a rig whose farthest two cameras stand outside ``STUDIO_
 gets a warning line. Numbers are written with full double precision (EasyMocap itself writes 6
 decimals), so every written format round-trips exactly.
 
-One module of about 1,370 lines: the seven formats share the field checks, units, image sizes
+One module of about 1,450 lines: the seven formats share the field checks, units, image sizes
 and camera building of its first half; each later section is one format's reader and writer.
 """
 from __future__ import annotations

@@ -22,7 +22,8 @@ from pathlib import Path
 
 from common.errors import UserError, print_warning
 from server.output import counted, write_text
-from server.project import TAKE_LAYOUTS, TakeFailed, find_takes, folders_without_takes, frames_done, run_take
+from server.project import TakeFailed, frames_done, run_take
+from server.takes import TAKE_LAYOUTS, find_takes, folders_without_takes
 from server.threads import THREADS_ENV, usable_cores
 
 BATCH_FILE = "batch.json"

@@ -12,7 +12,7 @@ its neighbours' fits makes the take's energy and steps least where the masks did
 hops, whole fits) go to a ``Solver``: this process, or a cluster of clients; ``mocap fit`` is this
 loop with the local solver: single-process mode is the server with zero clients.
 
-One module of about 780 lines: the frame loop, the actor-size search and the refinement passes
+One module of about 910 lines: the frame loop, the actor-size search and the refinement passes
 share the solver, the records and the result folder, and are read together.
 
 Result folder (``server.results``):

@@ -18,7 +18,8 @@ from common.errors import InputFileError, UserError
 from common.export import FORMATS
 from server.cli import main
 from server.config import load_config
-from server.project import find_takes, plan_take, run_take
+from server.project import plan_take, run_take
+from server.takes import find_takes
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -719,7 +720,7 @@ def test_the_batch_table_says_each_take_s_fit_quality():
 
 
 def test_find_takes(project):
-    from server.project import folders_without_takes
+    from server.takes import folders_without_takes
 
     assert [t.name for t in find_takes(project)] == ["broken", "walk_a", "walk_b"]
     with pytest.raises(UserError, match="not a take .*; it holds 3 takes: mocap batch .* runs them all"):

@@ -6,7 +6,8 @@ from pathlib import Path
 
 from common.errors import UserError
 from server.config import PRESET_KEYS, SECTIONS, SETTINGS, load_config, toml_value
-from server.project import check_recordings, config_files, config_key_note, is_take, plan_lines, plan_take, take_config
+from server.project import check_recordings, config_key_note, plan_lines, plan_take
+from server.takes import config_files, is_take, take_config
 
 
 def register(sub) -> None:
