@@ -273,21 +273,31 @@ def window_origins(windows) -> tuple:
 
 
 def window_pixels(setup: EnergySetup) -> np.ndarray | None:
-    """(K, h, w) bool: the pixels of ``setup.input_windows`` inside each camera's window; None
-    when every window fills them (windows of one size: nothing to leave out, nothing to pay).
-    ValueError when the windows do not fit the inputs."""
-    if setup.inputs is None:
-        return None  # cut from packed rows: windows of one size (checked by EnergySetup)
+    """``seen_pixels`` of the setup's windows, (K, h, w) as ``setup.input_windows``: what an
+    energy counts and a render shows. ValueError when the windows do not fit the inputs."""
+    if setup.inputs is None:  # cut from packed rows: windows of one size (checked by EnergySetup)
+        return seen_pixels(setup.studio, setup.windows, (setup.windows[0].height, setup.windows[0].width))
     K, h, w = setup.input_windows.shape
     if len(setup.studio) != K or len(setup.windows) != K:
         raise ValueError(f"{len(setup.studio)} cameras need as many windows and input windows, got "
                          f"{len(setup.windows)} and {K}")
-    sizes = [(win.width, win.height) for win in setup.windows]
-    largest = padded_shape(sizes)
+    largest = padded_shape([(win.width, win.height) for win in setup.windows])
     if largest != (h, w):
         raise ValueError(f"input windows are {w}x{h}, the windows' largest width and height "
                          f"{largest[1]}x{largest[0]}")
-    return None if len(set(sizes)) == 1 else inside_images(sizes, (h, w))
+    return seen_pixels(setup.studio, setup.windows, (h, w))
+
+
+def seen_pixels(studio: Studio, windows, shape: tuple) -> np.ndarray | None:
+    """(K, h, w) bool, ``shape`` (h, w): the pixels inside each camera's window and inside its
+    image (a camera does not see past its image's edges: a body reaching there must not be
+    pushed back in); None when every window fills ``shape`` and lies inside its image."""
+    sizes = [(win.width, win.height) for win in windows]
+    inside = inside_images(sizes, shape)
+    for k, (cam, win) in enumerate(zip(studio, windows)):
+        inside[k, :max(0, -win.y0)] = inside[k, max(0, cam.height - win.y0):] = False
+        inside[k, :, :max(0, -win.x0)] = inside[k, :, max(0, cam.width - win.x0):] = False
+    return None if inside.all() else inside
 
 
 def surface_distances(points: np.ndarray, centres: np.ndarray, axes: np.ndarray, radii: np.ndarray) -> np.ndarray:
@@ -366,7 +376,7 @@ class CpuEnergy:
         self.setup = setup
         self.evaluations = 0
         studio, windows = setup.studio, setup.windows
-        self.inside = window_pixels(setup)
+        self.seen = window_pixels(setup)  # what the energy counts and a render shows
         if setup.inputs is None:
             self.rows, self.width = windows[0].height, windows[0].width
         else:
@@ -377,17 +387,18 @@ class CpuEnergy:
         self.moving = tuple(setup.moving) if setup.prerender else tuple(range(16))
         self._static = tuple(s for s in range(16) if s not in self.moving)
         self._static_mask = None
-        if setup.packed is not None and self.inside is None:  # straight from the row bits
+        if setup.packed is not None:  # straight from the row bits (windows of one size)
             if self._static:
                 C, drawable = self._conics(np.atleast_2d(setup.static_params)[:1], self._static)
             else:
                 C, drawable = np.zeros((1, len(studio), 0, 3, 3)), np.zeros((1, len(studio), 0), np.bool_)
-            self.gain, self.loss, base = window_value_bits(setup.packed, x0, y0, self.rows, self.width, C, drawable)
+            self.gain, self.loss, base = window_value_bits(setup.packed, x0, y0, self.rows, self.width, C, drawable,
+                                                           np.array(studio.sizes, dtype=np.int64).reshape(-1, 2))
         else:
             self._static_mask = M = self._render_static()
             inputs = np.ascontiguousarray(setup.input_windows, dtype=np.bool_)
-            if self.inside is not None:  # beyond a window static and input both set: v = 0, no base
-                M, inputs = M | ~self.inside, inputs | ~self.inside
+            if self.seen is not None:  # beyond a window or its image static and input both set: v = 0, no base
+                M, inputs = M | ~self.seen, inputs | ~self.seen
             self.gain, self.loss, base = xor_bits(M, inputs)
         self.base = int(base)
         seg = np.asarray(self.moving, dtype=np.int64)
@@ -418,7 +429,7 @@ class CpuEnergy:
     def _render(self, params: np.ndarray, segments) -> np.ndarray:
         C, drawable = self._conics(np.atleast_2d(params)[:1], segments)
         covered = conic_coverage(C, drawable, self.y0, self.x0, self.rows, self.width)[0]
-        return covered if self.inside is None else covered & self.inside
+        return covered if self.seen is None else covered & self.seen
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
         """(B, 35) or (35,) -> (B,) int64 energies (pixels)."""

@@ -223,7 +223,8 @@ class GlEnergy:
         self.renderer_name = gl_renderer_name()
         self.K = K = len(setup.studio)
         self.h, self.w = h, w = setup.input_windows.shape[1:]
-        self.inside = window_pixels(setup)  # tiles are h x w; a smaller window fills its top-left
+        self.inside = window_pixels(setup)  # tiles are h x w; a smaller window fills its top-left, and
+        # pixels beyond a camera's image count for nothing
         self.moving = tuple(setup.moving) if setup.prerender else tuple(range(SEGMENTS))
         static = tuple(s for s in range(SEGMENTS) if s not in self.moving)
         budget = ATLAS_PIXELS_SOFTWARE if is_software_renderer() else ATLAS_PIXELS_GPU
@@ -264,7 +265,7 @@ class GlEnergy:
         I = np.asarray(setup.input_windows, dtype=bool)
         M = self._render(np.asarray(setup.static_params, dtype=np.float64), "static")
         self.static_mask = M
-        if self.inside is not None:  # beyond a window static and input both set: v = 0, no base (as cpu)
+        if self.inside is not None:  # beyond a window or its image static and input both set: v = 0, no base (as cpu)
             I, M = I | ~self.inside, M | ~self.inside
         self.base = int(np.count_nonzero(M ^ I))
         planes = pack_planes(I).astype(np.uint32) | (pack_planes(M).astype(np.uint32) << 8)   # (P, h, w)
