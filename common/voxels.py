@@ -161,6 +161,29 @@ class VoxelResult:
             raise ValueError("reconstructed without surface extraction")
         return self.centres(self.surface)
 
+    def turned(self, rotation: np.ndarray) -> "VoxelResult":
+        """The same voxels in another frame, x_other = rotation @ x (3, 3), a signed permutation
+        (a world's up axis turned onto ours, ``common.world``): the arrays' axes permuted and
+        flipped so that index [i, j, k] runs along the other frame's x, y, z."""
+        rotation = np.rint(np.asarray(rotation, dtype=np.float64)).astype(int)
+        if sorted(np.abs(rotation).sum(axis=0)) != [1, 1, 1] or sorted(np.abs(rotation).sum(axis=1)) != [1, 1, 1]:
+            raise ValueError("a voxel grid turns only by a signed permutation of its axes")
+        source = np.abs(rotation).argmax(axis=1)              # other axis i is this frame's axis source[i]
+        sign = rotation[np.arange(3), source]
+        shape = np.array(self.occupied.shape)[source]
+        size = self.voxel_size[source]
+        far = self.origin[source] + shape * size               # the upper corner along each axis
+        origin = np.where(sign > 0, self.origin[source], -far)
+
+        def turn(a):
+            if a is None:
+                return None
+            a = np.transpose(a, source)
+            return np.flip(a, axis=tuple(int(i) for i in np.nonzero(sign < 0)[0])) if (sign < 0).any() else a
+
+        return VoxelResult(np.ascontiguousarray(turn(self.occupied)), None if self.surface is None else
+                           np.ascontiguousarray(turn(self.surface)), origin, size, self.tests)
+
 
 def sample_offsets(q: int) -> np.ndarray:
     """(Q, 2) sample positions in the image plane, in voxel edges from the centre.

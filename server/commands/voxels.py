@@ -2,9 +2,16 @@
 
 Writes into OUT:
     voxels/<frame:06d>.npz    occupancy and surface voxels, packbits + grid metadata
-                              (``common.voxels.save_voxels`` / ``load_voxels``)
+                              (``common.voxels.save_voxels`` / ``load_voxels``), in the
+                              user's world (``--up``): index [i, j, k] along its x, y, z
     pictures/<frame:06d>.png  the surface voxels as points from the front, the side and above
-    voxels.json               grid, per-frame counts and timing
+                              (the floor down, whatever the world's up axis)
+    voxels.json               grid (bounds and voxel size in the user's world), its up axis,
+                              per-frame counts and timing
+
+The volume is carved in the fit frame (z up, ``common.world``); a world whose up axis is
+another turns onto it by a signed permutation of the axes, so the grid is the same voxels in
+the user's world, its axes permuted and flipped.
 """
 from __future__ import annotations
 
@@ -51,8 +58,8 @@ def register(subparsers) -> None:
     p.add_argument("--epsilon", type=real(0.0, 1.0), default=None,
                    help="a voxel is inside a camera's silhouette with at least epsilon*Q samples (default 1/Q)")
     p.add_argument("--bounds", type=real(), nargs=6, metavar=("X0", "Y0", "Z0", "X1", "Y1", "Z1"),
-                   help="volume of interest in metres (default: 2.4 x 2.4 x 2.2 m around the actor wherever the "
-                        "take's silhouettes put it, one box for all frames)")
+                   help="volume of interest in metres, in the calibration's world (default: 2.4 x 2.4 x 2.2 m "
+                        "around the actor wherever the take's silhouettes put it, one box for all frames)")
     p.add_argument("--frames", type=count(1), default=None, help="only the first N frames")
     p.add_argument("--pictures", type=count(0), default=1, metavar="EVERY",
                    help="a picture every EVERY frames (0: none; default 1)")
@@ -74,7 +81,10 @@ def run(args) -> int:
         raise UserError(f"--bounds: expected X0 Y0 Z0 below X1 Y1 Z1, got {' '.join(f'{v:g}' for v in args.bounds)}")
     frames = seq.frames[:args.frames] if args.frames else seq.frames
     seq = usable_cameras(seq, frames)
-    if bounds is None:  # around the actor wherever it goes (the studio's middle can miss it)
+    to_user = seq.world.rotation.T  # x_user = W^T x_fit
+    if bounds is not None:  # the user's box, as the fit frame holds it
+        bounds = np.sort(seq.world.points_to_fit(bounds), axis=0)
+    else:  # around the actor wherever it goes (the studio's middle can miss it)
         sampled = frames[::max(1, -(-len(frames) // BOUNDS_SAMPLES))]
         bounds = bounds_around(seq.studio, [silhouette_centre(seq.studio, seq.silhouettes(f)) for f in sampled])
     start = time.perf_counter()
@@ -90,8 +100,8 @@ def run(args) -> int:
             result = grid.reconstruct(masks)
             seconds = time.perf_counter() - t0
             name = FRAME_NAME.format(frame=frame)
-            save_voxels(voxel_dir / Path(name).with_suffix(".npz"), result, frame=frame, q=grid.q,
-                        threshold=grid.threshold)
+            save_voxels(voxel_dir / Path(name).with_suffix(".npz"), result.turned(to_user), frame=frame, q=grid.q,
+                        threshold=grid.threshold, world_up=seq.world.up)
             if args.pictures and i % args.pictures == 0:
                 Image.fromarray(picture(result.surface_points(), grid.bounds)).save(picture_dir / name)
             rows.append({"frame": int(frame), "occupied": int(result.occupied.sum()),
@@ -99,7 +109,9 @@ def run(args) -> int:
     median = float(np.median([r["seconds"] for r in rows]))
     summary = {
         "sequence": str(seq.path), "grid": grid.grid, "q": grid.q, "threshold": grid.threshold,
-        "cameras": len(seq.studio), "bounds": grid.bounds.tolist(), "voxel_size": grid.voxel_size.tolist(),
+        "cameras": len(seq.studio), "world_up": seq.world.up,
+        "bounds": np.sort(seq.world.points_to_user(grid.bounds), axis=0).tolist(),
+        "voxel_size": np.abs(to_user @ grid.voxel_size).tolist(),
         "build_seconds": build_seconds, "frames_per_second": 1.0 / median if median > 0 else None,
         "frames": rows,
     }
