@@ -116,5 +116,5 @@ def below_floor_warning(studio: Studio, world: WorldFrame) -> str | None:
     below = cameras_below_floor(studio, world)
     if not below:
         return None
-    return (f"with up {world.up} cameras {', '.join(below)} stand below the floor (z = 0); "
+    return (f"with up {world.up} cameras {', '.join(below)} stand below the floor ({world.up[1]} = 0); "
             f"is the up axis right? (auto finds {detect_up(studio)})")

@@ -287,11 +287,16 @@ def test_a_folder_that_starts_late_is_trimmed(tmp_path, calib, capsys):
     out = tmp_path / "seq"
     rc, _, err = _run(capsys, calib, folders, "--out", out, "--step", "2", "--fps", "30")
     line = _one_line(err)
-    assert rc == 0 and "cam2 23 numbered 1..23" in line and "using the frames 1..23" in line, line
+    assert rc == 0 and "cam2 23 numbered 1..23" in line and "all cameras have the frames 1..23" in line, line
     seq = load_sequence(out)
     assert seq.frames == list(range(2, 24, 2))  # on the --start 0 + k --step 2 grid
     for f in seq.frames:
         assert [_number(im) for im in seq.images(f)] == [f, f, f]
+    # A short take whose cameras stopped two frames apart (17% of 12): trimmed all the same
+    short = {c: _write_folder(tmp_path / "short" / c, range(12 - 2 * (c == "cam3"))) for c in ("cam1", "cam2", "cam3")}
+    rc, _, err = _run(capsys, calib, short, "--out", tmp_path / "short_seq", "--fps", "30")
+    assert rc == 0 and "all cameras have the frames 0..9, the rest is left out" in _one_line(err), err
+    assert load_sequence(tmp_path / "short_seq").frames == list(range(10))
     # Folders numbered in steps of 3 (all alike) lack no frame.
     stepped = {c: _write_folder(tmp_path / "stepped" / c, range(0, 12, 3)) for c in ("cam1", "cam2", "cam3")}
     rc, _, err = _run(capsys, calib, stepped, "--out", tmp_path / "stepped_seq", "--fps", "30")

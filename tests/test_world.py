@@ -53,7 +53,9 @@ def test_a_sequence_loaded_with_a_wrong_up_axis_says_so(small_sequence, capsys):
     assert capsys.readouterr().err == ""
     load_sequence(small_sequence, up="-z")
     err = capsys.readouterr().err
-    assert err.count("warning:") == 1 and "below the floor" in err and "auto finds +z" in err
+    assert err.count("warning:") == 1 and "below the floor (z = 0)" in err and "auto finds +z" in err
+    load_sequence(small_sequence, up="-y")  # the floor of a y-up world is y = 0
+    assert "below the floor (y = 0)" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("name", sorted(POSTURES))

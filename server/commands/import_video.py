@@ -43,7 +43,8 @@ from server.output import (add_overwrite_argument, add_units_argument, check_fol
 SEQUENCE_PARTS = ("images", "background", "silhouettes", "sequence.json")
 PNG_COMPRESS_LEVEL = 1  # fast; frames are large and many
 MAX_TRIM_FRAMES = 10  # recordings may differ in length by at most this many frames ...
-MAX_TRIM_FRACTION = 0.05  # ... and this fraction of the longest, and are then cut to the common range
+MAX_TRIM_FRACTION = 0.05  # ... and this fraction of the longest, and are then cut to the common range;
+FEW_FRAMES = 3  # this many always (a short take's cameras stopped a frame or two apart)
 HOLD_BYTES = 1 << 30  # decoded frames kept in memory from counting to writing; beyond, a video is decoded twice
 MISSING_FRAMES = ("error", "skip")  # --missing-frames: what a frame number some cameras lack is
 
@@ -156,14 +157,15 @@ def _common_range(frames: dict[str, list[int]], offsets: dict[str, int]) -> tupl
     cut = max(max(0, start - (offsets[n] - low)) + max(0, end - (high - offsets[n]))
               for n, (start, end) in ends.items())
     longest = max(len(f) - bisect_left(f, base) for f in frames.values())
-    if cut > MAX_TRIM_FRAMES or cut > MAX_TRIM_FRACTION * longest:
+    if cut > MAX_TRIM_FRAMES or (cut > FEW_FRAMES and cut > MAX_TRIM_FRACTION * longest):
         raise UserError(f"--video: frame counts differ between cameras: {listing()} (more than "
-                        f"{MAX_TRIM_FRAMES} frames or {MAX_TRIM_FRACTION:.0%} apart; a truncated file? "
-                        "a late start is --offset: a first guess, and mocap sync finds the rest)")
+                        f"{MAX_TRIM_FRAMES} frames, or more than {FEW_FRAMES} and {MAX_TRIM_FRACTION:.0%} apart; "
+                        "a truncated file? a late start is --offset: a first guess, and mocap sync finds the rest)")
     warning = None
     if cut:
-        warning = (f"recordings differ in length ({listing()} frames); using the frames {lo}..{hi - 1} all cameras "
-                   f"have (a camera that started late is out of step: mocap sync finds its --offset)")
+        warning = (f"recordings differ in length ({listing()} frames); all cameras have the frames {lo}..{hi - 1}, "
+                   f"the rest is left out (a camera that started late is out of step: mocap sync finds its "
+                   f"--offset)")
     elif any(end for _, end in ends.values()):
         warning = f"with the offsets ({listing()} frames) the frames all cameras have are {lo}..{hi - 1}"
     return lo, hi, warning
