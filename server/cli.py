@@ -65,11 +65,11 @@ def main(argv: list[str] | None = None) -> int:
     name = " ".join(str(v) for v in (args.command, *(getattr(args, a, None) for a in ACTION_DESTS)) if v)
 
     try:
-        if hasattr(args, "command_parser") and (args.config is not None or args.preset is not None):
-            # a preset's and a Config.toml's values become the command's defaults; options given win
+        if hasattr(args, "command_parser") and (args.config is not None or args.preset is not None or args.set):
+            # a preset's, a Config.toml's and --set's values become the command's defaults; options given win
             from server.config import fit_option_defaults
 
-            args.command_parser.set_defaults(**fit_option_defaults(args.preset, args.config))
+            args.command_parser.set_defaults(**fit_option_defaults(args.preset, args.config, args.set))
             args = parser.parse_args(argv)
         return int(args.func(args) or EXIT_OK)
     except UserError as exc:

@@ -19,10 +19,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from common.errors import InputFileError
+from common.errors import InputFileError, UserError
 from common.export import ALL_FORMATS, FORMATS
 from common.fitting import ENERGY_BACKENDS, FitOptions
 from common.segmentation import METHODS
+from common.sequence import MAX_MASK_THRESHOLD
 from common.world import UP_CHOICES
 from server.commands.import_video import MISSING_FRAMES
 
@@ -142,6 +143,23 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("fit", "actor_height", "auto", (float, str), "the actor's height in metres, or auto", _height_or_auto,
             f"metres ({MIN_ACTOR_HEIGHT:g} to {MAX_ACTOR_HEIGHT:g}) or \"auto\""),
     Setting("fit", "clean_masks", True, bool, "drop silhouette blobs the other cameras do not support"),
+    Setting("fit", "mask_threshold", -1, int, "silhouettes given as grey or colour images: pixels brighter than N "
+            "are foreground, as mocap fit --mask-threshold (-1: the masks must be black and white)",
+            lambda v: -1 <= v < MAX_MASK_THRESHOLD, f"an integer from -1 to {MAX_MASK_THRESHOLD - 1}"),
+    # the search's own knobs: no command-line option of their own (mocap fit --set fit.KEY=VALUE)
+    Setting("fit", "grid_steps", FitOptions.grid_steps, int, "grid points per limb parameter", _at_least(1),
+            "an integer >= 1"),
+    Setting("fit", "grid_range", FitOptions.grid_range_rad, float, "limb grid half-width, radians", _at_least(0.0),
+            "a number >= 0"),
+    Setting("fit", "turn_step", FitOptions.turn_step_rad, float, "the turn hypotheses' step about the vertical, "
+            "radians", lambda v: 0.0 < v < math.pi, "a number between 0 and pi"),
+    Setting("fit", "spine_twist_prior", FitOptions.spine_twist_prior, float, "how hard the torso's fit resists "
+            "twisting the chest against the pelvis, full-resolution silhouette pixels per rad^2 (the twist hardly "
+            "shows in silhouettes; lower it for dancers who twist a lot, 0: off)", _at_least(0.0), "a number >= 0"),
+    Setting("fit", "redetect", FitOptions.redetect_limbs, bool, "search one limb per frame over its whole range "
+            "(lost-limb recovery)"),
+    Setting("fit", "prerender", FitOptions.prerender, bool, "render the still parts once per limb solve (false: "
+            "every part in every evaluation, the same energies, slower)"),
     Setting("fit", "threads", 0, int, "single process: starts and limbs fitted at once (0: every core); "
             "the poses are the same for any number", _at_least(0), "an integer >= 0"),
     Setting("export", "formats", ["bvh", "trc", "csv"], list, "formats written into the result folder "
@@ -152,6 +170,8 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("report", "gif", True, bool, "also the animated sequence.gif (the slowest picture)"),
 )
 _BY_KEY = {(s.section, s.key): s for s in SETTINGS}
+# the [fit] keys with no mocap fit option of their own (--set fit.KEY=VALUE sets them)
+SEARCH_KNOBS = ("grid_steps", "grid_range", "turn_step", "spine_twist_prior", "redetect", "prerender")
 SECTIONS = tuple(dict.fromkeys(s.section for s in SETTINGS))
 
 
@@ -264,6 +284,10 @@ FIT_OPTION_DESTS = {
     ("fit", "refine_chunk_frames"): ("refine_chunk_frames", None),
     ("fit", "init"): ("init", lambda v: v or None), ("fit", "actor_height"): ("actor_height", None),
     ("fit", "clean_masks"): ("clean_masks", None), ("fit", "threads"): ("threads", None),
+    ("fit", "mask_threshold"): ("mask_threshold", lambda v: None if v < 0 else v),
+    ("fit", "grid_steps"): ("grid_steps", None), ("fit", "grid_range"): ("grid_range", None),
+    ("fit", "turn_step"): ("turn_step", None), ("fit", "spine_twist_prior"): ("spine_twist_prior", None),
+    ("fit", "redetect"): ("redetect", None), ("fit", "prerender"): ("prerender", None),
     ("calibration", "units"): ("units", lambda v: v or None), ("calibration", "up"): ("up", None),
     ("calibration", "file"): ("calibration", lambda v: Path(v) if v else None),
 }
@@ -279,16 +303,42 @@ def _as_option_defaults(values: dict) -> dict:
     return out
 
 
-def fit_option_defaults(preset: str | None, path: Path | None) -> dict:
+def fit_option_defaults(preset: str | None, path: Path | None, settings: list[str] = ()) -> dict:
     """{option dest: value} that replace ``mocap fit``'s built-in defaults: a preset's, then the
-    [fit] and [calibration] keys of a Config.toml (``--config``); options given still win."""
+    [fit] and [calibration] keys of a Config.toml (``--config``), then ``settings`` (``--set``
+    SECTION.KEY=VALUE, ``parse_setting``); options given still win."""
     given = {}
     if path is not None:
         path = Path(path)
         if not path.is_file():
             raise InputFileError(path, "missing (--config names a Config.toml)")
         given = read_config_file(path)
+    given.update(parse_setting(text) for text in settings)
     # --preset over the file's [fit] preset; the file's own keys over either
     values = {("fit", k): v for k, v in PRESETS[preset or given.get(("fit", "preset"), DEFAULT)].items()}
     values.update(given)
     return _as_option_defaults(values)
+
+
+def parse_setting(text: str) -> tuple[tuple[str, str], Any]:
+    """``SECTION.KEY=VALUE`` (``mocap fit --set``) -> ((section, key), value), the value read as
+    TOML (``fit.grid_steps=7``, ``fit.redetect=false``; a bare word as text: ``calibration.units=mm``)
+    and checked as a Config.toml's; UserError naming --set and the key."""
+    name, sep, literal = text.partition("=")
+    section, dot, key = name.strip().partition(".")
+    if not sep or not dot:
+        raise UserError(f"--set: expected SECTION.KEY=VALUE (e.g. fit.grid_steps=7), got {text!r}")
+    setting = _BY_KEY.get((section, key))
+    if setting is None or section not in ("fit", "calibration"):
+        keys = [f"{s.section}.{s.key}" for s in SETTINGS if s.section in ("fit", "calibration")]
+        near = difflib.get_close_matches(name.strip(), keys, n=1)
+        raise UserError(f"--set: unknown key {name.strip()!r}{f' (did you mean {near[0]!r}?)' if near else ''} "
+                        "(mocap config keys lists them; --set takes the [fit] and [calibration] ones)")
+    try:
+        value = tomllib.loads(f"v = {literal.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = literal.strip()  # a bare word: text
+    try:
+        return (section, key), setting.validate(value, "--set")
+    except InputFileError as exc:
+        raise UserError(str(exc)) from None

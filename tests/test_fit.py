@@ -1272,24 +1272,39 @@ def test_refinement_note_names_what_the_first_pass_did():
 
 @pytest.mark.parametrize("args, field", [(("--refine-hops", "5", "--refine-passes", "0"), "refine_hops needs"),
                                          (("--refine-hops", "-1"), "--refine-hops: expected an integer >= 0"),
-                                         (("--spine-twist-prior", "-1"), "--spine-twist-prior: expected a finite"),
-                                         (("--spine-twist-prior", "nan"), "--spine-twist-prior: expected a finite")])
+                                         (("--set", "fit.spine_twist_prior=-1"),
+                                          "--set: [fit] spine_twist_prior: expected a number >= 0"),
+                                         (("--set", "fit.spine_twist_prior=nan"),
+                                          "--set: [fit] spine_twist_prior: expected a number >= 0")])
 def test_fit_refuses_bad_refinement_and_prior_options(small_sequence, tmp_path, capsys, args, field):
     assert fit(small_sequence, tmp_path / "r", *args) == 2
     assert field in capsys.readouterr().err
 
 
-def test_spine_twist_prior_option_reaches_the_fit_options():
+def test_the_search_s_knobs_reach_the_fit_options_from_a_file_or_set(tmp_path):
+    """The [fit] keys with no option of their own (server.config.SEARCH_KNOBS) reach FitOptions
+    from a Config.toml (--config) and from --set, --set over the file, the file over the preset."""
     import argparse
 
     from server.commands.fit import add_fit_arguments, options_from_args
+    from server.config import fit_option_defaults
 
-    parser = argparse.ArgumentParser()
-    add_fit_arguments(parser)
-    args = parser.parse_args(["seq", "--out", "r"])
-    assert options_from_args(args).spine_twist_prior == FitOptions().spine_twist_prior
-    args = parser.parse_args(["seq", "--out", "r", "--spine-twist-prior", "500"])
-    assert options_from_args(args).spine_twist_prior == 500.0
+    def options(*argv, config=None, preset=None):
+        parser = argparse.ArgumentParser()
+        add_fit_arguments(parser)
+        args = parser.parse_args(["seq", "--out", "r", *argv])
+        parser.set_defaults(**fit_option_defaults(preset, config, args.set))
+        return options_from_args(parser.parse_args(["seq", "--out", "r", *argv]))
+
+    assert options().spine_twist_prior == FitOptions().spine_twist_prior and options().redetect_limbs
+    assert options("--set", "fit.spine_twist_prior=500").spine_twist_prior == 500.0
+    file = tmp_path / "Config.toml"
+    file.write_text("[fit]\ngrid_steps = 3\nredetect = false\nturn_step = 0.2\nprerender = false\n"
+                    "grid_range = 0.5\n")
+    chosen = options(config=file)
+    assert (chosen.grid_steps, chosen.redetect_limbs, chosen.turn_step_rad, chosen.prerender,
+            chosen.grid_range_rad) == (3, False, 0.2, False, 0.5)
+    assert options("--set", "fit.grid_steps=9", config=file, preset="best").grid_steps == 9
 
 
 @pytest.mark.timeout(300)

@@ -177,11 +177,13 @@ def test_resume_refuses_a_corrupt_middle_line(tmp_path, seq, capsys):
 @pytest.mark.parametrize("argv, names", [
     (["--frames", "-1"], ["--frames", ">= 1"]),
     (["--frames", "0"], ["--frames", ">= 1"]),
-    (["--grid-range", "nan"], ["--grid-range", "finite"]),
-    (["--grid-range", "-1"], ["--grid-range", ">= 0"]),
+    (["--set", "fit.grid_range=nan"], ["--set", "[fit] grid_range", ">= 0"]),
+    (["--set", "fit.grid_range=-1"], ["--set", "[fit] grid_range", ">= 0"]),
     (["--iterations", "0"], ["--iterations"]),
     (["--refine-hops", "-2"], ["--refine-hops"]),
-    (["--turn-step", "inf"], ["--turn-step"]),
+    (["--set", "fit.turn_step=inf"], ["--set", "[fit] turn_step"]),
+    (["--set", "fit.grid_stepz=3"], ["--set", "did you mean 'fit.grid_steps'"]),
+    (["--set", "grid_steps"], ["--set", "SECTION.KEY=VALUE"]),
     (["--clients", "-1"], ["--clients"]),
 ])
 def test_fit_option_ranges(tmp_path, seq, capsys, argv, names):

@@ -385,10 +385,11 @@ def _bvh_and_toml_cases(b: Base) -> list[Case]:
 # option -> the bad values it is tried with (a value that means something, such as 0 for "off",
 # is left out).
 FIT_OPTIONS = {
-    "--frames": ["-1", "0", "nan", "abc", "1.5"], "--iterations": ["-1", "0", "abc"], "--grid-steps": ["0", "-1"],
-    "--grid-range": ["-1", "nan", "inf", "abc"], "--turn-hypotheses": ["-1"], "--polish-iterations": ["-1"],
-    "--refine-passes": ["-1"], "--refine-hops": ["-1"], "--spine-twist-prior": ["-1", "nan", "inf"],
-    "--turn-step": ["0", "-1", "nan", "inf"], "--mask-threshold": ["-1", "70000", "abc"],
+    "--frames": ["-1", "0", "nan", "abc", "1.5"], "--iterations": ["-1", "0", "abc"],
+    "--set": ["fit.grid_steps=0", "fit.grid_range=nan", "fit.turn_step=0", "fit.spine_twist_prior=-1",
+              "fit.redetect=maybe", "fit.nothing=1", "grid_steps", "fit.grid_steps=[1, 2]"],
+    "--turn-hypotheses": ["-1"], "--polish-iterations": ["-1"],
+    "--refine-passes": ["-1"], "--refine-hops": ["-1"], "--mask-threshold": ["-1", "70000", "abc"],
     "--actor-height": ["0", "-1", "nan", "abc"], "--clients": ["-1", "abc"], "--client-timeout": ["0", "-1", "nan"],
     "--heartbeat": ["0", "-1", "nan", "inf"],
 }

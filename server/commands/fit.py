@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
@@ -13,7 +12,7 @@ from common.export import sample_rate, write_motion_bvh
 from common.fitting import ENERGY_BACKENDS, FitOptions
 from common.sequence import MAX_MASK_THRESHOLD, load_sequence
 from common.world import UP_CHOICES
-from common.argtypes import count, non_negative, real
+from common.argtypes import count
 from server.local_cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
 from server.config import MAX_ACTOR_HEIGHT, MIN_ACTOR_HEIGHT, PRESETS
 from server.progress import Progress
@@ -36,17 +35,20 @@ def add_fit_arguments(p) -> None:
                    help="fast (online: the previous pose and that pose moved on as it moved, no turns, no refinement), "
                         "default, or best (offline: two refinement passes with limb search and 60 hops); over the "
                         "--config file's [fit] preset, under its other keys and the options given")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="a Config.toml key for this run, over --config's and the preset's (e.g. fit.grid_steps=7, "
+                        "fit.redetect=false; mocap config keys lists them): the search's own knobs have no option "
+                        "of their own")
     p.set_defaults(command_parser=p)  # server.cli re-parses with the preset's and file's values as defaults
+    # the search's knobs that only a Config.toml or --set changes (server.config's [fit] keys)
+    p.set_defaults(grid_steps=FitOptions.grid_steps, grid_range=FitOptions.grid_range_rad,
+                   turn_step=FitOptions.turn_step_rad, spine_twist_prior=FitOptions.spine_twist_prior,
+                   redetect=FitOptions.redetect_limbs, prerender=FitOptions.prerender)
     p.add_argument("--out", type=Path, required=True, help="result folder")
     p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
     p.add_argument("--frames", type=count(1), default=None, help="fit only the first N frames")
     p.add_argument("--iterations", type=count(1), default=FitOptions.max_iterations,
                    help=f"rounds per frame (default {FitOptions.max_iterations})")
-    p.add_argument("--grid-steps", type=count(1), default=FitOptions.grid_steps,
-                   help=f"grid points per limb parameter (default {FitOptions.grid_steps})")
-    p.add_argument("--grid-range", type=non_negative, default=FitOptions.grid_range_rad,
-                   help=f"limb grid half-width, rad (default {FitOptions.grid_range_rad:g})")
-    p.add_argument("--no-prerender", action="store_true", help="render every part in every evaluation")
     p.add_argument("--turn-hypotheses", type=count(0), default=FitOptions.turn_hypotheses, metavar="N",
                    help="also fit each frame from the start turned by -+1..N turn steps about the vertical and "
                         f"keep the lowest energy (default {FitOptions.turn_hypotheses}; 0: off, a fifth of the time)")
@@ -70,14 +72,6 @@ def add_fit_arguments(p) -> None:
     p.add_argument("--refine-chunk-frames", type=count(0), default=FitOptions.refine_chunk_frames, metavar="N",
                    help="refine a long take in chunks of about N frames side by side on the threads, meeting "
                         "where they join (default 0: the take as one)")
-    p.add_argument("--spine-twist-prior", type=non_negative, default=FitOptions.spine_twist_prior, metavar="PX_PER_RAD2",
-                   help="how hard the torso's fit resists twisting the chest against the pelvis, full-resolution "
-                        f"silhouette pixels per rad^2 (default {FitOptions.spine_twist_prior:g}; the twist hardly shows in silhouettes; "
-                        "lower it for dancers who twist a lot, 0: off)")
-    p.add_argument("--turn-step", type=real(0.0, math.pi, exclusive_minimum=True), default=FitOptions.turn_step_rad, metavar="RAD",
-                   help=f"the turn step, rad (default {FitOptions.turn_step_rad})")
-    p.add_argument("--no-redetect", action="store_true",
-                   help="do not search one limb per frame over its whole range (lost-limb recovery)")
     p.add_argument("--init", choices=INIT_CHOICES, default=None,
                    help="first-frame start: auto (from the voxels; the truth then only scores), truth, or "
                         "standing (default: the truth's first pose if the sequence has one, else auto)")
@@ -99,13 +93,13 @@ def add_fit_arguments(p) -> None:
 def options_from_args(args) -> FitOptions:
     try:
         return FitOptions(energy=args.energy, max_iterations=args.iterations, grid_steps=args.grid_steps,
-                          grid_range_rad=args.grid_range, prerender=not args.no_prerender,
+                          grid_range_rad=args.grid_range, prerender=args.prerender,
                           turn_hypotheses=args.turn_hypotheses, track_moved_on=args.track_moved_on,
                           turn_step_rad=args.turn_step, polish_iterations=args.polish_iterations,
                           refine_passes=args.refine_passes, refine_search=args.refine_search,
                           refine_hops=args.refine_hops, refine_chunk_frames=args.refine_chunk_frames,
                           spine_twist_prior=args.spine_twist_prior,
-                          redetect_limbs=not args.no_redetect)
+                          redetect_limbs=args.redetect)
     except ValueError as exc:  # a value out of range: say which option
         raise UserError(f"bad fit option: {exc}") from None
 
