@@ -22,6 +22,7 @@ One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -376,7 +377,6 @@ class CpuEnergy:
         self.setup = setup
         self.evaluations = 0
         studio, windows = setup.studio, setup.windows
-        self.seen = window_pixels(setup)  # what the energy counts and a render shows
         if setup.inputs is None:
             self.rows, self.width = windows[0].height, windows[0].width
         else:
@@ -407,6 +407,12 @@ class CpuEnergy:
                                np.ascontiguousarray(model.ellipsoid_centres[seg]),
                                model.ellipsoid_axes[seg] * model.ellipsoid_radii[seg][:, None, :],
                                self.P, self.y0, self.x0, self.rows, self.width, self.gain, self.loss)
+
+    @cached_property
+    def seen(self) -> np.ndarray | None:
+        """``window_pixels``: what the energy counts and a render shows (for windows cut from
+        packed rows only drawn on a render: a fit builds thousands of energies a frame)."""
+        return window_pixels(self.setup)
 
     @property
     def static_mask(self) -> np.ndarray:
