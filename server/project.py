@@ -646,6 +646,9 @@ def result_figures(result: Path) -> dict:
         out["frames_flagged"] = len(quality["frames_flagged"])
     if summary.get("foreground_left_out"):  # the XOR shares are against the masks so cleared
         out["cleared_share"] = summary["foreground_left_out"]["share"]
+        segmented = summary["foreground_left_out"].get("fit_quality_as_segmented", {})
+        if "mean_xor_share" in segmented:
+            out["segmented_xor_share"] = segmented["mean_xor_share"]
     return out
 
 
