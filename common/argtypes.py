@@ -1,7 +1,7 @@
 """Checked argparse types: every numeric option says what range it takes.
 
 argparse turns the ``ArgumentTypeError`` these raise into ``argument --NAME: MESSAGE``, and
-``OneLineParser`` prints that as one line with exit 2, so ``--frames -1`` or ``--grid-range nan``
+``OneLineParser`` prints that as one line with exit 2, so ``--frames -1`` or ``--fov nan``
 are refused before any work starts instead of meaning something surprising.
 """
 from __future__ import annotations

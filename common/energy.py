@@ -1,4 +1,5 @@
-"""The XOR energy E(pose) = sum over cameras of |rendered XOR input| inside each camera's window.
+"""The XOR energy E(pose) = sum over cameras of |rendered XOR input| inside each camera's window
+and its image (a camera does not see past its image's edges: a body reaching there costs nothing).
 
 One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``):
 
@@ -229,8 +230,8 @@ class EnergySetup:
     studio: cameras (already scaled for half-resolution work); windows: one per camera;
     inputs: (K, h, w) bool input silhouette windows, h and w the largest window height and
     width, window k's pixels at [:height, :width] (windows of one size fill it; whole images of
-    cameras of different sizes are padded, as ``packing.pad_stack``): pixels beyond a window
-    are outside it and count for nothing, whatever covers them; or None where ``packed`` is
+    cameras of different sizes are padded, as ``packing.pad_stack``): pixels beyond a window,
+    or beyond its camera's image, count for nothing, whatever covers them; or None where ``packed`` is
     given; moving: segments that move; static_params: (35,) pose whose other segments are
     pre-rendered; packed: (K, H, words) uint64 the whole images' silhouettes as row bits
     (``conic_bits.pack_rows``, each camera's pixels beyond its own image clear), which windows

@@ -172,6 +172,13 @@ SETTINGS: tuple[Setting, ...] = (
 _BY_KEY = {(s.section, s.key): s for s in SETTINGS}
 # the [fit] keys with no mocap fit option of their own (--set fit.KEY=VALUE sets them)
 SEARCH_KNOBS = ("grid_steps", "grid_range", "turn_step", "spine_twist_prior", "redetect", "prerender")
+# keys a take's fit record holds only where set away from their default: added after takes were
+# fitted without them, they must not refit those takes
+RECORDED_WHEN_SET = SEARCH_KNOBS + ("mask_threshold",)
+
+
+def setting_default(section: str, key: str):
+    return _BY_KEY[(section, key)].default
 SECTIONS = tuple(dict.fromkeys(s.section for s in SETTINGS))
 
 
@@ -271,7 +278,8 @@ OPTION_NAMES = {("calibration", "file"): "--calibration", ("import", "offsets"):
                 ("fit", "clean_masks"): "--no-clean-masks"}
 # the options of mocap run's steps (import-video, segment, fit) -> the Config.toml key that sets them
 OPTION_KEYS = {OPTION_NAMES.get((s.section, s.key), "--" + s.key.replace("_", "-")): f"[{s.section}] {s.key}"
-               for s in SETTINGS if s.section in ("calibration", "import", "segmentation", "fit")}
+               for s in SETTINGS if s.section in ("calibration", "import", "segmentation", "fit")
+               and s.key not in SEARCH_KNOBS}
 
 
 # [section] key -> mocap fit's option (dest), and how a file's value becomes the option's value
@@ -329,6 +337,9 @@ def parse_setting(text: str) -> tuple[tuple[str, str], Any]:
     if not sep or not dot:
         raise UserError(f"--set: expected SECTION.KEY=VALUE (e.g. fit.grid_steps=7), got {text!r}")
     setting = _BY_KEY.get((section, key))
+    if setting is not None and section not in ("fit", "calibration"):
+        raise UserError(f"--set: {name.strip()} is no key of mocap fit's: --set takes the [fit] and [calibration] "
+                        f"ones ([{section}] is mocap run's, in a Config.toml)")
     if setting is None or section not in ("fit", "calibration"):
         keys = [f"{s.section}.{s.key}" for s in SETTINGS if s.section in ("fit", "calibration")]
         near = difflib.get_close_matches(name.strip(), keys, n=1)

@@ -36,7 +36,7 @@ from pathlib import Path
 from common.calibration import calibration_files, camera_files_in, camera_files_named
 from common.errors import WARNING_PREFIX, UserError
 from common.export import export_name, named_formats
-from server.config import OPTION_KEYS, SEARCH_KNOBS, Config
+from server.config import OPTION_KEYS, RECORDED_WHEN_SET, SEARCH_KNOBS, Config, setting_default
 from server.output import counted, write_text
 from server.results import DERIVED_FILES, FOREGROUND_FILE, MOTION_FILE, RUN_FILE
 from server.takes import (SOURCE_FOLDERS, TAKE_LAYOUTS, camera_folder_sources, find_calibration, holds_calibration,
@@ -202,7 +202,7 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     command += ["--track-moved-on"] if fit["track_moved_on"] else []
     command += ["--mask-threshold", str(fit["mask_threshold"])] if fit["mask_threshold"] >= 0 else []
     for key in SEARCH_KNOBS:  # no option of their own: as a Config.toml's keys (JSON's literals are TOML's)
-        command += ["--set", f"fit.{key}={json.dumps(fit[key])}"]
+        command += ["--set", f"fit.{key}={json.dumps(fit[key])}"] if fit[key] != setting_default("fit", key) else []
     command += ["--calibration", str(calibration_file)] if calibration_file else []
     if calibration_file:
         calibration_read = calibration_files(calibration_file)
@@ -214,7 +214,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
                       (*calibration_read, sequence / "silhouettes", sequence / "sequence.json"),
                       (result / "poses.jsonl", result / "summary.json"),
                       # the preset is in the keys it set, and its name alone refits nothing
-                      {"fit": {k: v for k, v in fit.items() if k != "preset"}, "calibration": calib_settings},
+                      {"fit": {k: v for k, v in fit.items() if k != "preset" and not (
+                          k in RECORDED_WHEN_SET and v == setting_default("fit", k))}, "calibration": calib_settings},
                       also_writes=(result / RUN_FILE, result / MOTION_FILE, result / FOREGROUND_FILE),
                       # mocap fit --overwrite drops what was made from the result it replaces
                       clears=tuple(result / name for name in DERIVED_FILES)))
@@ -646,9 +647,9 @@ def result_figures(result: Path) -> dict:
         out["frames_flagged"] = len(quality["frames_flagged"])
     if summary.get("foreground_left_out"):  # the XOR shares are against the masks so cleared
         out["cleared_share"] = summary["foreground_left_out"]["share"]
-        segmented = summary["foreground_left_out"].get("fit_quality_as_segmented", {})
+        segmented = summary["foreground_left_out"].get("fit_quality_before_clearing", {})
         if "mean_xor_share" in segmented:
-            out["segmented_xor_share"] = segmented["mean_xor_share"]
+            out["xor_share_before_clearing"] = segmented["mean_xor_share"]
     return out
 
 

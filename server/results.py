@@ -150,7 +150,7 @@ def check_resume(out_dir: Path, settings: dict) -> None:
     differ = settings_differences(read_run_settings(path), settings)
     if differ:
         raise UserError(f"--resume: the settings differ from the run being continued ({path}): "
-                        + "; ".join(differ) + ". Pass the same options, or --overwrite to fit again")
+                        + "; ".join(differ) + ". Pass the same options (--config, --set), or --overwrite to fit again")
 
 
 def prepare_result_folder(out_dir: Path, settings: dict, resume: bool, overwrite: bool) -> list[dict]:

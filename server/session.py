@@ -777,7 +777,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     if passes:
         records, poor_refined = refine_poor_windows(model, seq, records, options, solver, stats, progress)
         records, standing_out_refitted = refit_standing_out(model, seq, records, options, solver, stats)
-        segmented = seq
+        uncleared = seq
         seq, records, left_out = leave_out_unexplained(model, seq, records, options, solver, stats, progress)
     write_foreground_left_out(out_dir, seq.foreground_left_out)
     settled, refined = 0, sum(1 for r in records if "first_pass" in r)
@@ -787,10 +787,11 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         quality = [frame_quality(frame_data(model, seq, r["frame"]), r["params"]) for r in records]
     records = [r | {"fit_quality": q} for r, q in zip(records, quality)]
     rewrite_complete(poses_path, records)
-    if left_out:  # the fit against the masks as segmented too: clearing must not hide a wrong pose
-        left_out = left_out | {"fit_quality_as_segmented": {
+    if left_out:  # the fit against the masks before the clearing too: clearing must not hide a wrong pose
+        # (one more pass over every frame's masks, only where something was cleared)
+        left_out = left_out | {"fit_quality_before_clearing": {
             k: v for k, v in quality_summary([{"frame": r["frame"], "fit_quality": frame_quality(
-                frame_data(model, segmented, r["frame"]), r["params"])} for r in records], seq.studio.names).items()
+                frame_data(model, uncleared, r["frame"]), r["params"])} for r in records], seq.studio.names).items()
             if k in ("mean_xor_share", "max_xor_share", "per_camera_mean_xor_share")}}
     wall = time.perf_counter() - wall0 + (actor_size.seconds if actor_size else 0.0)
     summary = {
@@ -899,11 +900,11 @@ LOST_MISSED = 0.8
 def masks_cleared_note(left_out: dict) -> str:
     """What ``leave_out_unexplained`` cleared (summary.json's "foreground_left_out"), as the fit's
     table and the report say it."""
-    segmented = left_out.get("fit_quality_as_segmented", {})
+    before = left_out.get("fit_quality_before_clearing", {})
     return (f"{left_out['share']:.0%} of the silhouette area that no fitted pose explains in "
             f"{UNEXPLAINED_FRAMES_SHARE:.0%} of the frames (a prop the actor touches), cleared from the masks; "
             f"{counted(left_out['frames_replaced'], 'frame')} changed pose"
-            + (f"; XOR {segmented['mean_xor_share']:.0%} of the masks as segmented" if segmented else ""))
+            + (f"; XOR {before['mean_xor_share']:.0%} of the masks before the clearing" if before else ""))
 
 
 def xor_sides(quality: dict) -> str:

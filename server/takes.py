@@ -36,6 +36,8 @@ VIDEO_SUFFIXES = (".avi", ".mp4", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".web
 MIN_CAMERA_FOLDERS = 2  # with a video and a background each: fewer is a clip kept somewhere, not a studio
 TAKE_LAYOUTS = ("videos/, images/, sequence.json, silhouettes/ or two camera folders or more with video.<ext> and "
                 "background.<ext>")
+
+
 def _holds_take_markers(folder: Path) -> bool:
     return any((folder / name).exists() for name in SOURCE_FOLDERS + SEQUENCE_MARKERS)
 

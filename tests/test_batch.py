@@ -105,6 +105,31 @@ def test_config_cascade_and_sources(tmp_path):
     assert config.get("export", "formats") == ["csv"]
 
 
+def test_the_search_s_knobs_reach_mocap_run_s_fit_only_where_set(tmp_path):
+    """[fit] keys with no mocap fit option of their own go to the fit as --set, and the mask
+    threshold as --mask-threshold, where a Config.toml sets them away from their defaults; at
+    their defaults they are in neither the command nor the step's record, so takes fitted
+    before the keys existed are not fitted again."""
+    take = tmp_path / "take"
+    (take / "silhouettes").mkdir(parents=True)
+    (take / "calibration.json").write_text("{}")  # a ready sequence's own: planning reads no file
+    (tmp_path / "Config.toml").write_text("[fit]\niterations = 2\n")
+
+    def fit_step():
+        (step,) = [s for s in plan_take(take).steps if s.name == "fit"]
+        return step, step.commands[0]
+
+    step, command = fit_step()
+    assert "--set" not in command and "--mask-threshold" not in command
+    assert not {"grid_steps", "redetect", "mask_threshold"} & set(step.settings["fit"])
+    (take / "Config.toml").write_text("[fit]\ngrid_steps = 5\nredetect = false\nturn_step = 0.2\nmask_threshold = 127\n")
+    step, command = fit_step()
+    sets = [command[i + 1] for i, a in enumerate(command) if a == "--set"]
+    assert sets == ["fit.grid_steps=5", "fit.turn_step=0.2", "fit.redetect=false"]
+    assert command[command.index("--mask-threshold") + 1] == "127"
+    assert step.settings["fit"]["grid_steps"] == 5 and step.settings["fit"]["mask_threshold"] == 127
+
+
 @pytest.mark.parametrize("text, names", [
     ("[fit]\niteration = 2\n", ["[fit] unknown key 'iteration' (did you mean 'iterations'?)"]),
     ("[fitting]\niterations = 2\n", ["unknown section [fitting]"]),

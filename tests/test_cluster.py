@@ -427,8 +427,8 @@ def test_masks_cleared_after_the_passes_give_the_same_poses_on_a_cluster(model, 
     assert single["foreground_left_out"]["share"] > 0 and (tmp_path / "single" / "foreground_left_out.npz").is_file()
     left_out = single["foreground_left_out"]  # what each round added, adding up to what was cleared
     assert sum(left_out["round_shares"]) == pytest.approx(left_out["share"], abs=1e-3)
-    # the fit against the masks as segmented too: the cleared pixels count there
-    segmented = left_out["fit_quality_as_segmented"]
+    # the fit against the masks before the clearing too: the cleared pixels count there
+    segmented = left_out["fit_quality_before_clearing"]
     assert segmented["mean_xor_share"] > single["fit_quality"]["mean_xor_share"]
     assert set(segmented["per_camera_mean_xor_share"]) == set(seq.studio.names)
     # the pictures draw the masks the fit had: the same pixels cleared

@@ -1299,11 +1299,11 @@ def test_the_search_s_knobs_reach_the_fit_options_from_a_file_or_set(tmp_path):
     assert options().spine_twist_prior == FitOptions().spine_twist_prior and options().redetect_limbs
     assert options("--set", "fit.spine_twist_prior=500").spine_twist_prior == 500.0
     file = tmp_path / "Config.toml"
-    file.write_text("[fit]\ngrid_steps = 3\nredetect = false\nturn_step = 0.2\nprerender = false\n"
+    file.write_text("[fit]\ngrid_steps = 5\nredetect = false\nturn_step = 0.2\nprerender = false\n"
                     "grid_range = 0.5\n")
     chosen = options(config=file)
     assert (chosen.grid_steps, chosen.redetect_limbs, chosen.turn_step_rad, chosen.prerender,
-            chosen.grid_range_rad) == (3, False, 0.2, False, 0.5)
+            chosen.grid_range_rad) == (5, False, 0.2, False, 0.5)
     assert options("--set", "fit.grid_steps=9", config=file, preset="best").grid_steps == 9
 
 

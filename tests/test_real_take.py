@@ -77,7 +77,7 @@ def test_the_seated_take_fits_seated_upright_and_still(tmp_path):
     assert summary["world_up"] == "-z" and summary["fit_quality"]["max_xor_share"] < 0.30
     # the chair and the mask cleared, not the body: little of it outside the masks (2% fitted)
     assert summary["foreground_left_out"]["share"] > 0.2 and summary["fit_quality"]["mean_outside_share"] < 0.05
-    assert summary["foreground_left_out"]["fit_quality_as_segmented"]["mean_xor_share"] > 0.3  # the chair counts there
+    assert summary["foreground_left_out"]["fit_quality_before_clearing"]["mean_xor_share"] > 0.3  # the chair counts there
     assert "masks the body misses" in page and "cleared from the masks" in page
     assert set(summary["fit_quality"]["per_camera_mean_xor_share"]) == set(CAMERAS)
 

@@ -198,31 +198,34 @@ def test_voxels_command_writes_voxels_and_pictures(tmp_path, sequence, capsys):
 
 
 @pytest.mark.timeout(120)
-def test_voxels_are_written_in_the_calibration_s_world(tmp_path, sequence):
-    """A y-up calibration's voxels (an OpenSim or Pose2Sim world) come out in that world: the
-    same voxels as the z-up calibration's, turned, with the bounds, the voxel size and the up
-    axis said in voxels.json; --bounds is read in that world too."""
+@pytest.mark.parametrize("up", ["+y", "-z"])
+def test_voxels_are_written_in_the_calibration_s_world(tmp_path, sequence, up):
+    """A y-up (an OpenSim or Pose2Sim world) or z-down calibration's voxels (a board on the
+    floor) come out in that world: the same voxels as the z-up calibration's, turned (and
+    flipped), with the bounds, the voxel size and the up axis said in voxels.json; --bounds is
+    read in that world too."""
     import shutil
 
     from common.calibration import load_calibration
-    from common.world import world_frame
+    from common.world import AXIS_VECTORS, world_frame
 
-    world = world_frame("+y")
-    y_up = tmp_path / "y_up"
-    shutil.copytree(sequence, y_up)
-    save_calibration(world.studio_to_user(load_calibration(sequence / "calibration.json")), y_up / "calibration.json")
+    world = world_frame(up)
+    turned = tmp_path / "turned"
+    shutil.copytree(sequence, turned)
+    save_calibration(world.studio_to_user(load_calibration(sequence / "calibration.json")), turned / "calibration.json")
     args = ["--grid", "16", "--pictures", "0", "--quiet"]
     assert main(["voxels", str(sequence), "--out", str(tmp_path / "z"), *args]) == 0
-    assert main(["voxels", str(y_up), "--out", str(tmp_path / "y"), *args]) == 0
+    assert main(["voxels", str(turned), "--out", str(tmp_path / "y"), *args]) == 0
     z, y = (load_voxels(tmp_path / name / "voxels" / "000001.npz") for name in ("z", "y"))
     centres = lambda points: sorted(map(tuple, np.round(points, 6)))
     assert y.occupied.any() and centres(y.centres(y.occupied)) == centres(world.points_to_user(z.centres(z.occupied)))
     summary = json.loads((tmp_path / "y" / "voxels.json").read_text())
-    assert summary["world_up"] == "+y"
+    assert summary["world_up"] == up
     lo, hi = np.array(summary["bounds"])
-    assert hi[1] - lo[1] == pytest.approx(2.2) and lo[1] == pytest.approx(0.0)  # the box's height along +y
+    axis = int(np.abs(AXIS_VECTORS[up]).argmax())  # the box's height, from the floor along the up axis
+    assert hi[axis] - lo[axis] == pytest.approx(2.2) and (lo[axis] if up[0] == "+" else hi[axis]) == pytest.approx(0.0)
     assert summary["voxel_size"] == pytest.approx(list(y.voxel_size))
-    assert main(["voxels", str(y_up), "--out", str(tmp_path / "given"), "--bounds", *map(str, [*lo, *hi]), *args]) == 0
+    assert main(["voxels", str(turned), "--out", str(tmp_path / "given"), "--bounds", *map(str, [*lo, *hi]), *args]) == 0
     given = load_voxels(tmp_path / "given" / "voxels" / "000001.npz")
     assert given.occupied.sum() == y.occupied.sum()
 

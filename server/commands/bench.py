@@ -50,10 +50,10 @@ def register(sub) -> None:
     acc.add_argument("--turn-hypotheses", type=count(0), default=None, metavar="N",
                      help="as mocap fit --turn-hypotheses (default: its default)")
     acc.add_argument("--turn-step", type=real(0.0, math.pi, exclusive_minimum=True), default=None, metavar="RAD",
-                     help="as mocap fit --turn-step (default: its default)")
-    acc.add_argument("--no-redetect", action="store_true", help="as mocap fit --no-redetect")
+                     help="as Config.toml's [fit] turn_step (default: its default)")
+    acc.add_argument("--no-redetect", action="store_true", help="as Config.toml's [fit] redetect = false")
     acc.add_argument("--spine-twist-prior", type=non_negative, default=None, metavar="PX_PER_RAD2",
-                     help="as mocap fit --spine-twist-prior (default: its default)")
+                     help="as Config.toml's [fit] spine_twist_prior (default: its default)")
     acc.add_argument("--refine-passes", type=count(0), default=None, metavar="N",
                      help="as mocap fit --refine-passes (default: its default)")
     acc.add_argument("--refine-search", action="store_true", help="as mocap fit --refine-search")

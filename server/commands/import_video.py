@@ -17,8 +17,8 @@ have and others lack is an error naming the file, or with ``--missing-frames ski
 out of every camera with a warning. A video's frames lost to a damaged stretch (or a gap in its
 timestamps) are missing frame numbers like a folder's missing images (how a video is read and
 its lost frames found: ``server.frame_sources``). Recordings that differ in length by at most ``MAX_TRIM_FRAMES`` frames and
-``MAX_TRIM_FRACTION`` of the longest are cut to their common range with one warning; larger
-differences are an error. One file given for two cameras is refused. Every source is opened,
+``MAX_TRIM_FRACTION`` of the longest (or by ``FEW_FRAMES`` whatever the length) are cut to their
+common range with one warning; larger differences are an error. One file given for two cameras is refused. Every source is opened,
 sized and counted before the output folder is made.
 """
 from __future__ import annotations
@@ -56,7 +56,8 @@ def register(subparsers) -> None:
                     "sequence.json, images/<camera>/ and background/<camera>/. Each PATH is a video "
                     "file, a folder of images or one image; cameras are matched to calibration names. "
                     f"Recordings that differ in length by up to {MAX_TRIM_FRAMES} frames and "
-                    f"{MAX_TRIM_FRACTION:.0%} are cut to the common range; cameras are matched by frame "
+                    f"{MAX_TRIM_FRACTION:.0%} (or {FEW_FRAMES} frames) are cut to the common range; cameras are "
+                    "matched by frame "
                     "number (an image's file name, a video frame's position).")
     parser.add_argument("--calibration", required=True, metavar="FILE", help="studio calibration")
     parser.add_argument("--video", required=True, nargs="+", action="extend", metavar="CAMERA=PATH",

@@ -63,8 +63,8 @@ def run(args) -> int:
             print(f"  {counted(done['frames'], 'frame')}, actor size {done.get('actor_scale', 1.0):.2f} x the body model, "
                   f"XOR {done['mean_xor_share']:.0%} of the silhouettes"
                   + (f" once the {done['cleared_share']:.0%} no fitted pose explains was cleared"
-                     + (f" ({done['segmented_xor_share']:.0%} of the masks as segmented)"
-                        if "segmented_xor_share" in done else "")
+                     + (f" ({done['xor_share_before_clearing']:.0%} of the masks before it)"
+                        if "xor_share_before_clearing" in done else "")
                      if "cleared_share" in done else "") + ", "
                   f"{counted(done.get('frames_flagged', 0), 'frame')} flagged"
                   + (" (report.html)" if reported else f" (mocap report {shell_word(done['result'])})"))
