@@ -311,8 +311,12 @@ def test_import_image_folders_then_segment(tmp_path, small_scene):
 
 def test_import_errors(tmp_path, small_scene, capsys):
     args = _import_inputs(tmp_path, small_scene)
-    # Frame counts differ.
+    # Frame counts differ: by one frame, trimmed; by more than FEW_FRAMES and 5%, refused
     (tmp_path / "in" / "cam2" / "img11.png").unlink()
+    assert main(args + ["--out", str(tmp_path / "trimmed")]) == 0
+    assert "the rest is left out" in capsys.readouterr().err
+    for n in range(7, 11):
+        (tmp_path / "in" / "cam2" / f"img{n}.png").unlink()
     assert main(args + ["--out", str(tmp_path / "a")]) == 2
     assert "frame counts differ" in capsys.readouterr().err
     # Size mismatch.
