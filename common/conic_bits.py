@@ -181,15 +181,13 @@ def _bits_at(row: np.ndarray, column: int) -> np.uint64:
 
 @njit(cache=True, nogil=True)
 def window_value_bits(packed: np.ndarray, x0: np.ndarray, y0: np.ndarray, rows: int, width: int,
-                      C: np.ndarray, drawable: np.ndarray, sizes: np.ndarray) -> tuple:
+                      C: np.ndarray, drawable: np.ndarray) -> tuple:
     """The value bit masks of windows of ``rows`` x ``width`` pixels with corners (x0, y0) (K,)
     int, cut from ``packed`` (K, H, words) masks (``pack_rows``; rows and columns outside an
     image are clear), with the still parts drawn as the conics C (1, K, S, 3, 3), drawable
     (1, K, S) (S may be 0): gain (+1: neither still part nor silhouette) and loss (-1:
     silhouette, no still part), (K, rows, ceil(width / 64)) uint64, and |still xor silhouette|,
-    as ``xor_bits`` of the byte windows. A window's pixels beyond its camera's image (``sizes``
-    (K, 2) int, width and height) are worth nothing, whatever covers them: the camera does not
-    see there, so a body reaching past its image edge is not pushed back in."""
+    as ``xor_bits`` of the byte windows."""
     K, H = packed.shape[0], packed.shape[1]
     S = C.shape[2]
     words = (width + 63) // 64
@@ -212,28 +210,18 @@ def window_value_bits(packed: np.ndarray, x0: np.ndarray, y0: np.ndarray, rows: 
                     _or_span(still, r, start, end)
         for r in range(rows):
             y = y0[k] + r
-            if not 0 <= y < min(H, sizes[k, 1]):
-                still[r, :] = np.uint64(0)
-                continue
+            inside_rows = 0 <= y < H
             for j in range(words):
-                seen = _column_bits(x0[k] + 64 * j, sizes[k, 0]) & (last_word if j == words - 1 else _ALL_BITS)
-                silhouette = _bits_at(packed[k, y], x0[k] + 64 * j) & seen
-                s_bits = still[r, j] & seen
-                gain[k, r, j] = ~s_bits & ~silhouette & seen
+                mask = last_word if j == words - 1 else _ALL_BITS
+                silhouette = np.uint64(0)
+                if inside_rows:
+                    silhouette = _bits_at(packed[k, y], x0[k] + 64 * j) & mask
+                s_bits = still[r, j]
+                gain[k, r, j] = ~s_bits & ~silhouette & mask
                 loss[k, r, j] = ~s_bits & silhouette
                 base += _popcount(s_bits ^ silhouette)
                 still[r, j] = np.uint64(0)
     return gain, loss, base
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _column_bits(x: int, image_width: int) -> np.uint64:
-    """The bits of the 64 columns x..x+63 that lie in an image ``image_width`` pixels wide."""
-    lo, hi = max(0, -x), min(64, image_width - x)
-    if hi <= lo:
-        return np.uint64(0)
-    span = _ALL_BITS if hi - lo == 64 else (np.uint64(1) << np.uint64(hi - lo)) - np.uint64(1)
-    return span << np.uint64(lo)
 
 
 @njit(cache=True, nogil=True)

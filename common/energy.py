@@ -1,5 +1,4 @@
-"""The XOR energy E(pose) = sum over cameras of |rendered XOR input| inside each camera's window
-and its image (a camera does not see past its image's edges: a body reaching there costs nothing).
+"""The XOR energy E(pose) = sum over cameras of |rendered XOR input| inside each camera's window.
 
 One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``):
 
@@ -23,7 +22,6 @@ One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``)
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -230,8 +228,8 @@ class EnergySetup:
     studio: cameras (already scaled for half-resolution work); windows: one per camera;
     inputs: (K, h, w) bool input silhouette windows, h and w the largest window height and
     width, window k's pixels at [:height, :width] (windows of one size fill it; whole images of
-    cameras of different sizes are padded, as ``packing.pad_stack``): pixels beyond a window,
-    or beyond its camera's image, count for nothing, whatever covers them; or None where ``packed`` is
+    cameras of different sizes are padded, as ``packing.pad_stack``): pixels beyond a window
+    are outside it and count for nothing, whatever covers them; or None where ``packed`` is
     given; moving: segments that move; static_params: (35,) pose whose other segments are
     pre-rendered; packed: (K, H, words) uint64 the whole images' silhouettes as row bits
     (``conic_bits.pack_rows``, each camera's pixels beyond its own image clear), which windows
@@ -275,31 +273,21 @@ def window_origins(windows) -> tuple:
 
 
 def window_pixels(setup: EnergySetup) -> np.ndarray | None:
-    """``seen_pixels`` of the setup's windows, (K, h, w) as ``setup.input_windows``: what an
-    energy counts and a render shows. ValueError when the windows do not fit the inputs."""
-    if setup.inputs is None:  # cut from packed rows: windows of one size (checked by EnergySetup)
-        return seen_pixels(setup.studio, setup.windows, (setup.windows[0].height, setup.windows[0].width))
+    """(K, h, w) bool: the pixels of ``setup.input_windows`` inside each camera's window; None
+    when every window fills them (windows of one size: nothing to leave out, nothing to pay).
+    ValueError when the windows do not fit the inputs."""
+    if setup.inputs is None:
+        return None  # cut from packed rows: windows of one size (checked by EnergySetup)
     K, h, w = setup.input_windows.shape
     if len(setup.studio) != K or len(setup.windows) != K:
         raise ValueError(f"{len(setup.studio)} cameras need as many windows and input windows, got "
                          f"{len(setup.windows)} and {K}")
-    largest = padded_shape([(win.width, win.height) for win in setup.windows])
+    sizes = [(win.width, win.height) for win in setup.windows]
+    largest = padded_shape(sizes)
     if largest != (h, w):
         raise ValueError(f"input windows are {w}x{h}, the windows' largest width and height "
                          f"{largest[1]}x{largest[0]}")
-    return seen_pixels(setup.studio, setup.windows, (h, w))
-
-
-def seen_pixels(studio: Studio, windows, shape: tuple) -> np.ndarray | None:
-    """(K, h, w) bool, ``shape`` (h, w): the pixels inside each camera's window and inside its
-    image (a camera does not see past its image's edges: a body reaching there must not be
-    pushed back in); None when every window fills ``shape`` and lies inside its image."""
-    sizes = [(win.width, win.height) for win in windows]
-    inside = inside_images(sizes, shape)
-    for k, (cam, win) in enumerate(zip(studio, windows)):
-        inside[k, :max(0, -win.y0)] = inside[k, max(0, cam.height - win.y0):] = False
-        inside[k, :, :max(0, -win.x0)] = inside[k, :, max(0, cam.width - win.x0):] = False
-    return None if inside.all() else inside
+    return None if len(set(sizes)) == 1 else inside_images(sizes, (h, w))
 
 
 def surface_distances(points: np.ndarray, centres: np.ndarray, axes: np.ndarray, radii: np.ndarray) -> np.ndarray:
@@ -378,6 +366,7 @@ class CpuEnergy:
         self.setup = setup
         self.evaluations = 0
         studio, windows = setup.studio, setup.windows
+        self.inside = window_pixels(setup)
         if setup.inputs is None:
             self.rows, self.width = windows[0].height, windows[0].width
         else:
@@ -388,18 +377,17 @@ class CpuEnergy:
         self.moving = tuple(setup.moving) if setup.prerender else tuple(range(16))
         self._static = tuple(s for s in range(16) if s not in self.moving)
         self._static_mask = None
-        if setup.packed is not None:  # straight from the row bits (windows of one size)
+        if setup.packed is not None and self.inside is None:  # straight from the row bits
             if self._static:
                 C, drawable = self._conics(np.atleast_2d(setup.static_params)[:1], self._static)
             else:
                 C, drawable = np.zeros((1, len(studio), 0, 3, 3)), np.zeros((1, len(studio), 0), np.bool_)
-            self.gain, self.loss, base = window_value_bits(setup.packed, x0, y0, self.rows, self.width, C, drawable,
-                                                           np.array(studio.sizes, dtype=np.int64).reshape(-1, 2))
+            self.gain, self.loss, base = window_value_bits(setup.packed, x0, y0, self.rows, self.width, C, drawable)
         else:
             self._static_mask = M = self._render_static()
             inputs = np.ascontiguousarray(setup.input_windows, dtype=np.bool_)
-            if self.seen is not None:  # beyond a window or its image static and input both set: v = 0, no base
-                M, inputs = M | ~self.seen, inputs | ~self.seen
+            if self.inside is not None:  # beyond a window static and input both set: v = 0, no base
+                M, inputs = M | ~self.inside, inputs | ~self.inside
             self.gain, self.loss, base = xor_bits(M, inputs)
         self.base = int(base)
         seg = np.asarray(self.moving, dtype=np.int64)
@@ -408,12 +396,6 @@ class CpuEnergy:
                                np.ascontiguousarray(model.ellipsoid_centres[seg]),
                                model.ellipsoid_axes[seg] * model.ellipsoid_radii[seg][:, None, :],
                                self.P, self.y0, self.x0, self.rows, self.width, self.gain, self.loss)
-
-    @cached_property
-    def seen(self) -> np.ndarray | None:
-        """``window_pixels``: what the energy counts and a render shows (for windows cut from
-        packed rows only drawn on a render: a fit builds thousands of energies a frame)."""
-        return window_pixels(self.setup)
 
     @property
     def static_mask(self) -> np.ndarray:
@@ -436,7 +418,7 @@ class CpuEnergy:
     def _render(self, params: np.ndarray, segments) -> np.ndarray:
         C, drawable = self._conics(np.atleast_2d(params)[:1], segments)
         covered = conic_coverage(C, drawable, self.y0, self.x0, self.rows, self.width)[0]
-        return covered if self.seen is None else covered & self.seen
+        return covered if self.inside is None else covered & self.inside
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
         """(B, 35) or (35,) -> (B,) int64 energies (pixels)."""

@@ -87,8 +87,8 @@ def test_compiled_span_sums_equal_per_pixel_sums_of_the_rendered_union(model, fr
             # a pixel centre within rounding of a conic's edge may fall either way
             assert np.count_nonzero(brute != covered[b, k]) <= 2, (b, k)
     assert covered.any()
-    # the value covering a pixel adds: 0 where static (or outside the window or its image), else 1 - 2 * input
-    static = energy.static_mask if energy.seen is None else energy.static_mask | ~energy.seen
+    # the value covering a pixel adds: 0 where static (or outside the window), else 1 - 2 * input
+    static = energy.static_mask if energy.inside is None else energy.static_mask | ~energy.inside
     values = np.where(static, 0, 1 - 2 * data.full_setup(x).inputs.astype(np.int64))
     unpack = lambda words: np.unpackbits(words.view(np.uint8), axis=-1, bitorder="little")[..., :width].astype(bool)
     np.testing.assert_array_equal(unpack(energy.gain), values == 1)
@@ -166,29 +166,6 @@ def test_energy_refuses_a_pose_of_the_wrong_length(model, frame):
     energy = CpuEnergy(model, data.full_setup(truth, half=True))
     with pytest.raises(ValueError, match="expected 35 parameters, got 34"):
         energy(truth[None, :34])
-
-
-def test_a_window_counts_the_whole_image_xor_inside_it_and_nothing_past_the_image(model, frame, rng):
-    """A limb's window reaching past a camera's image counts the pixels of the whole image's XOR
-    inside it, and nothing beyond the image: a body partly outside a camera's view is not
-    pushed back into it (counted there, a person walking out of one view was lost: every
-    limb fitted away from the edge)."""
-    data, truth = frame
-    whole = data.whole_image_energy()
-    leg = CHAINS["right_leg"].segments
-    crossed = 0
-    for x in perturbed(truth, rng, 6, spread=0.2):
-        x[0] += 1.1  # near the studio's edge: the legs past the bottom or side of some images
-        for setup in (replace(data.window_setup(x, leg[:2], ARM_WINDOW, True), moving=leg),
-                      data.window_setup(x, leg[2:], SMALL_WINDOW, False)):
-            xor = whole.render(x) ^ data.masks
-            expected = 0
-            for k, (cam, win) in enumerate(zip(setup.studio, setup.windows)):
-                crossed += not (0 <= win.x0 and win.x0 + win.width <= cam.width
-                                and 0 <= win.y0 and win.y0 + win.height <= cam.height)
-                expected += int(xor[k, max(win.y0, 0):win.y0 + win.height, max(win.x0, 0):win.x0 + win.width].sum())
-            assert int(CpuEnergy(model, setup)(x)[0]) == expected
-    assert crossed  # some windows did reach past their images
 
 
 def test_prerendered_equals_full_render_in_the_same_window(model, frame, rng):
@@ -527,12 +504,10 @@ def _ellipse(cx: float, cy: float, a: float, b: float, angle: float) -> np.ndarr
 @pytest.mark.parametrize("seed", range(40))
 def test_value_bits_from_row_bits_equal_those_of_byte_windows(seed):
     """window_value_bits against its definition, xor_bits of the still parts' coverage and the
-    sliced windows, the pixels beyond each camera's image worth nothing: random masks of cameras
-    of random sizes, 0-3 still ellipses (some not drawable, some covering many
+    sliced windows: random masks, 0-3 still ellipses (some not drawable, some covering many
     words), corners off every edge, windows wider and taller than the image, widths that are not
     a multiple of 64; and cut_windows against the sliced windows."""
     from common.conic_bits import conic_coverage, cut_windows, pack_rows, window_value_bits, xor_bits
-    from common.packing import inside_images
 
     rng = np.random.default_rng(seed)
     K, H, W = int(rng.integers(1, 4)), int(rng.integers(1, 200)), int(rng.integers(1, 260))
@@ -546,15 +521,10 @@ def test_value_bits_from_row_bits_equal_those_of_byte_windows(seed):
             C[0, k, s] = rng.uniform(0.1, 10) * _ellipse(
                 x0[k] + rng.uniform(-50, width + 50), y0[k] + rng.uniform(-50, rows + 50),
                 rng.uniform(0.3, 120), rng.uniform(0.3, 120), rng.uniform(0, np.pi))
-    sizes = np.stack([rng.integers(1, W + 1, K), rng.integers(1, H + 1, K)], axis=1)  # cameras of other sizes
-    sizes[0] = W, H
-    masks &= inside_images(sizes, (H, W))  # a padded stack: each camera's pixels beyond its image clear
     packed = pack_rows(masks)
-    gain, loss, base = window_value_bits(packed, x0, y0, rows, width, C, drawable, sizes)
+    gain, loss, base = window_value_bits(packed, x0, y0, rows, width, C, drawable)
     still = conic_coverage(C, drawable, y0.astype(float), x0.astype(float), rows, width)[0]
-    # beyond its camera's image a window's pixel is worth nothing: still and silhouette both set
-    beyond = ~_cut(inside_images(sizes, (H, W)), x0, y0, rows, width)
-    expected = xor_bits(still | beyond, _cut(masks, x0, y0, rows, width) | beyond)
+    expected = xor_bits(still, _cut(masks, x0, y0, rows, width))
     np.testing.assert_array_equal(gain, expected[0])
     np.testing.assert_array_equal(loss, expected[1])
     assert base == expected[2]

@@ -90,10 +90,9 @@ def candidates(model, studio, pose) -> np.ndarray:
                      + [shifted(pose, dx, 0.0) for dx in (-1.4, 1.3)])
     cam = studio[0]
     big = Window(0, 0, PADDED[1], PADDED[0])  # camera 1 with an image as large as the stack
-    large = Studio((replace(cam, width=PADDED[1], height=PADDED[0]),))
     seen_in_padding = 0
     for p in cands:
-        setup = EnergySetup(large, (big,), np.zeros((1,) + PADDED, bool), tuple(range(16)), p, False)
+        setup = EnergySetup(single(studio, 0), (big,), np.zeros((1,) + PADDED, bool), tuple(range(16)), p, False)
         r = CpuEnergy(model, setup).render(p)[0]
         seen_in_padding += r[cam.height:].any() or r[:, cam.width:].any()
     assert seen_in_padding >= 2  # the test does exercise the padding
@@ -201,26 +200,14 @@ def test_whole_image_energy_is_the_sum_of_the_cameras_alone(model, studio, masks
     ("left_arm", ARM_WINDOW, True), ("right_leg", ARM_WINDOW, False), ("head", SMALL_WINDOW, True)])
 def test_window_energies_are_the_sum_of_the_cameras_alone(model, studio, masks, candidates, chain, size,
                                                           prerender):
-    from common.conic_bits import cut_windows
-    from common.energy import window_origins
-
     frame = FrameData(model, studio, with_garbage_padding(masks, SIZES))
     segments = CHAINS[chain].segments
-    crossed = 0
-    for start in candidates[[1, 3, 4, 5, 6]]:
-        setup = frame.window_setup(start, segments, size, prerender)
-        mixed = CpuEnergy(model, setup)
+    for start in candidates[[1, 3, 5]]:
+        mixed = CpuEnergy(model, frame.window_setup(start, segments, size, prerender))
         parts = [CpuEnergy(model, FrameData(model, single(studio, k), masks[k:k + 1, :h, :w])
                            .window_setup(start, segments, size, prerender)) for k, (w, h) in enumerate(SIZES)]
         batch = candidates + np.linspace(-0.05, 0.05, len(candidates))[:, None] * (np.arange(35) >= 3)
         np.testing.assert_array_equal(mixed(batch), sum(e(batch) for e in parts))
-        # the same windows as bytes (the gl backend's input): past the smaller images' edges too
-        win = setup.windows[0]
-        cut = cut_windows(setup.packed, *window_origins(setup.windows), win.height, win.width)
-        plain = CpuEnergy(model, replace(setup, inputs=cut, packed=None))
-        crossed += plain.seen is not None
-        np.testing.assert_array_equal(plain(batch), mixed(batch))
-    assert crossed  # some windows reached past their images
 
 
 def test_energy_refuses_input_windows_that_do_not_fit(model, studio, pose):
