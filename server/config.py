@@ -170,6 +170,7 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("report", "gif", True, bool, "also the animated sequence.gif (the slowest picture)"),
 )
 _BY_KEY = {(s.section, s.key): s for s in SETTINGS}
+SECTIONS = tuple(dict.fromkeys(s.section for s in SETTINGS))
 # the [fit] keys with no mocap fit option of their own (--set fit.KEY=VALUE sets them)
 SEARCH_KNOBS = ("grid_steps", "grid_range", "turn_step", "spine_twist_prior", "redetect", "prerender")
 # keys a take's fit record holds only where set away from their default: added after takes were
@@ -179,7 +180,6 @@ RECORDED_WHEN_SET = SEARCH_KNOBS + ("mask_threshold",)
 
 def setting_default(section: str, key: str):
     return _BY_KEY[(section, key)].default
-SECTIONS = tuple(dict.fromkeys(s.section for s in SETTINGS))
 
 
 def read_config_file(path: Path) -> dict[tuple[str, str], Any]:
