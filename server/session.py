@@ -789,10 +789,11 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     rewrite_complete(poses_path, records)
     if left_out:  # the fit against the masks before the clearing too: clearing must not hide a wrong pose
         # (one more pass over every frame's masks, only where something was cleared)
+        before = [{"frame": r["frame"], "fit_quality": frame_quality(frame_data(model, uncleared, r["frame"]),
+                                                                    r["params"])} for r in records]
+        shares = quality_summary(before, seq.studio.names)
         left_out = left_out | {"fit_quality_before_clearing": {
-            k: v for k, v in quality_summary([{"frame": r["frame"], "fit_quality": frame_quality(
-                frame_data(model, uncleared, r["frame"]), r["params"])} for r in records], seq.studio.names).items()
-            if k in ("mean_xor_share", "max_xor_share", "per_camera_mean_xor_share")}}
+            k: shares[k] for k in ("mean_xor_share", "max_xor_share", "per_camera_mean_xor_share")}}
     wall = time.perf_counter() - wall0 + (actor_size.seconds if actor_size else 0.0)
     summary = {
         "sequence": str(seq.path.resolve()), **sequence_calibration(seq),

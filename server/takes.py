@@ -162,13 +162,12 @@ def find_calibration(take: Path, config: Config, cameras: list[str] | None = Non
         return Path(given)
     project = project_of(take)
     for folder in [take] + ([project] if project else []):  # a take's own calibration before the project's
-        found = [(folder / name, name) for name in CALIBRATION_NAMES if (folder / name).exists()]
-        if all((folder / name).is_file() for name in EASYMOCAP_FILES):
-            found.append((folder, " + ".join(EASYMOCAP_FILES)))
         if folder == take and cameras is not None:
-            found = [f for f in found if f[0].is_dir()]  # the files by name are among the take's own
-            found += [(path, what) for kind, path, what in folder_calibrations(take) if kind not in ("camera", "easymocap")]
-            found += [(take, camera_files_named(take, files)) for files in take_camera_files(take, cameras) if files]
+            found = _per_camera_calibrations(take, cameras)
+        else:
+            found = [(folder / name, name) for name in CALIBRATION_NAMES if (folder / name).exists()]
+            if all((folder / name).is_file() for name in EASYMOCAP_FILES):
+                found.append((folder, " + ".join(EASYMOCAP_FILES)))
         if len(found) > 1:  # two in one folder: which was meant (or last edited) is not ours to guess
             raise UserError(f"{folder}: holds {len(found)} calibrations: {', '.join(name for _, name in found)}; "
                             "keep one, or set [calibration] file")
@@ -177,6 +176,16 @@ def find_calibration(take: Path, config: Config, cameras: list[str] | None = Non
     per_camera = ", calibration or camera files at its top or in its cameras' folders" if cameras is not None else ""
     raise UserError(f"{take}: no calibration (looked for {', '.join(CALIBRATION_NAMES)} and intri.yml + extri.yml "
                     f"in the take and the project{per_camera}; or set [calibration] file)")
+
+
+def _per_camera_calibrations(take: Path, cameras: list[str]) -> list[tuple[Path, str]]:
+    """(what to read, its name) of each calibration in a take laid out a folder per camera, as
+    ``mocap calib convert TAKE`` finds them: the single-file ones and EasyMocap's at its top
+    (``folder_calibrations``), a calibration/ folder, and its camera files at its top or in its
+    cameras' folders (``take_camera_files``)."""
+    found = [(path, what) for kind, path, what in folder_calibrations(take) if kind != "camera"]
+    found += [(take / name, name) for name in CALIBRATION_NAMES if (take / name).is_dir()]
+    return found + [(take, camera_files_named(take, files)) for files in take_camera_files(take, cameras) if files]
 
 
 def take_camera_files(take: Path, cameras: list[str]) -> tuple[list[Path], list[Path]]:

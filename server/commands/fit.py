@@ -14,7 +14,7 @@ from common.sequence import MAX_MASK_THRESHOLD, load_sequence
 from common.world import UP_CHOICES
 from common.argtypes import count
 from server.local_cluster import LocalCluster, add_cluster_arguments, terminate_on_sigterm
-from server.config import MAX_ACTOR_HEIGHT, MIN_ACTOR_HEIGHT, PRESETS
+from server.config import MAX_ACTOR_HEIGHT, MIN_ACTOR_HEIGHT, PRESETS, SEARCH_KNOBS, setting_default
 from server.progress import Progress
 from server.output import (add_calibration_argument, add_overwrite_argument, add_units_argument, check_folder_target,
                            counted, next_steps, replace_file, shell_word)
@@ -40,10 +40,8 @@ def add_fit_arguments(p) -> None:
                         "fit.redetect=false; mocap config keys lists them): the search's own knobs have no option "
                         "of their own")
     p.set_defaults(command_parser=p)  # server.cli re-parses with the preset's and file's values as defaults
-    # the search's knobs that only a Config.toml or --set changes (server.config's [fit] keys)
-    p.set_defaults(grid_steps=FitOptions.grid_steps, grid_range=FitOptions.grid_range_rad,
-                   turn_step=FitOptions.turn_step_rad, spine_twist_prior=FitOptions.spine_twist_prior,
-                   redetect=FitOptions.redetect_limbs, prerender=FitOptions.prerender)
+    # the search's knobs, which only a Config.toml or --set changes, at their settings' defaults
+    p.set_defaults(**{key: setting_default("fit", key) for key in SEARCH_KNOBS})
     p.add_argument("--out", type=Path, required=True, help="result folder")
     p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
     p.add_argument("--frames", type=count(1), default=None, help="fit only the first N frames")
