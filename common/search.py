@@ -1,7 +1,8 @@
 """One search: propose start poses, fit each the same way, keep the lowest.
 
 Every fit of a frame is a *schedule* of a few *stages*, declared as data (``TRACKING``,
-``LIMBS_LOST``, ``SEARCH``, ``REFINE``, ...). A stage asks its proposers (``PROPOSERS``) for
+``LIMBS_LOST``, ``SEARCH``, ``REFINE``, ...: the defaults of ``Schedules``, which a Config.toml's
+``[fit.schedules]`` replaces schedule by schedule, ``common.schedule_tables``). A stage asks its proposers (``PROPOSERS``) for
 start poses from the best fit so far (or from its ``beam`` lowest fits), fits every start by the
 same hierarchical fit (``common.fitting.fit_rounds``) under the stage's fit options
 (``VARIANTS``), and keeps the lowest score. It repeats while a round lowers the best score by its
@@ -232,9 +233,31 @@ REFINE_SEARCH = Schedule((*REFINE.stages[:-2], Stage(("basins", "twists"), ("dee
 # 3% lower, 33 mm off. With other noise (`--seed 1`) the same frame kept a hop's fit with the
 # right forearm folded up the wrong way (464 mm off): the tracked fit's twists, tried before
 # the hops, had its torso off too; the hops' best, twisted, comes to 5% less energy, 30 mm off
-AFTER_HOPS = (Stage(("pelvis_twists", "turns")), Stage(("twists",), ("deep",)))
+AFTER_HOPS = Schedule((Stage(("pelvis_twists", "turns")), Stage(("twists",), ("deep",))))
+# hops that end a search: 06_02 from source frame 262 (five of eight views) 54 -> 27 mm. Logged
+# hop by hop on the 34 first frames of `mocap bench init --first-frame-only`, the mean error
+# after 0, 10, 20 and 30 hops was 14.6, 13.7, 13.1 and 12.7 mm, at about 0.1 s a hop; with 20,
+# the cartwheel's (05_06) recoveries went wrong: 13.8 / 103 mm, 18 frames over 40 -> 14.0 / 150, 27
+SEARCH_HOPS = 30
 
 
+@dataclass(frozen=True)
+class Schedules:
+    """The schedules a run fits its frames by (a Config.toml's ``[fit.schedules]``, whose keys
+    are these fields' names): ``after_hops`` is added to a refinement's stages where it hops,
+    ``search_hops`` are the hops of the search's ``hops`` proposer."""
+
+    tracking: Schedule = TRACKING
+    limbs_lost: Schedule = LIMBS_LOST
+    wide: Schedule = WIDE
+    search: Schedule = SEARCH
+    refine: Schedule = REFINE
+    refine_search: Schedule = REFINE_SEARCH
+    after_hops: Schedule = AFTER_HOPS
+    search_hops: int = SEARCH_HOPS
+
+
+SCHEDULES = Schedules()
 @dataclass(frozen=True)
 class Context:
     """What a schedule's proposers and fits see of one frame.
@@ -603,39 +626,35 @@ PROPOSERS = {
 
 def fit_frame(model: BodyModel, frame: FrameData, start: np.ndarray, options: FitOptions,
               dispatch: Dispatch | None = None, before: np.ndarray | None = None,
-              frame_number: int = 0) -> FrameResult:
+              frame_number: int = 0, schedules: Schedules = SCHEDULES) -> FrameResult:
     """Track one frame from ``start`` (35,), the previous frame's fit (``before``: the one
-    before that), by the TRACKING schedule."""
+    before that), by the tracking schedule (TRACKING)."""
     dispatch = dispatch or solve_locally(model, frame, options, frame_number)
     ctx = Context(model, frame, options, dispatch, frame_number, start=np.asarray(start, dtype=np.float64),
                   before=before)
-    return run_schedule(ctx, TRACKING)
-
-
-# hops that end a search: 06_02 from source frame 262 (five of eight views) 54 -> 27 mm. Logged
-# hop by hop on the 34 first frames of `mocap bench init --first-frame-only`, the mean error
-# after 0, 10, 20 and 30 hops was 14.6, 13.7, 13.1 and 12.7 mm, at about 0.1 s a hop; with 20,
-# the cartwheel's (05_06) recoveries went wrong: 13.8 / 103 mm, 18 frames over 40 -> 14.0 / 150, 27
-SEARCH_HOPS = 30
+    return run_schedule(ctx, schedules.tracking)
 
 
 def search_frame(model: BodyModel, frame: FrameData, starts: list, options: FitOptions, dispatch: Dispatch,
-                 frame_number: int = 0, side_by_side: int = 1, schedule: Schedule = SEARCH,
-                 memo: dict | None = None) -> FrameResult:
-    """A frame without a trusted start (a first frame, a recovery), searched from ``starts``;
-    ``memo`` as ``run_schedule``'s (the actor-size search's fits of the same frame)."""
-    ctx = Context(model, frame, options, dispatch, frame_number, starts=tuple(starts), hops=SEARCH_HOPS,
+                 frame_number: int = 0, side_by_side: int = 1, memo: dict | None = None,
+                 schedules: Schedules = SCHEDULES) -> FrameResult:
+    """A frame without a trusted start (a first frame, a recovery), searched from ``starts`` by
+    the search schedule (SEARCH); ``memo`` as ``run_schedule``'s (the actor-size search's fits
+    of the same frame)."""
+    ctx = Context(model, frame, options, dispatch, frame_number, starts=tuple(starts), hops=schedules.search_hops,
                   side_by_side=side_by_side)
-    return run_schedule(ctx, schedule, memo=memo)
+    return run_schedule(ctx, schedules.search, memo=memo)
 
 
 def refine_frame(model: BodyModel, frame: FrameData, fit: FrameResult, options: FitOptions, dispatch: Dispatch,
                  neighbour: np.ndarray | None, beyond: np.ndarray | None, other: np.ndarray | None,
-                 hops: int = 0, search: bool = False, frame_number: int = 0, side_by_side: int = 1) -> FrameResult:
-    """A tracked frame (``fit``) fitted again by REFINE (REFINE_SEARCH with ``search``) from its
+                 hops: int = 0, search: bool = False, frame_number: int = 0, side_by_side: int = 1,
+                 schedules: Schedules = SCHEDULES) -> FrameResult:
+    """A tracked frame (``fit``) fitted again by the refine schedule (REFINE; refine_search,
+    REFINE_SEARCH, with ``search``) from its
     ``neighbour``'s refined fit (``beyond``: the one beyond it; ``other``: the not yet refined
     neighbour on the other side) and with ``hops`` hops, whose best is then turned and its arms
-    twisted (``AFTER_HOPS``); ``fit`` where nothing is lower.
+    twisted (after_hops, ``AFTER_HOPS``); ``fit`` where nothing is lower.
 
     Tracking leaves frames in basins that a later frame escaped (an arm whose twist showed once
     it bent; a first frame found by search). Halfway between the neighbours' fits (``midway``):
@@ -644,9 +663,9 @@ def refine_frame(model: BodyModel, frame: FrameData, fit: FrameResult, options: 
     39: 54 and 50 mm off; fitted from halfway, 16 and 23 mm)."""
     ctx = Context(model, frame, options, dispatch, frame_number, start=neighbour, before=beyond, other=other,
                   hops=hops, side_by_side=side_by_side)
-    schedule = REFINE_SEARCH if search else REFINE
+    schedule = schedules.refine_search if search else schedules.refine
     if hops:
-        schedule = Schedule((*schedule.stages, *AFTER_HOPS), schedule.budget)
+        schedule = Schedule((*schedule.stages, *schedules.after_hops.stages), schedule.budget)
     return run_schedule(ctx, schedule, initial=fit)
 
 

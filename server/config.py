@@ -22,6 +22,7 @@ from typing import Any, Callable
 from common.errors import InputFileError, UserError
 from common.export import ALL_FORMATS, FORMATS
 from common.fitting import ENERGY_BACKENDS, FitOptions
+from common.schedule_tables import SCHEDULE_NAMES, schedules_from_table, schedules_table
 from common.segmentation import METHODS
 from common.sequence import MAX_MASK_THRESHOLD
 from common.world import UP_CHOICES
@@ -41,6 +42,7 @@ class Setting:
     help: str
     check: Callable[[Any], bool] | None = None  # a further condition on the value
     wanted: str = ""  # what the check wants, for the error line
+    structured: Callable[[Any], Any] | None = None  # checks a table of tables; ValueError says what is wrong
 
     def validate(self, value, where: str):
         """The value if it has this setting's type and passes its check, else InputFileError."""
@@ -52,7 +54,12 @@ class Setting:
             ok = math.isfinite(value)
         if ok and kind is list:
             ok = all(isinstance(v, str) for v in value)
-        if ok and kind is dict:
+        if ok and self.structured is not None:
+            try:
+                self.structured(value)
+            except ValueError as exc:
+                raise InputFileError(where, f"[{self.section}.{self.key}] {exc}") from None
+        elif ok and kind is dict:
             ok = all(isinstance(v, int) and not isinstance(v, bool) for v in value.values())
         if ok and self.check is not None:
             ok = self.check(value)
@@ -160,6 +167,10 @@ SETTINGS: tuple[Setting, ...] = (
             "(lost-limb recovery)"),
     Setting("fit", "prerender", FitOptions.prerender, bool, "render the still parts once per limb solve (false: "
             "every part in every evaluation, the same energies, slower)"),
+    Setting("fit", "schedules", {}, dict, "the search's schedules where not the defaults: [fit.schedules.NAME] "
+            "stages = [{proposers = [...], variants = [...], ...}, ...], budget = evaluations; NAME one of "
+            + ", ".join(SCHEDULE_NAMES) + "; search_hops = N (docs/fitting.md, \"Schedules\")",
+            structured=schedules_from_table),
     Setting("fit", "threads", 0, int, "single process: starts and limbs fitted at once (0: every core); "
             "the poses are the same for any number", _at_least(0), "an integer >= 0"),
     Setting("export", "formats", ["bvh", "trc", "csv"], list, "formats written into the result folder "
@@ -172,7 +183,7 @@ SETTINGS: tuple[Setting, ...] = (
 _BY_KEY = {(s.section, s.key): s for s in SETTINGS}
 SECTIONS = tuple(dict.fromkeys(s.section for s in SETTINGS))
 # the [fit] keys with no mocap fit option of their own (--set fit.KEY=VALUE sets them)
-SEARCH_KNOBS = ("grid_steps", "grid_range", "turn_step", "spine_twist_prior", "redetect", "prerender")
+SEARCH_KNOBS = ("grid_steps", "grid_range", "turn_step", "spine_twist_prior", "redetect", "prerender", "schedules")
 # keys a take's fit record holds only where set away from their default: added after takes were
 # fitted without them, they must not refit those takes
 RECORDED_WHEN_SET = SEARCH_KNOBS + ("mask_threshold",)
@@ -214,7 +225,8 @@ def read_config_file(path: Path) -> dict[tuple[str, str], Any]:
 
 @dataclass(frozen=True)
 class Config:
-    """The settings in force for one take, and the file each came from."""
+    """The settings in force for one take, and the file each came from (``sources``, by
+    (section, key), and by ("fit.schedules", name) for each schedule a file names)."""
 
     values: dict
     sources: dict
@@ -229,11 +241,17 @@ class Config:
         return {k: v for (s, k), v in self.values.items() if s == name}
 
     def lines(self) -> list[str]:
-        """``[section] key = value   # source`` for every setting (``mocap config show``)."""
+        """``[section] key = value   # source`` for every setting (``mocap config show``); the
+        schedules one a line, ``[fit.schedules] NAME = {...}``, each as in force."""
         out = []
         for s in SETTINGS:
-            value = self.get(s.section, s.key)
-            out.append(f"[{s.section}] {s.key} = {toml_value(value)}   # {self.source(s.section, s.key)}")
+            value, source = self.get(s.section, s.key), self.source(s.section, s.key)
+            if (s.section, s.key) == ("fit", "schedules"):
+                for name, table in schedules_table(schedules_from_table(value)).items():
+                    where = self.sources.get(("fit.schedules", name), DEFAULT)
+                    out.append(f"[fit.schedules] {name} = {toml_value(table)}   # {where}")
+            else:
+                out.append(f"[{s.section}] {s.key} = {toml_value(value)}   # {source}")
         return out
 
 
@@ -265,6 +283,9 @@ def load_config(files: list[Path]) -> Config:
     for path in files:
         if path.is_file():
             for key, value in read_config_file(path).items():
+                if key == ("fit", "schedules"):  # a take's file replaces the schedules it names
+                    sources.update({("fit.schedules", name): str(path) for name in value})
+                    value = values[key] | value
                 values[key], sources[key] = value, str(path)
     preset = values[("fit", "preset")]
     for key, value in PRESETS[preset].items():  # under the keys a file sets, over the defaults
@@ -296,6 +317,7 @@ FIT_OPTION_DESTS = {
     ("fit", "grid_steps"): ("grid_steps", None), ("fit", "grid_range"): ("grid_range", None),
     ("fit", "turn_step"): ("turn_step", None), ("fit", "spine_twist_prior"): ("spine_twist_prior", None),
     ("fit", "redetect"): ("redetect", None), ("fit", "prerender"): ("prerender", None),
+    ("fit", "schedules"): ("schedules", None),
     ("calibration", "units"): ("units", lambda v: v or None), ("calibration", "up"): ("up", None),
     ("calibration", "file"): ("calibration", lambda v: Path(v) if v else None),
 }

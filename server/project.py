@@ -36,7 +36,7 @@ from pathlib import Path
 from common.calibration import calibration_files, camera_files_in, camera_files_named
 from common.errors import WARNING_PREFIX, UserError
 from common.export import export_name, named_formats
-from server.config import OPTION_KEYS, RECORDED_WHEN_SET, SEARCH_KNOBS, Config, setting_default
+from server.config import OPTION_KEYS, RECORDED_WHEN_SET, SEARCH_KNOBS, Config, setting_default, toml_value
 from server.output import counted, write_text
 from server.results import DERIVED_FILES, FOREGROUND_FILE, MOTION_FILE, RUN_FILE
 from server.takes import (SOURCE_FOLDERS, TAKE_LAYOUTS, camera_folder_sources, find_calibration, holds_calibration,
@@ -201,8 +201,8 @@ def plan_take(take: Path, config: Config | None = None) -> TakePlan:
     command += ["--refine-search"] if fit["refine_search"] else []
     command += ["--track-moved-on"] if fit["track_moved_on"] else []
     command += ["--mask-threshold", str(fit["mask_threshold"])] if fit["mask_threshold"] >= 0 else []
-    for key in SEARCH_KNOBS:  # no option of their own: as a Config.toml's keys (JSON's literals are TOML's)
-        command += ["--set", f"fit.{key}={json.dumps(fit[key])}"] if fit[key] != setting_default("fit", key) else []
+    for key in SEARCH_KNOBS:  # no option of their own: as a Config.toml's keys
+        command += ["--set", f"fit.{key}={toml_value(fit[key])}"] if fit[key] != setting_default("fit", key) else []
     command += ["--calibration", str(calibration_file)] if calibration_file else []
     if calibration_file:
         calibration_read = calibration_files(calibration_file)

@@ -46,9 +46,10 @@ from common.proposals import voxel_starts
 from common.retarget import nearest_turn
 from common.scoring import accuracy, frame_quality, quality_summary, size_score
 from common.settle import candidate_frames, mask_step, settle_choice
-from common.search import (FIT_JOBS, LIMBS_LOST, WIDE, VARIANTS, Context, descend_outward, fit_frame,
-                           is_chain_solve, lowest, refine_frame, run_schedule, search_frame, solve_locally,
-                           poor_windows, standing_out, tracking_lost, LIMB_LOSS_ENERGY_RATIO)
+from common.search import (FIT_JOBS, SCHEDULES, VARIANTS, Context, Schedules, descend_outward, fit_frame,
+                           is_chain_solve, lowest, refine_frame, run_schedule, search_frame,
+                           solve_locally, poor_windows, standing_out, tracking_lost, LIMB_LOSS_ENERGY_RATIO)
+from common.schedule_tables import schedules_table
 from common.sequence import Sequence
 from server.output import counted, write_text
 from server.threads import backend_threads
@@ -248,9 +249,10 @@ class ActorSize:
     seconds: float
 
 
-def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, threads: int = 1) -> ActorSize:
+def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, threads: int = 1,
+                       schedules: Schedules = SCHEDULES) -> ActorSize:
     """The actor's size over ``model``'s, chosen by the silhouettes of the first frame: the
-    first frame searched once at the model's size (the WIDE schedule: every start, one way of
+    first frame searched once at the model's size (the wide schedule, WIDE: every start, one way of
     re-detecting limbs), then its best pose fitted again at ACTOR_SCALES outward from the
     model's size while the score keeps falling (the pelvis height scaled along;
     ``descend_outward``), and the size whose fit explains the masks best (lowest
@@ -268,7 +270,7 @@ def choose_actor_scale(model: BodyModel, seq: Sequence, options: FitOptions, thr
     solver = LocalSolver(model, options, threads)
     try:
         starts, memo = tuple(voxel_starts(model, data)), {}
-        found = run_schedule(context(model, data, frame, options, solver, starts=starts), WIDE, memo=memo)
+        found = run_schedule(context(model, data, frame, options, solver, starts=starts), schedules.wide, memo=memo)
         own = {larger: max(size_score(data, found, larger), 1.0) for larger in (False, True)}
 
         def relative_score(scale: float) -> float:
@@ -304,22 +306,24 @@ def recovery_starts(model: BodyModel, data: FrameData) -> list[np.ndarray]:
 
 
 def track(model: BodyModel, data: FrameData, frame: int, start: np.ndarray, before: np.ndarray | None,
-          energies: list, options: FitOptions, solver: Solver, progress=None, note=None) -> tuple[FrameResult, bool, bool]:
+          energies: list, options: FitOptions, solver: Solver, progress=None, note=None,
+          schedules: Schedules = SCHEDULES) -> tuple[FrameResult, bool, bool]:
     """One frame tracked from ``start`` (the previous frame's fit; ``before``, the one before),
     with ``energies`` the frames' so far: (fit, limbs re-detected, recovered from voxels)."""
     ctx = context(model, data, frame, options, solver, start=np.asarray(start, dtype=np.float64), before=before)
-    result = fit_frame(model, data, ctx.start, options, ctx.dispatch, before=before, frame_number=frame)
+    result = fit_frame(model, data, ctx.start, options, ctx.dispatch, before=before, frame_number=frame,
+                       schedules=schedules)
     limbs_redetected = recovered = False
     if tracking_lost(energies, result.energy, LIMB_LOSS_ENERGY_RATIO):  # a limb lost: every limb searched
-        again = run_schedule(Context(model, data, options, ctx.dispatch, frame, start=result.params), LIMBS_LOST,
-                             initial=result)
+        again = run_schedule(Context(model, data, options, ctx.dispatch, frame, start=result.params),
+                             schedules.limbs_lost, initial=result)
         limbs_redetected = again.energy < result.energy
         result = again
     starts = recovery_starts(model, data) if tracking_lost(energies, result.energy) else []
     if starts:  # the whole body lost: start again from the voxels, as on a first frame
         if note:
             note(f"frame {frame}: tracking lost, searching from voxels")
-        again = search_frame(model, data, starts, options, ctx.dispatch, frame, solver.workers())
+        again = search_frame(model, data, starts, options, ctx.dispatch, frame, solver.workers(), schedules=schedules)
         # the voxels' headings are those of one turn: the fit's kept within a half turn of the
         # track's, so that the frames' headings run on
         heading = again.params.copy()
@@ -331,14 +335,19 @@ def track(model: BodyModel, data: FrameData, frame: int, start: np.ndarray, befo
 
 
 
-def run_settings(model: BodyModel, seq: Sequence, options: FitOptions, init: str) -> dict:
+def run_settings(model: BodyModel, seq: Sequence, options: FitOptions, init: str,
+                 schedules: Schedules = SCHEDULES) -> dict:
     """What decides a run's poses: written to run.json, and what ``--resume`` must match (the
-    cameras left out named only where there are some, so that older runs resume)."""
+    cameras left out, and the schedules not the defaults, named only where there are some, so
+    that older runs resume)."""
     left_out = {"cameras_left_out": list(seq.left_out)} if seq.left_out else {}
+    table, defaults = schedules_table(schedules), schedules_table(SCHEDULES)
+    changed = {name: value for name, value in table.items() if value != defaults[name]}
+    own = {"schedules": changed} if changed else {}
     return {"sequence": str(seq.path.resolve()), **sequence_calibration(seq), **left_out, "init": init,
             "world_up": seq.world.up,
             "masks_cleaned": seq.clean_masks, "mask_threshold": seq.mask_threshold,
-            "actor_scale": model_scale(model), "options": options.to_wire()}
+            "actor_scale": model_scale(model), "options": options.to_wire(), **own}
 
 
 def sequence_calibration(seq: Sequence) -> dict:
@@ -393,7 +402,8 @@ def refine_chunks(order: list[int], chunk_frames: int) -> list[list[int]]:
 
 def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
                 stats: RunStats, backward: bool = True, progress=None, search: bool = False,
-                hops: int = 0, anchor: np.ndarray | None = None, start_hops: int = 0) -> tuple[list[dict], int]:
+                hops: int = 0, anchor: np.ndarray | None = None, start_hops: int = 0,
+                schedules: Schedules = SCHEDULES) -> tuple[list[dict], int]:
     """Fitted frames fitted again in one direction, each by ``common.search.refine_frame`` from
     its neighbour's fit: going backwards each frame starts from the (already refined) fit of the
     frame after it, forwards from the frame before; each keeps the lowest energy. The pass's
@@ -440,7 +450,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
             ctx = context(model, data, r["frame"], options, solver)
             dispatch, at_once = ctx.dispatch, ctx.side_by_side
         again = refine_frame(model, data, tracked, options, dispatch, neighbour, beyond, other, frame_hops,
-                             basins, r["frame"], at_once)
+                             basins, r["frame"], at_once, schedules)
         if keep_refit(model, seq, r, again, time.perf_counter() - t0):
             with lock:
                 replaced.add(i)
@@ -509,7 +519,7 @@ def keep_refit(model: BodyModel, seq: Sequence, r: dict, again: FrameResult, sec
 
 
 def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
-                        stats: RunStats, progress=None) -> tuple[list[dict], int]:
+                        stats: RunStats, progress=None, schedules: Schedules = SCHEDULES) -> tuple[list[dict], int]:
     """After the passes: the frames around each run of poor fits (``common.search.poor_windows``:
     the XOR share of the silhouette well above the take's median) refined once more, forwards
     from the fit before the window, then backwards from the fit after it (``refine_pass``, each
@@ -530,12 +540,12 @@ def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], op
             anchor = np.asarray(out[beyond]["params"], dtype=np.float64) if 0 <= beyond < len(out) else None
             out[first:last + 1], _ = refine_pass(model, seq, out[first:last + 1], options, solver, stats, backward,
                                                  progress, hops=POOR_WINDOW_HOPS, anchor=anchor,
-                                                 start_hops=PASS_START_HOPS)
+                                                 start_hops=PASS_START_HOPS, schedules=schedules)
     return out, sum(1 for r, before in zip(out, records) if r["energy"] < before["energy"])
 
 
 def refit_standing_out(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
-                       stats: RunStats) -> tuple[list[dict], int]:
+                       stats: RunStats, schedules: Schedules = SCHEDULES) -> tuple[list[dict], int]:
     """After the passes: each frame whose energy stands STANDING_OUT_RATIO above both neighbours'
     (``standing_out``) refined again from its neighbour before it, with the one after as the
     other side, both as the passes left them. A backward pass refines a frame from halfway to a
@@ -553,7 +563,7 @@ def refit_standing_out(model: BodyModel, seq: Sequence, records: list[dict], opt
         tracked = record_fit(r)
         again = refine_frame(model, data, tracked, options, ctx.dispatch, np.asarray(records[i - 1]["params"]),
                              None, np.asarray(records[i + 1]["params"]), frame_number=r["frame"],
-                             side_by_side=ctx.side_by_side)
+                             side_by_side=ctx.side_by_side, schedules=schedules)
         stats.add_chains([c for c in again.chains if is_chain_solve(c)])
         replaced += keep_refit(model, seq, r, again, time.perf_counter() - t0)
     return out, replaced
@@ -581,7 +591,8 @@ def unexplained_pixels(model: BodyModel, seq: Sequence, records: list[dict]) -> 
 
 
 def leave_out_unexplained(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions,
-                          solver: Solver, stats: RunStats, progress=None) -> tuple[Sequence, list[dict], dict]:
+                          solver: Solver, stats: RunStats, progress=None,
+                          schedules: Schedules = SCHEDULES) -> tuple[Sequence, list[dict], dict]:
     """After the passes: the foreground that the fitted bodies miss in most of the take's frames
     (``unexplained_pixels``: a chair the actor sits on, which is one 3D component with the actor
     and so no static prop) cleared from every frame's masks (``Sequence.without_foreground``),
@@ -610,7 +621,7 @@ def leave_out_unexplained(model: BodyModel, seq: Sequence, records: list[dict], 
             r["energy"] = int(full_energy(model, frame_data(model, cleared, r["frame"]), np.asarray(r["params"])))
         for backward in (True, False):
             out, _ = refine_pass(model, cleared, out, options, solver, stats, backward, progress,
-                                 start_hops=UNEXPLAINED_START_HOPS)
+                                 start_hops=UNEXPLAINED_START_HOPS, schedules=schedules)
     if flags is None:
         return seq, records, {}
     return cleared, out, {"share": round(float(flags.sum() / mean_area), 4), "rounds": len(added),
@@ -660,13 +671,15 @@ def settle_records(model: BodyModel, seq: Sequence, records: list[dict]) -> tupl
 
 def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions, solver: Solver,
             init: str | None = None, resume: bool = False, max_frames: int | None = None, progress=None,
-            overwrite: bool = False, actor_size: ActorSize | None = None) -> dict:
+            overwrite: bool = False, actor_size: ActorSize | None = None, schedules: Schedules = SCHEDULES) -> dict:
     """Fit the sequence's frames in order; returns the summary (also written to summary.json).
 
     ``resume``: continue the frames of an earlier run there (same settings); ``overwrite``:
     replace an earlier result; with neither, an earlier result is refused before any work.
     ``actor_size``: the actor-size search that chose ``model`` (its time is counted in the wall
     time; at the model's own size its first-frame fits are reused by the first frame's search).
+    ``schedules``: how each frame is searched (``common.search.Schedules``; a Config.toml's
+    ``[fit.schedules]``).
     """
     frames = seq.frames[:max_frames] if max_frames else list(seq.frames)
     seq = usable_cameras(seq, frames)  # every mask there and readable before anything is written
@@ -680,7 +693,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         init = "truth" if truth else "auto"
     if init == "truth":
         truth_start(seq)  # refused before the result folder is touched
-    done = prepare_result_folder(out_dir, run_settings(model, seq, options, init), resume, overwrite)
+    done = prepare_result_folder(out_dir, run_settings(model, seq, options, init, schedules), resume, overwrite)
     if done and [d["frame"] for d in done] != frames[:len(done)]:
         raise InputFileError(out_dir / POSES_FILE, f"does not hold the first frames of {seq.path}; cannot --resume")
     if done and len(done) == len(frames) and (finished := finished_summary(out_dir, len(frames))):
@@ -714,12 +727,13 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
             known = actor_size if (init == "auto" and actor_size and actor_size.scale == 1.0
                                    and actor_size.frame == frame) else None
             result = search_frame(model, data, known.starts if known else initial_starts(model, seq, data, init),
-                                  options, ctx.dispatch, frame, ctx.side_by_side, memo=known.memo if known else None)
+                                  options, ctx.dispatch, frame, ctx.side_by_side, memo=known.memo if known else None,
+                                  schedules=schedules)
             recovered = limbs_redetected = False
         else:
             result, limbs_redetected, recovered = track(
                 model, data, frame, x, x_before, energies, options, solver,
-                note=(lambda text: progress(n, len(frames), text)) if progress else None)
+                note=(lambda text: progress(n, len(frames), text)) if progress else None, schedules=schedules)
         energies.append(result.energy)
         x_before, x = x, result.params
         seconds = time.perf_counter() - t0
@@ -747,7 +761,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
             if progress:
                 progress(n + 1, len(frames), f"refining frames {frames[0]}-{frames[n - 1]} backwards")
             *before, last = read_done_frames(poses_path)
-            refined, _ = refine_pass(model, seq, before, options, solver, stats, anchor=np.asarray(last["params"]))
+            refined, _ = refine_pass(model, seq, before, options, solver, stats, anchor=np.asarray(last["params"]),
+                                     schedules=schedules)
             settled = refined + [last]
             rewrite_complete(poses_path, settled)
             energies = [int(r["energy"]) for r in settled]
@@ -765,7 +780,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         search = options.refine_search and k == 0
         hops = options.refine_hops if k == 0 else 0
         records, replaced = refine_pass(model, seq, records, options, solver, stats, backward, progress, search,
-                                        hops)
+                                        hops, schedules=schedules)
         rewrite_complete(poses_path, records)  # each pass kept whole: an interrupted run keeps the last
         passes.append({"direction": "backward" if backward else "forward", "search": search, "hops": hops,
                        # more than hops x frames where hops ran side by side and some were dropped
@@ -775,10 +790,11 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     standing_out_refitted = poor_refined = 0
     left_out = {}
     if passes:
-        records, poor_refined = refine_poor_windows(model, seq, records, options, solver, stats, progress)
-        records, standing_out_refitted = refit_standing_out(model, seq, records, options, solver, stats)
+        records, poor_refined = refine_poor_windows(model, seq, records, options, solver, stats, progress, schedules)
+        records, standing_out_refitted = refit_standing_out(model, seq, records, options, solver, stats, schedules)
         uncleared = seq
-        seq, records, left_out = leave_out_unexplained(model, seq, records, options, solver, stats, progress)
+        seq, records, left_out = leave_out_unexplained(model, seq, records, options, solver, stats, progress,
+                                                       schedules)
     write_foreground_left_out(out_dir, seq.foreground_left_out)
     settled, refined = 0, sum(1 for r in records if "first_pass" in r)
     if passes:  # offline runs only: a frame's pose may come from a later frame's fit

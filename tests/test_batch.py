@@ -128,6 +128,18 @@ def test_the_search_s_knobs_reach_mocap_run_s_fit_only_where_set(tmp_path):
     assert sets == ["fit.grid_steps=5", "fit.turn_step=0.2", "fit.redetect=false"]
     assert command[command.index("--mask-threshold") + 1] == "127"
     assert step.settings["fit"]["grid_steps"] == 5 and step.settings["fit"]["mask_threshold"] == 127
+    # the schedules: a take's file replaces those it names, over the project's
+    (tmp_path / "Config.toml").write_text('[fit.schedules.tracking]\nstages = [{proposers = ["start"]}]\n')
+    (take / "Config.toml").write_text("[fit.schedules]\nsearch_hops = 5\n")
+    step, command = fit_step()
+    sets = [command[i + 1] for i, a in enumerate(command) if a == "--set"]
+    assert sets == ['fit.schedules={tracking = {stages = [{proposers = ["start"]}]}, search_hops = 5}']
+    assert step.settings["fit"]["schedules"] == {"tracking": {"stages": [{"proposers": ["start"]}]}, "search_hops": 5}
+    shown = "\n".join(load_config([tmp_path / "Config.toml", take / "Config.toml"]).lines())
+    assert ('[fit.schedules] tracking = {stages = [{proposers = ["start"]}], budget = 0}   # '
+            f'{tmp_path / "Config.toml"}\n') in shown
+    assert f"[fit.schedules] search_hops = 5   # {take / 'Config.toml'}" in shown
+    assert "[fit.schedules] refine = {stages = [" in shown and shown.count("# default") > 5
 
 
 @pytest.mark.parametrize("text, names", [

@@ -1307,6 +1307,73 @@ def test_the_search_s_knobs_reach_the_fit_options_from_a_file_or_set(tmp_path):
     assert options("--set", "fit.grid_steps=9", config=file, preset="best").grid_steps == 9
 
 
+def test_schedules_read_from_a_file_or_set_reach_the_fit(tmp_path):
+    """[fit.schedules] from a Config.toml (--config) and --set: each schedule named replaces the
+    default one whole, the rest stay; the defaults written as tables read back as themselves."""
+    import argparse
+
+    from common.schedule_tables import schedules_from_table, schedules_table
+    from common.search import SCHEDULES
+    from server.commands.fit import add_fit_arguments, schedules_from_args
+    from server.config import fit_option_defaults
+
+    def schedules(*argv, config=None):
+        parser = argparse.ArgumentParser()
+        add_fit_arguments(parser)
+        args = parser.parse_args(["seq", "--out", "r", *argv])
+        parser.set_defaults(**fit_option_defaults(None, config, args.set))
+        return schedules_from_args(parser.parse_args(["seq", "--out", "r", *argv]))
+
+    assert schedules() == SCHEDULES
+    assert schedules_from_table(schedules_table(SCHEDULES)) == SCHEDULES
+    file = tmp_path / "Config.toml"
+    file.write_text('[fit.schedules]\nsearch_hops = 5\n[fit.schedules.tracking]\n'
+                    'stages = [{proposers = ["start", "start_turns"]}, {proposers = ["again"], variants = ["polish"]}]\n'
+                    '[fit.schedules.search]\nbudget = 1000\nstages = [{proposers = ["starts"], variants = ["wide-round"], '
+                    'drop = [2, 1.5]}, {proposers = ["again"], variants = "as-fitted", rounds = 2, min_gain = 0.01}]\n')
+    chosen = schedules(config=file)
+    assert chosen.tracking == Schedule((Stage(("start", "start_turns")), Stage(("again",), ("polish",))))
+    assert chosen.search == Schedule((Stage(("starts",), ("wide-round",), drop=(2, 1.5)),
+                                      Stage(("again",), None, rounds=2, min_gain=0.01)), budget=1000)
+    assert (chosen.search_hops, chosen.refine, chosen.wide) == (5, SCHEDULES.refine, SCHEDULES.wide)
+    given = schedules("--set", 'fit.schedules={limbs_lost={stages=[{proposers=["start"]}]}}', config=file)
+    assert given.limbs_lost == Schedule((Stage(("start",)),)) and given.tracking == SCHEDULES.tracking
+
+
+@pytest.mark.parametrize("table, message", [
+    ('{tracking={stages=[{proposers=["start", "nope"]}]}}', "tracking: stage 1: unknown proposer 'nope' (known: start,"),
+    ('{search={stages=[{proposers=["starts"], variants=["wide"]}]}}', "search: stage 1: unknown variant 'wide'"),
+    ('{refine={stages=[{proposers=["start"]}, {proposers=["again"], rounds=0}]}}',
+     "refine: stage 2: rounds: expected an integer >= 1, got 0"),
+    ('{refine={stages=[{proposers=["start"], drop=[2]}]}}', "drop: expected [rounds >= 1, ratio >= 1]"),
+    ('{refine={stages=[{proposer=["start"]}]}}', "stage 1: unknown key 'proposer'"),
+    ('{refine={stages=[]}}', "refine: stages: expected a list of one or more stage tables"),
+    ('{search={budget=-1, stages=[{proposers=["starts"]}]}}', "search: budget: expected an integer >= 0"),
+    ('{tracking_stages={stages=[{proposers=["start"]}]}}', "unknown schedule 'tracking_stages' (did you mean 'tracking'?)"),
+    ('{search_hops=-2}', "search_hops: expected an integer >= 0, got -2"),
+])
+def test_fit_refuses_bad_schedules_naming_the_schedule_and_stage(small_sequence, tmp_path, capsys, table, message):
+    assert fit(small_sequence, tmp_path / "r", "--set", f"fit.schedules={table}") == 2
+    err = capsys.readouterr().err
+    assert "--set: [fit.schedules] " in err and message in err and "Traceback" not in err
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.timeout(300)
+def test_a_leaner_tracking_schedule_is_what_tracks(model, frames):
+    """A tracking schedule of the previous pose alone fits that one start: its evaluations are
+    one fit's, a fraction of the default schedule's turns, polish and re-detection."""
+    from common.search import SCHEDULES
+
+    data, truth = frames
+    lean = replace(SCHEDULES, tracking=Schedule((Stage(("start",)),)))
+    alone = fit_frame(model, data[1], truth[0].params, FitOptions(), schedules=lean)
+    plain = one_stage(model, data[1], Stage(("start",)), start=truth[0].params)
+    default = fit_frame(model, data[1], truth[0].params, FitOptions())
+    assert alone.energy == plain.energy and alone.evaluations == plain.evaluations
+    assert 4 * alone.evaluations < default.evaluations
+
+
 @pytest.mark.timeout(300)
 def test_refinement_passes_alternate_and_keep_the_tracking_fit_and_its_accuracy(model, five_frames, tmp_path):
     """Two passes after tracking: backward then forward, poses.jsonl rewritten with the lower
@@ -1597,7 +1664,7 @@ def test_a_hops_best_has_its_pelvis_turned_back(model, frames, monkeypatch):
     x = truth[2].params
     twisted = pelvis_twisted(model, x, 0.15)
     hop = FrameResult(twisted, full_energy(model, data[2], twisted), 1, 0)
-    again = one_stage(model, data[2], search.AFTER_HOPS, fit=hop)
+    again = one_stage(model, data[2], search.AFTER_HOPS.stages, fit=hop)
     assert again.energy < hop.energy
     assert abs(again.params[P["root_heading"]] - x[P["root_heading"]]) < 0.05
 
@@ -1605,8 +1672,8 @@ def test_a_hops_best_has_its_pelvis_turned_back(model, frames, monkeypatch):
     monkeypatch.setattr(search, "run_schedule", lambda ctx, schedule, initial: schedules.append(schedule) or initial)
     for hops in (0, 1):
         search.refine_frame(model, data[2], hop, FitOptions(), None, None, None, None, hops)
-    after = len(search.AFTER_HOPS)
-    assert schedules[0].stages == search.REFINE.stages and schedules[1].stages[-after:] == search.AFTER_HOPS
+    after = len(search.AFTER_HOPS.stages)
+    assert schedules[0].stages == search.REFINE.stages and schedules[1].stages[-after:] == search.AFTER_HOPS.stages
 
 
 @pytest.mark.timeout(300)

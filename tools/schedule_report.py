@@ -39,7 +39,7 @@ def schedule_name(schedule) -> str:
         if schedule is getattr(search, name):
             return name
     for name in ("REFINE", "REFINE_SEARCH"):  # a frame with hops: AFTER_HOPS appended
-        if schedule.stages[:-len(search.AFTER_HOPS)] == getattr(search, name).stages:
+        if schedule.stages[:-len(search.AFTER_HOPS.stages)] == getattr(search, name).stages:
             return name + "+AFTER_HOPS"
     return f"other ({len(schedule.stages)} stages)"
 

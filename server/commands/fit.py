@@ -10,6 +10,8 @@ from common.body import load_body_model
 from common.errors import UserError, print_warning
 from common.export import sample_rate, write_motion_bvh
 from common.fitting import ENERGY_BACKENDS, FitOptions
+from common.schedule_tables import schedules_from_table
+from common.search import Schedules
 from common.sequence import MAX_MASK_THRESHOLD, load_sequence
 from common.world import UP_CHOICES
 from common.argtypes import count
@@ -41,7 +43,7 @@ def add_fit_arguments(p) -> None:
                         "of their own")
     p.set_defaults(command_parser=p)  # server.cli re-parses with the preset's and file's values as defaults
     # the search's knobs, which only a Config.toml or --set changes, at their settings' defaults
-    p.set_defaults(**{key: setting_default("fit", key) for key in SEARCH_KNOBS})
+    p.set_defaults(**{key: setting_default("fit", key) for key in SEARCH_KNOBS + ("schedules",)})
     p.add_argument("--out", type=Path, required=True, help="result folder")
     p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
     p.add_argument("--frames", type=count(1), default=None, help="fit only the first N frames")
@@ -100,6 +102,15 @@ def options_from_args(args) -> FitOptions:
                           redetect_limbs=args.redetect)
     except ValueError as exc:  # a value out of range: say which option
         raise UserError(f"bad fit option: {exc}") from None
+
+
+def schedules_from_args(args) -> Schedules:
+    """The schedules of a Config.toml's ``[fit.schedules]`` (``--config``, ``--set``) over the
+    defaults (checked as the file was read)."""
+    try:
+        return schedules_from_table(args.schedules)
+    except ValueError as exc:
+        raise UserError(f"[fit.schedules] {exc}") from None
 
 
 def finish(model, seq, args, summary: dict) -> None:
@@ -242,7 +253,7 @@ def actor_model(model, seq, options, args, init: str, threads: int = 0):
         return (model.scaled(scale) if scale != 1.0 else model), None
     if init == "truth":
         return model, None
-    size = choose_actor_scale(model, seq, options, resolve_threads(threads, options))
+    size = choose_actor_scale(model, seq, options, resolve_threads(threads, options), schedules_from_args(args))
     if size.scale in (ACTOR_SCALES[0], ACTOR_SCALES[-1]):
         edge, beyond = ("largest", "larger") if size.scale == ACTOR_SCALES[-1] else ("smallest", "smaller")
         print_warning(f"actor size {size.scale:.2f} is the {edge} the size search tries ({ACTOR_SCALES[0]:g}-"
@@ -291,7 +302,7 @@ def run(args) -> int:
     warn_if_software_gl(args.energy)
     base = load_body_model()
     seq = open_sequence_to_fit(args)
-    options = options_from_args(args)
+    options, schedules = options_from_args(args), schedules_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
     model, size = actor_model(base, seq, options, args, init, args.threads)
     total = min(len(seq.frames), args.frames or len(seq.frames))
@@ -302,7 +313,8 @@ def run(args) -> int:
         try:
             with terminate_on_sigterm():
                 summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
-                                  max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)
+                                  max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size,
+                                  schedules=schedules)
         finally:
             solver.close()
     else:
@@ -310,6 +322,7 @@ def run(args) -> int:
         with terminate_on_sigterm(), LocalCluster(options, args.clients, heartbeat_interval=args.heartbeat,
                                                   client_timeout=args.client_timeout, threads=args.threads) as solver:
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
-                              max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)
+                              max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size,
+                              schedules=schedules)
     finish(model, seq, args, summary)
     return 0

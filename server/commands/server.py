@@ -16,7 +16,7 @@ from server.cluster import ClusterSolver
 from server.local_cluster import Terminated, add_cluster_arguments, terminate_on_sigterm
 from server.trust import check_bind, default_bind, server_keys
 from server.commands.fit import (actor_model, add_fit_arguments, check_resume_or_overwrite, finish,
-                                 open_sequence_to_fit, options_from_args, warn_if_software_gl)
+                                 open_sequence_to_fit, options_from_args, schedules_from_args, warn_if_software_gl)
 from server.output import check_folder_target
 from server.progress import Progress
 from server.results import RESULT_FILES, stopped_note
@@ -46,7 +46,7 @@ def run(args) -> int:
     check_folder_target(args.out, RESULT_FILES, resume=args.resume, overwrite=args.overwrite)
     warn_if_software_gl(args.energy)
     seq = open_sequence_to_fit(args)
-    options = options_from_args(args)
+    options, schedules = options_from_args(args), schedules_from_args(args)
     init = args.init or ("truth" if seq.truth() else "auto")
     with terminate_on_sigterm():
         # bound first, so that clients (and a container's health check) find the server while
@@ -66,7 +66,8 @@ def run(args) -> int:
             bar = Progress("fit", min(len(seq.frames), args.frames or len(seq.frames)),
                            enabled=None if not args.quiet else False)
             summary = run_fit(model, seq, args.out, options, solver, init=args.init, resume=args.resume,
-                              max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size)
+                              max_frames=args.frames, progress=bar, overwrite=args.overwrite, actor_size=size,
+                              schedules=schedules)
             finish(model, seq, args, summary)  # results on disk before the clients are released
             shutdown = "run finished"
         except Terminated:
