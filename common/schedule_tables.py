@@ -18,7 +18,7 @@ def stage_from_table(table) -> Stage:
     ``rounds``, ``min_gain``, ``beam``, ``score``, ``choose``, ``drop`` ([rounds, ratio]);
     ValueError saying what is wrong."""
     if not isinstance(table, dict):
-        raise ValueError(f"expected a table such as {{proposers = [\"start\"]}}, got {table!r}")
+        raise ValueError(f"expected a table such as {{proposers = [\"start\"]}}, got {_shown(table)}")
     known = {f.name for f in fields(Stage)}
     for key in table:
         if key not in known:
@@ -39,7 +39,7 @@ def stage_from_table(table) -> Stage:
                                ("drop", lambda v: isinstance(v, list) and len(v) == 2 and type(v[0]) is int and v[0] >= 1
                                 and type(v[1]) in (int, float) and v[1] >= 1.0, "[rounds >= 1, ratio >= 1]")):
         if key in table and not check(table[key]):
-            raise ValueError(f"{key}: expected {wanted}, got {table[key]!r}")
+            raise ValueError(f"{key}: expected {wanted}, got {_shown(table[key])}")
     if "min_gain" in table:
         values["min_gain"] = float(table["min_gain"])
     if "drop" in table:
@@ -49,7 +49,7 @@ def stage_from_table(table) -> Stage:
 
 def _names(value, known: dict, what: str, also: str = "") -> tuple[str, ...]:
     if not isinstance(value, list) or not value or not all(isinstance(v, str) for v in value):
-        raise ValueError(f"{what}s: expected a list of names{also}, got {value!r}")
+        raise ValueError(f"{what}s: expected a list of names{also}, got {_shown(value)}")
     for name in value:
         if name not in known:
             raise ValueError(f"unknown {what} {name!r} (known: {', '.join(known)})")
@@ -72,7 +72,7 @@ def schedule_from_table(table) -> Schedule:
     (``stage_from_table``), and ``budget`` (evaluations; 0: no limit); ValueError naming the
     stage that is wrong."""
     if not isinstance(table, dict):
-        raise ValueError(f"expected a table with stages = [...], got {table!r}")
+        raise ValueError(f"expected a table with stages = [...], got {_shown(table)}")
     for key in table:
         if key not in ("stages", "budget"):
             raise ValueError(f"unknown key {key!r} (known: budget, stages)")
@@ -81,7 +81,7 @@ def schedule_from_table(table) -> Schedule:
         raise ValueError("stages: expected a list of one or more stage tables")
     budget = table.get("budget", 0)
     if type(budget) is not int or budget < 0:
-        raise ValueError(f"budget: expected an integer >= 0 (evaluations; 0: no limit), got {budget!r}")
+        raise ValueError(f"budget: expected an integer >= 0 (evaluations; 0: no limit), got {_shown(budget)}")
     out = []
     for i, stage in enumerate(stages, 1):
         try:
@@ -100,12 +100,12 @@ def schedules_from_table(table) -> Schedules:
     """``Schedules`` from a Config.toml's ``[fit.schedules]`` table over ``SCHEDULES``: each
     schedule given replaces the default one whole; ValueError naming the schedule."""
     if not isinstance(table, dict):
-        raise ValueError(f"expected a table, got {table!r}")
+        raise ValueError(f"expected a table, got {_shown(table)}")
     values = {}
     for name, value in table.items():
         if name == "search_hops":
             if type(value) is not int or value < 0:
-                raise ValueError(f"search_hops: expected an integer >= 0, got {value!r}")
+                raise ValueError(f"search_hops: expected an integer >= 0, got {_shown(value)}")
             values[name] = value
         elif name in SCHEDULE_NAMES:
             try:
@@ -123,3 +123,8 @@ def schedules_table(schedules: Schedules) -> dict:
     """``schedules`` as a Config.toml's ``[fit.schedules]`` table."""
     return {name: schedule_table(getattr(schedules, name)) for name in SCHEDULE_NAMES} | {
         "search_hops": schedules.search_hops}
+
+
+def _shown(value) -> str:
+    """A value as a Config.toml spells it, for an error line."""
+    return str(value).lower() if isinstance(value, bool) else repr(value)

@@ -170,7 +170,7 @@ SETTINGS: tuple[Setting, ...] = (
     Setting("fit", "schedules", {}, dict, "the search's schedules where not the defaults: [fit.schedules.NAME] "
             "stages = [{proposers = [...], variants = [...], ...}, ...], budget = evaluations; NAME one of "
             + ", ".join(SCHEDULE_NAMES) + "; search_hops = N (docs/fitting.md, \"Schedules\")",
-            structured=schedules_from_table),
+            wanted="a table of schedules", structured=schedules_from_table),
     Setting("fit", "threads", 0, int, "single process: starts and limbs fitted at once (0: every core); "
             "the poses are the same for any number", _at_least(0), "an integer >= 0"),
     Setting("export", "formats", ["bvh", "trc", "csv"], list, "formats written into the result folder "

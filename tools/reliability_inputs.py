@@ -387,7 +387,9 @@ def _bvh_and_toml_cases(b: Base) -> list[Case]:
 FIT_OPTIONS = {
     "--frames": ["-1", "0", "nan", "abc", "1.5"], "--iterations": ["-1", "0", "abc"],
     "--set": ["fit.grid_steps=0", "fit.grid_range=nan", "fit.turn_step=0", "fit.spine_twist_prior=-1",
-              "fit.redetect=maybe", "fit.nothing=1", "grid_steps", "fit.grid_steps=[1, 2]"],
+              "fit.redetect=maybe", "fit.nothing=1", "grid_steps", "fit.grid_steps=[1, 2]",
+              "fit.schedules=3", 'fit.schedules={tracking={stages=[{proposers=["nope"]}]}}',
+              'fit.schedules={search={budget=-1, stages=[{proposers=["starts"]}]}}', "fit.schedules={search_hops=true}"],
     "--turn-hypotheses": ["-1"], "--polish-iterations": ["-1"],
     "--refine-passes": ["-1"], "--refine-hops": ["-1"], "--mask-threshold": ["-1", "70000", "abc"],
     "--actor-height": ["0", "-1", "nan", "abc"], "--clients": ["-1", "abc"], "--client-timeout": ["0", "-1", "nan"],
