@@ -22,6 +22,7 @@ One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import NamedTuple
 
 import numpy as np
@@ -235,7 +236,11 @@ class EnergySetup:
     (``conic_bits.pack_rows``, each camera's pixels beyond its own image clear), which windows
     of one size are cut from (``input_windows``) and which the cpu energy reads without cutting
     byte windows. Where both are given they must hold the same pixels; the cpu energy reads
-    ``packed``.
+    ``packed``. open_edges: (K, 4) bool, the left, top, right and bottom edges of each camera's
+    image that its silhouette touches (``open_image_edges``), or None: a body may reach past
+    such an edge unseen, so a window's pixels beyond it count for nothing; beyond an edge the
+    silhouette does not touch, the body cannot be (it would cross the edge) and pays as outside
+    the silhouette, as everywhere else.
     """
 
     studio: Studio
@@ -246,6 +251,7 @@ class EnergySetup:
     prerender: bool = True
     volume_points: np.ndarray | None = None  # (n, 3) surface voxel centres, for the volume energy
     packed: np.ndarray | None = None
+    open_edges: np.ndarray | None = None
 
     def __post_init__(self):
         if self.inputs is None and self.packed is None:
@@ -272,22 +278,71 @@ def window_origins(windows) -> tuple:
     return (np.array([w.x0 for w in windows], dtype=np.int64), np.array([w.y0 for w in windows], dtype=np.int64))
 
 
+EDGE_TOUCH_PX = 2  # silhouette pixels this near an image's edge touch it (masks are cleaned, resampled)
+EDGE_RUN_PX = 3    # ... in a run at least this long along it: a speck of noise is not a body crossing
+_FAR_PX = 1 << 30  # a bound no window reaches
+
+
+def open_image_edges(masks: np.ndarray, sizes) -> np.ndarray:
+    """(K, H, W) bool silhouettes of cameras of ``sizes`` (K, 2) (width, height) pixels, each
+    at [:h_k, :w_k] -> (K, 4) bool: whether camera k's silhouette touches its image's left,
+    top, right and bottom edge (``EDGE_RUN_PX`` pixels in a row along it, within
+    ``EDGE_TOUCH_PX`` of it); all four for an empty silhouette. A body seen in part that
+    reaches past an edge crosses it, so the edges its silhouette does not touch are edges it
+    stays inside; a body not seen at all may be anywhere outside the image."""
+    sizes = np.asarray(sizes, dtype=np.int64).reshape(-1, 2)
+    out = np.ones((len(sizes), 4), dtype=bool)
+    e = EDGE_TOUCH_PX
+    for k, (w, h) in enumerate(sizes):
+        m = masks[k, :h, :w]
+        if m.any():
+            out[k] = [_longest_run(strip) >= EDGE_RUN_PX
+                      for strip in (m[:, :e].any(1), m[:e].any(0), m[:, w - e:].any(1), m[h - e:].any(0))]
+    return out
+
+
+def _longest_run(flags: np.ndarray) -> int:
+    """The most True values in a row in (n,) bool ``flags``."""
+    edges = np.diff(np.concatenate(([0], flags.astype(np.int8), [0])))
+    return int((np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)).max(initial=0))
+
+
+def counted_bounds(studio: Studio, open_edges: np.ndarray | None) -> np.ndarray:
+    """(K, 4) int64 x_lo, y_lo, x_hi, y_hi: the pixels of each camera an energy counts, its
+    image's edges where ``open_edges`` (K, 4) bool (``EnergySetup``) are set, no bound elsewhere."""
+    far = np.array([-_FAR_PX, -_FAR_PX, _FAR_PX, _FAR_PX], dtype=np.int64)
+    bounds = np.tile(far, (len(studio), 1))
+    if open_edges is not None:
+        edges = np.array([(0, 0, w, h) for w, h in studio.sizes], dtype=np.int64).reshape(-1, 4)
+        bounds = np.where(np.asarray(open_edges, dtype=bool), edges, bounds)
+    return bounds
+
+
 def window_pixels(setup: EnergySetup) -> np.ndarray | None:
-    """(K, h, w) bool: the pixels of ``setup.input_windows`` inside each camera's window; None
-    when every window fills them (windows of one size: nothing to leave out, nothing to pay).
-    ValueError when the windows do not fit the inputs."""
-    if setup.inputs is None:
-        return None  # cut from packed rows: windows of one size (checked by EnergySetup)
-    K, h, w = setup.input_windows.shape
-    if len(setup.studio) != K or len(setup.windows) != K:
-        raise ValueError(f"{len(setup.studio)} cameras need as many windows and input windows, got "
-                         f"{len(setup.windows)} and {K}")
-    sizes = [(win.width, win.height) for win in setup.windows]
-    largest = padded_shape(sizes)
-    if largest != (h, w):
-        raise ValueError(f"input windows are {w}x{h}, the windows' largest width and height "
-                         f"{largest[1]}x{largest[0]}")
-    return None if len(set(sizes)) == 1 else inside_images(sizes, (h, w))
+    """(K, h, w) bool: the pixels of ``setup.input_windows`` an energy counts and a render
+    shows, those inside each camera's window and not beyond an open edge of its image
+    (``EnergySetup``); None when that is all of them. ValueError when the windows do not fit
+    the inputs."""
+    if setup.inputs is None:  # cut from packed rows: windows of one size (checked by EnergySetup)
+        shape = (setup.windows[0].height, setup.windows[0].width)
+    else:
+        K, h, w = setup.inputs.shape
+        if len(setup.studio) != K or len(setup.windows) != K:
+            raise ValueError(f"{len(setup.studio)} cameras need as many windows and input windows, got "
+                             f"{len(setup.windows)} and {K}")
+        shape = padded_shape([(win.width, win.height) for win in setup.windows])
+        if shape != (h, w):
+            raise ValueError(f"input windows are {w}x{h}, the windows' largest width and height "
+                             f"{shape[1]}x{shape[0]}")
+    counted = inside_images([(win.width, win.height) for win in setup.windows], shape)
+    if setup.open_edges is not None:
+        x_lo, y_lo, x_hi, y_hi = counted_bounds(setup.studio, setup.open_edges).T
+        x0, y0 = window_origins(setup.windows)
+        ys = y0[:, None] + np.arange(shape[0])[None, :]  # (K, h) image rows
+        xs = x0[:, None] + np.arange(shape[1])[None, :]  # (K, w) image columns
+        counted &= ((ys >= y_lo[:, None]) & (ys < y_hi[:, None]))[:, :, None]
+        counted &= ((xs >= x_lo[:, None]) & (xs < x_hi[:, None]))[:, None, :]
+    return None if counted.all() else counted
 
 
 def surface_distances(points: np.ndarray, centres: np.ndarray, axes: np.ndarray, radii: np.ndarray) -> np.ndarray:
@@ -366,7 +421,6 @@ class CpuEnergy:
         self.setup = setup
         self.evaluations = 0
         studio, windows = setup.studio, setup.windows
-        self.inside = window_pixels(setup)
         if setup.inputs is None:
             self.rows, self.width = windows[0].height, windows[0].width
         else:
@@ -377,17 +431,18 @@ class CpuEnergy:
         self.moving = tuple(setup.moving) if setup.prerender else tuple(range(16))
         self._static = tuple(s for s in range(16) if s not in self.moving)
         self._static_mask = None
-        if setup.packed is not None and self.inside is None:  # straight from the row bits
+        if setup.packed is not None:  # straight from the row bits (windows of one size)
             if self._static:
                 C, drawable = self._conics(np.atleast_2d(setup.static_params)[:1], self._static)
             else:
                 C, drawable = np.zeros((1, len(studio), 0, 3, 3)), np.zeros((1, len(studio), 0), np.bool_)
-            self.gain, self.loss, base = window_value_bits(setup.packed, x0, y0, self.rows, self.width, C, drawable)
+            self.gain, self.loss, base = window_value_bits(setup.packed, x0, y0, self.rows, self.width, C, drawable,
+                                                           counted_bounds(studio, setup.open_edges))
         else:
             self._static_mask = M = self._render_static()
             inputs = np.ascontiguousarray(setup.input_windows, dtype=np.bool_)
-            if self.inside is not None:  # beyond a window static and input both set: v = 0, no base
-                M, inputs = M | ~self.inside, inputs | ~self.inside
+            if self.counted is not None:  # beyond what is counted static and input both set: v = 0, no base
+                M, inputs = M | ~self.counted, inputs | ~self.counted
             self.gain, self.loss, base = xor_bits(M, inputs)
         self.base = int(base)
         seg = np.asarray(self.moving, dtype=np.int64)
@@ -396,6 +451,12 @@ class CpuEnergy:
                                np.ascontiguousarray(model.ellipsoid_centres[seg]),
                                model.ellipsoid_axes[seg] * model.ellipsoid_radii[seg][:, None, :],
                                self.P, self.y0, self.x0, self.rows, self.width, self.gain, self.loss)
+
+    @cached_property
+    def counted(self) -> np.ndarray | None:
+        """``window_pixels``: what the energy counts and a render shows (drawn on first use where
+        the energy was built from packed rows, whose value bits hold it: a fit builds thousands)."""
+        return window_pixels(self.setup)
 
     @property
     def static_mask(self) -> np.ndarray:
@@ -418,7 +479,7 @@ class CpuEnergy:
     def _render(self, params: np.ndarray, segments) -> np.ndarray:
         C, drawable = self._conics(np.atleast_2d(params)[:1], segments)
         covered = conic_coverage(C, drawable, self.y0, self.x0, self.rows, self.width)[0]
-        return covered if self.inside is None else covered & self.inside
+        return covered if self.counted is None else covered & self.counted
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
         """(B, 35) or (35,) -> (B,) int64 energies (pixels)."""

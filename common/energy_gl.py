@@ -223,7 +223,7 @@ class GlEnergy:
         self.renderer_name = gl_renderer_name()
         self.K = K = len(setup.studio)
         self.h, self.w = h, w = setup.input_windows.shape[1:]
-        self.inside = window_pixels(setup)  # tiles are h x w; a smaller window fills its top-left
+        self.counted = window_pixels(setup)  # tiles are h x w; a smaller window fills its top-left
         self.moving = tuple(setup.moving) if setup.prerender else tuple(range(SEGMENTS))
         static = tuple(s for s in range(SEGMENTS) if s not in self.moving)
         budget = ATLAS_PIXELS_SOFTWARE if is_software_renderer() else ATLAS_PIXELS_GPU
@@ -264,8 +264,8 @@ class GlEnergy:
         I = np.asarray(setup.input_windows, dtype=bool)
         M = self._render(np.asarray(setup.static_params, dtype=np.float64), "static")
         self.static_mask = M
-        if self.inside is not None:  # beyond a window static and input both set: v = 0, no base (as cpu)
-            I, M = I | ~self.inside, M | ~self.inside
+        if self.counted is not None:  # beyond what is counted static and input both set: v = 0, no base (as cpu)
+            I, M = I | ~self.counted, M | ~self.counted
         self.base = int(np.count_nonzero(M ^ I))
         planes = pack_planes(I).astype(np.uint32) | (pack_planes(M).astype(np.uint32) << 8)   # (P, h, w)
         self.planes = self._own(ctx.buffer(planes.tobytes()))
@@ -354,7 +354,7 @@ class GlEnergy:
         fbo, cols, size = self._atlas(K, cover=True)
         img = np.frombuffer(fbo.read(components=1, dtype="f1", alignment=1), np.uint8).reshape(size[1], size[0])
         tiles = np.stack([img[r * h:(r + 1) * h, c * w:(c + 1) * w] for r, c in (divmod(k, cols) for k in range(K))])
-        return tiles > 0 if self.inside is None else (tiles > 0) & self.inside
+        return tiles > 0 if self.counted is None else (tiles > 0) & self.counted
 
     # ---------------------------------------------------------------------- interface
 

@@ -88,7 +88,7 @@ def test_compiled_span_sums_equal_per_pixel_sums_of_the_rendered_union(model, fr
             assert np.count_nonzero(brute != covered[b, k]) <= 2, (b, k)
     assert covered.any()
     # the value covering a pixel adds: 0 where static (or outside the window), else 1 - 2 * input
-    static = energy.static_mask if energy.inside is None else energy.static_mask | ~energy.inside
+    static = energy.static_mask if energy.counted is None else energy.static_mask | ~energy.counted
     values = np.where(static, 0, 1 - 2 * data.full_setup(x).inputs.astype(np.int64))
     unpack = lambda words: np.unpackbits(words.view(np.uint8), axis=-1, bitorder="little")[..., :width].astype(bool)
     np.testing.assert_array_equal(unpack(energy.gain), values == 1)
@@ -166,6 +166,53 @@ def test_energy_refuses_a_pose_of_the_wrong_length(model, frame):
     energy = CpuEnergy(model, data.full_setup(truth, half=True))
     with pytest.raises(ValueError, match="expected 35 parameters, got 34"):
         energy(truth[None, :34])
+
+
+def test_a_window_counts_nothing_past_an_image_edge_the_silhouette_touches(model, frame, rng):
+    """A limb's window reaching past an image's edge that the camera's silhouette touches counts
+    the whole image's XOR inside it and nothing beyond: a body partly outside a camera's view is
+    not pushed back into it (counted, a person walking out of one view was lost, every limb
+    fitted away from the edge). Past edges the silhouette does not touch the body pays as
+    outside the silhouette, as before: the energy with no open edges."""
+    data, truth = frame
+    whole = data.whole_image_energy()
+    leg = CHAINS["right_leg"].segments
+    all_open = np.ones((len(data.studio), 4), dtype=bool)
+    crossed = 0
+    for x in perturbed(truth, rng, 6, spread=0.2):
+        x[0] += 1.1  # near the studio's edge: the legs past the bottom or side of some images
+        for setup in (replace(data.window_setup(x, leg[:2], ARM_WINDOW, True), moving=leg),
+                      data.window_setup(x, leg[2:], SMALL_WINDOW, False)):
+            xor = whole.render(x) ^ data.masks
+            expected = 0
+            for k, (cam, win) in enumerate(zip(setup.studio, setup.windows)):
+                crossed += not (0 <= win.x0 and win.x0 + win.width <= cam.width
+                                and 0 <= win.y0 and win.y0 + win.height <= cam.height)
+                expected += int(xor[k, max(win.y0, 0):win.y0 + win.height, max(win.x0, 0):win.x0 + win.width].sum())
+            assert int(CpuEnergy(model, replace(setup, open_edges=all_open))(x)[0]) == expected
+            closed = CpuEnergy(model, replace(setup, open_edges=None))
+            shut = CpuEnergy(model, replace(setup, open_edges=~all_open))
+            assert int(shut(x)[0]) == int(closed(x)[0]) >= expected
+            np.testing.assert_array_equal(shut.render(x), closed.render(x))
+    assert crossed  # some windows did reach past their images
+
+
+def test_open_image_edges_are_those_the_silhouette_comes_near():
+    """EDGE_RUN_PX pixels in a row within EDGE_TOUCH_PX of an edge, of each camera's own image
+    in a padded stack, not specks; every edge of an empty silhouette (the body may be anywhere
+    outside the image)."""
+    from common.energy import EDGE_RUN_PX, EDGE_TOUCH_PX, open_image_edges
+
+    masks = np.zeros((4, 60, 80), bool)
+    masks[0, 0, 10:10 + EDGE_RUN_PX - 1] = masks[0, 1, 12 + EDGE_RUN_PX] = True  # specks on the top edge
+    masks[0, 20:30, 30:40] = True                       # in the middle: no edge
+    masks[1, 20:30, 80 - EDGE_TOUCH_PX:] = True          # at the right edge
+    masks[1, 60 - EDGE_TOUCH_PX, 5:5 + EDGE_RUN_PX] = True  # and a run at the bottom
+    masks[2, 10:20, 50 - EDGE_TOUCH_PX] = True          # at the right edge of a 50x40 camera
+    masks[2, 40 - EDGE_TOUCH_PX - 1, 10:20] = True       # one row short of its bottom edge
+    edges = open_image_edges(masks, [(80, 60), (80, 60), (50, 40), (80, 60)])
+    np.testing.assert_array_equal(edges, [[False, False, False, False], [False, False, True, True],
+                                          [False, False, True, False], [True, True, True, True]])
 
 
 def test_prerendered_equals_full_render_in_the_same_window(model, frame, rng):
@@ -506,7 +553,8 @@ def test_value_bits_from_row_bits_equal_those_of_byte_windows(seed):
     """window_value_bits against its definition, xor_bits of the still parts' coverage and the
     sliced windows: random masks, 0-3 still ellipses (some not drawable, some covering many
     words), corners off every edge, windows wider and taller than the image, widths that are not
-    a multiple of 64; and cut_windows against the sliced windows."""
+    a multiple of 64, pixels counted only inside random bounds (some unbounded, some within the
+    window); and cut_windows against the sliced windows."""
     from common.conic_bits import conic_coverage, cut_windows, pack_rows, window_value_bits, xor_bits
 
     rng = np.random.default_rng(seed)
@@ -521,10 +569,18 @@ def test_value_bits_from_row_bits_equal_those_of_byte_windows(seed):
             C[0, k, s] = rng.uniform(0.1, 10) * _ellipse(
                 x0[k] + rng.uniform(-50, width + 50), y0[k] + rng.uniform(-50, rows + 50),
                 rng.uniform(0.3, 120), rng.uniform(0.3, 120), rng.uniform(0, np.pi))
+    far = 1 << 30
+    counted = np.stack([rng.choice([-far, 0, int(rng.integers(-100, W))], K), rng.choice([-far, 0, int(rng.integers(-100, H))], K),
+                        rng.choice([far, W, int(rng.integers(0, W + 100))], K), rng.choice([far, H, int(rng.integers(0, H + 100))], K)],
+                       axis=1).astype(np.int64)
     packed = pack_rows(masks)
-    gain, loss, base = window_value_bits(packed, x0, y0, rows, width, C, drawable)
+    gain, loss, base = window_value_bits(packed, x0, y0, rows, width, C, drawable, counted)
     still = conic_coverage(C, drawable, y0.astype(float), x0.astype(float), rows, width)[0]
-    expected = xor_bits(still, _cut(masks, x0, y0, rows, width))
+    # a pixel not counted is worth nothing: still part and silhouette both set there
+    ys, xs = y0[:, None] + np.arange(rows), x0[:, None] + np.arange(width)
+    beyond = ~(((ys >= counted[:, 1, None]) & (ys < counted[:, 3, None]))[:, :, None]
+               & ((xs >= counted[:, 0, None]) & (xs < counted[:, 2, None]))[:, None, :])
+    expected = xor_bits(still | beyond, _cut(masks, x0, y0, rows, width) | beyond)
     np.testing.assert_array_equal(gain, expected[0])
     np.testing.assert_array_equal(loss, expected[1])
     assert base == expected[2]
