@@ -181,13 +181,13 @@ def _bits_at(row: np.ndarray, column: int) -> np.uint64:
 
 @njit(cache=True, nogil=True)
 def window_value_bits(packed: np.ndarray, x0: np.ndarray, y0: np.ndarray, rows: int, width: int,
-                      C: np.ndarray, drawable: np.ndarray, counted: np.ndarray) -> tuple:
+                      C: np.ndarray, drawable: np.ndarray, bounds: np.ndarray) -> tuple:
     """The value bit masks of windows of ``rows`` x ``width`` pixels with corners (x0, y0) (K,)
     int, cut from ``packed`` (K, H, words) masks (``pack_rows``; rows and columns outside an
     image are clear), with the still parts drawn as the conics C (1, K, S, 3, 3), drawable
     (1, K, S) (S may be 0): gain (+1: neither still part nor silhouette) and loss (-1:
     silhouette, no still part), (K, rows, ceil(width / 64)) uint64, and |still xor silhouette|,
-    as ``xor_bits`` of the byte windows. Only pixels inside ``counted`` (K, 4) int, each camera's
+    as ``xor_bits`` of the byte windows. Only pixels inside ``bounds`` (K, 4) int, each camera's
     x_lo, y_lo, x_hi, y_hi (``energy.counted_bounds``), are worth anything; the rest are worth
     nothing whatever covers them."""
     K, H = packed.shape[0], packed.shape[1]
@@ -212,13 +212,13 @@ def window_value_bits(packed: np.ndarray, x0: np.ndarray, y0: np.ndarray, rows: 
                     _or_span(still, r, start, end)
         for r in range(rows):
             y = y0[k] + r
-            if not counted[k, 1] <= y < counted[k, 3]:
+            if not bounds[k, 1] <= y < bounds[k, 3]:
                 still[r, :] = np.uint64(0)
                 continue
             inside_rows = 0 <= y < H
             for j in range(words):
                 x = x0[k] + 64 * j
-                mask = _span_bits(x, counted[k, 0], counted[k, 2]) & (last_word if j == words - 1 else _ALL_BITS)
+                mask = _span_bits(x, bounds[k, 0], bounds[k, 2]) & (last_word if j == words - 1 else _ALL_BITS)
                 silhouette = np.uint64(0)
                 if inside_rows:
                     silhouette = _bits_at(packed[k, y], x) & mask

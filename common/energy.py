@@ -262,6 +262,15 @@ class EnergySetup:
                                  f"{len(self.windows)} and {self.packed.shape[0]}")
             if len({(w.width, w.height) for w in self.windows}) != 1:
                 raise ValueError("windows cut from packed silhouettes must be of one size")
+        if self.inputs is not None:
+            K, h, w = self.inputs.shape
+            if len(self.studio) != K or len(self.windows) != K:
+                raise ValueError(f"{len(self.studio)} cameras need as many windows and input windows, got "
+                                 f"{len(self.windows)} and {K}")
+            largest = padded_shape([(win.width, win.height) for win in self.windows])
+            if largest != (h, w):
+                raise ValueError(f"input windows are {w}x{h}, the windows' largest width and height "
+                                 f"{largest[1]}x{largest[0]}")
 
     @property
     def input_windows(self) -> np.ndarray:
@@ -321,19 +330,9 @@ def counted_bounds(studio: Studio, open_edges: np.ndarray | None) -> np.ndarray:
 def window_pixels(setup: EnergySetup) -> np.ndarray | None:
     """(K, h, w) bool: the pixels of ``setup.input_windows`` an energy counts and a render
     shows, those inside each camera's window and not beyond an open edge of its image
-    (``EnergySetup``); None when that is all of them. ValueError when the windows do not fit
-    the inputs."""
-    if setup.inputs is None:  # cut from packed rows: windows of one size (checked by EnergySetup)
-        shape = (setup.windows[0].height, setup.windows[0].width)
-    else:
-        K, h, w = setup.inputs.shape
-        if len(setup.studio) != K or len(setup.windows) != K:
-            raise ValueError(f"{len(setup.studio)} cameras need as many windows and input windows, got "
-                             f"{len(setup.windows)} and {K}")
-        shape = padded_shape([(win.width, win.height) for win in setup.windows])
-        if shape != (h, w):
-            raise ValueError(f"input windows are {w}x{h}, the windows' largest width and height "
-                             f"{shape[1]}x{shape[0]}")
+    (``EnergySetup``, which checks that the windows fit the inputs); None when that is all of
+    them."""
+    shape = padded_shape([(win.width, win.height) for win in setup.windows])
     counted = inside_images([(win.width, win.height) for win in setup.windows], shape)
     if setup.open_edges is not None:
         x_lo, y_lo, x_hi, y_hi = counted_bounds(setup.studio, setup.open_edges).T

@@ -8,9 +8,33 @@ from dataclasses import fields, replace
 
 from common.search import PROPOSERS, SCHEDULES, VARIANTS, Schedule, Schedules, Stage
 
-SCHEDULE_NAMES = tuple(f.name for f in fields(Schedules) if f.type == "Schedule")
+SCHEDULE_NAMES = tuple(f.name for f in fields(Schedules) if isinstance(f.default, Schedule))
+HOP_BUDGETS = tuple(f.name for f in fields(Schedules) if isinstance(f.default, int))  # search_hops, ...
+# the schedules that start with no fit, and the proposers that make their first starts: from the
+# previous frame's fit (tracking) or from the search's starts (the others refit a fit they are given)
+FIRST_PROPOSERS = {"tracking": ("start", "start_turns", "tilt_ahead"), "wide": ("starts",), "search": ("starts",)}
 SCORES = ("energy", "upright")
 AS_FITTED = "as-fitted"  # a stage's variants in a file: each start fitted as the fit it came from (None)
+
+
+def _count(v) -> bool:
+    return type(v) is int and v >= 1
+
+
+def _number(v) -> bool:
+    return type(v) in (int, float)
+
+
+# a stage's keys beside its names -> (the check of its value, what the check wants)
+_STAGE_VALUES = {
+    "rounds": (_count, "an integer >= 1"),
+    "beam": (_count, "an integer >= 1"),
+    "min_gain": (lambda v: _number(v) and 0.0 <= v < 1.0, "a number from 0 to 1"),
+    "score": (lambda v: v in SCORES, "one of " + ", ".join(SCORES)),
+    "choose": (lambda v: type(v) is bool, "true or false"),
+    "drop": (lambda v: isinstance(v, list) and len(v) == 2 and _count(v[0]) and _number(v[1]) and v[1] >= 1.0,
+             "[rounds >= 1, ratio >= 1]"),
+}
 
 
 def stage_from_table(table) -> Stage:
@@ -31,13 +55,7 @@ def stage_from_table(table) -> Stage:
         variants = table["variants"]
         values["variants"] = None if variants == AS_FITTED else _names(variants, VARIANTS, "variant",
                                                                        f" or \"{AS_FITTED}\"")
-    for key, check, wanted in (("rounds", lambda v: type(v) is int and v >= 1, "an integer >= 1"),
-                               ("beam", lambda v: type(v) is int and v >= 1, "an integer >= 1"),
-                               ("min_gain", lambda v: type(v) in (int, float) and 0.0 <= v < 1.0, "a number from 0 to 1"),
-                               ("score", lambda v: v in SCORES, "one of " + ", ".join(SCORES)),
-                               ("choose", lambda v: type(v) is bool, "true or false"),
-                               ("drop", lambda v: isinstance(v, list) and len(v) == 2 and type(v[0]) is int and v[0] >= 1
-                                and type(v[1]) in (int, float) and v[1] >= 1.0, "[rounds >= 1, ratio >= 1]")):
+    for key, (check, wanted) in _STAGE_VALUES.items():
         if key in table and not check(table[key]):
             raise ValueError(f"{key}: expected {wanted}, got {_shown(table[key])}")
     if "min_gain" in table:
@@ -103,26 +121,41 @@ def schedules_from_table(table) -> Schedules:
         raise ValueError(f"expected a table, got {_shown(table)}")
     values = {}
     for name, value in table.items():
-        if name == "search_hops":
+        if name in HOP_BUDGETS:
             if type(value) is not int or value < 0:
-                raise ValueError(f"search_hops: expected an integer >= 0, got {_shown(value)}")
+                raise ValueError(f"{name}: expected an integer >= 0, got {_shown(value)}")
             values[name] = value
         elif name in SCHEDULE_NAMES:
             try:
                 values[name] = schedule_from_table(value)
+                if name == "after_hops" and values[name].budget:
+                    raise ValueError("budget: added to a refinement's stages, it runs on the refinement's budget")
             except ValueError as exc:
                 raise ValueError(f"{name}: {exc}") from None
         else:
-            near = difflib.get_close_matches(name, (*SCHEDULE_NAMES, "search_hops"), n=1)
+            near = difflib.get_close_matches(name, SCHEDULE_NAMES + HOP_BUDGETS, n=1)
             raise ValueError(f"unknown schedule {name!r}{f' (did you mean {near[0]!r}?)' if near else ''} "
-                             f"(known: {', '.join(SCHEDULE_NAMES)}, search_hops)")
+                             f"(known: {', '.join(SCHEDULE_NAMES + HOP_BUDGETS)})")
     return replace(SCHEDULES, **values)
+
+
+def check_first_starts(schedules: Schedules, options) -> None:
+    """ValueError where a schedule that starts with no fit (``FIRST_PROPOSERS``) has a first
+    stage that makes no start under ``options`` (FitOptions: a variant such as ``polish`` fits
+    nothing where its rounds are 0): it would end with nothing to choose."""
+    for name, proposers in FIRST_PROPOSERS.items():
+        first = getattr(schedules, name).stages[0]
+        if not set(first.proposers) & set(proposers):
+            raise ValueError(f"{name}: stage 1 makes no start: its proposers need one of {', '.join(proposers)}")
+        if first.variants is None or all(VARIANTS[v](options) is None for v in first.variants):
+            raise ValueError(f"{name}: stage 1 makes no start: its variants fit nothing with these settings "
+                             f"({'as-fitted' if first.variants is None else ', '.join(first.variants)})")
 
 
 def schedules_table(schedules: Schedules) -> dict:
     """``schedules`` as a Config.toml's ``[fit.schedules]`` table."""
     return {name: schedule_table(getattr(schedules, name)) for name in SCHEDULE_NAMES} | {
-        "search_hops": schedules.search_hops}
+        name: getattr(schedules, name) for name in HOP_BUDGETS}
 
 
 def _shown(value) -> str:

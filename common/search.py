@@ -2,10 +2,10 @@
 
 Every fit of a frame is a *schedule* of a few *stages*, declared as data (``TRACKING``,
 ``LIMBS_LOST``, ``SEARCH``, ``REFINE``, ...: the defaults of ``Schedules``, which a Config.toml's
-``[fit.schedules]`` replaces schedule by schedule, ``common.schedule_tables``). A stage asks its proposers (``PROPOSERS``) for
-start poses from the best fit so far (or from its ``beam`` lowest fits), fits every start by the
-same hierarchical fit (``common.fitting.fit_rounds``) under the stage's fit options
-(``VARIANTS``), and keeps the lowest score. It repeats while a round lowers the best score by its
+``[fit.schedules]`` replaces schedule by schedule, ``common.schedule_tables``). A stage asks its
+proposers (``PROPOSERS``) for start poses from the best fit so far (or from its ``beam`` lowest
+fits), fits every start by the same hierarchical fit (``common.fitting.fit_rounds``) under the
+stage's fit options (``VARIANTS``), and keeps the lowest score. It repeats while a round lowers the best score by its
 ``min_gain``, up to ``rounds``; a schedule stops where its evaluation budget is spent. A start
 already fitted under the same options is not fitted again. New kinds of start are one proposer
 each (``common.proposals`` holds the pose making).
@@ -239,13 +239,36 @@ AFTER_HOPS = Schedule((Stage(("pelvis_twists", "turns")), Stage(("twists",), ("d
 # after 0, 10, 20 and 30 hops was 14.6, 13.7, 13.1 and 12.7 mm, at about 0.1 s a hop; with 20,
 # the cartwheel's (05_06) recoveries went wrong: 13.8 / 103 mm, 18 frames over 40 -> 14.0 / 150, 27
 SEARCH_HOPS = 30
+# hops that refit a pass's first frame, which has no neighbour to be refitted from: the
+# sequence's last frame on a backward pass is otherwise only ever tracking's fit (basketball's
+# last frame: the left ankle 70 mm off, the clip's worst). One frame per pass, so it can have
+# a deeper search than the rest: on the three accuracy clips' last frames, 120 hops lowered
+# the energy of 30 hops' fit on all three, by 0.3-0.5% (basketball's left wrist 48 -> 33 mm),
+# for about 13 s per pass. It is also fitted from each limb's other basins (the first pass's
+# ``search``, done for this frame in every pass): basketball's last frame kept a left elbow
+# 89 mm off through the hops, and from the basins its energy fell from 3,272 to 3,188 pixels
+# and its worst joint to 35 mm.
+PASS_START_HOPS = 120
+# Hops for every frame of a poor window's passes (``server.session.refine_poor_windows``). Each frame of the run
+# the passes left in a valley of its own is fitted from its neighbour, which is off too; a hop
+# moves one chain and fits all 35 parameters together, which goes down a valley that runs across
+# the chains (docs/accuracy.md, "Hops in poor windows": the cartwheel's frames over 40 mm 11 -> 7
+# with 20, 7 with 40 and 80)
+POOR_WINDOW_HOPS = 20
+# hops that refit each first frame of the passes after foreground no pose explains was cleared,
+# from its own fit: with PASS_START_HOPS (120) the posture takes beside a prop came out no
+# better, a third slower (docs/accuracy.md)
+UNEXPLAINED_START_HOPS = 20
 
 
 @dataclass(frozen=True)
 class Schedules:
-    """The schedules a run fits its frames by (a Config.toml's ``[fit.schedules]``, whose keys
-    are these fields' names): ``after_hops`` is added to a refinement's stages where it hops,
-    ``search_hops`` are the hops of the search's ``hops`` proposer."""
+    """The schedules a run fits its frames by, and its hop budgets (a Config.toml's
+    ``[fit.schedules]``, whose keys are these fields' names): ``after_hops`` is added to a
+    refinement's stages where it hops; ``search_hops`` are the hops of the search's ``hops``
+    proposer, ``pass_start_hops`` those of a refinement pass's first frame (server.session),
+    ``poor_window_hops`` every frame's in a poor window's passes, ``unexplained_start_hops``
+    a pass's first frame's after clearing foreground no pose explains."""
 
     tracking: Schedule = TRACKING
     limbs_lost: Schedule = LIMBS_LOST
@@ -255,9 +278,14 @@ class Schedules:
     refine_search: Schedule = REFINE_SEARCH
     after_hops: Schedule = AFTER_HOPS
     search_hops: int = SEARCH_HOPS
+    pass_start_hops: int = PASS_START_HOPS
+    poor_window_hops: int = POOR_WINDOW_HOPS
+    unexplained_start_hops: int = UNEXPLAINED_START_HOPS
 
 
 SCHEDULES = Schedules()
+
+
 @dataclass(frozen=True)
 class Context:
     """What a schedule's proposers and fits see of one frame.

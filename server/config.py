@@ -22,7 +22,7 @@ from typing import Any, Callable
 from common.errors import InputFileError, UserError
 from common.export import ALL_FORMATS, FORMATS
 from common.fitting import ENERGY_BACKENDS, FitOptions
-from common.schedule_tables import SCHEDULE_NAMES, schedules_from_table, schedules_table
+from common.schedule_tables import HOP_BUDGETS, SCHEDULE_NAMES, schedules_from_table, schedules_table
 from common.segmentation import METHODS
 from common.sequence import MAX_MASK_THRESHOLD
 from common.world import UP_CHOICES
@@ -169,7 +169,8 @@ SETTINGS: tuple[Setting, ...] = (
             "every part in every evaluation, the same energies, slower)"),
     Setting("fit", "schedules", {}, dict, "the search's schedules where not the defaults: [fit.schedules.NAME] "
             "stages = [{proposers = [...], variants = [...], ...}, ...], budget = evaluations; NAME one of "
-            + ", ".join(SCHEDULE_NAMES) + "; search_hops = N (docs/fitting.md, \"Schedules\")",
+            + ", ".join(SCHEDULE_NAMES) + "; and the hop budgets " + ", ".join(HOP_BUDGETS)
+            + " = N (docs/fitting.md, \"Schedules\")",
             wanted="a table of schedules", structured=schedules_from_table),
     Setting("fit", "threads", 0, int, "single process: starts and limbs fitted at once (0: every core); "
             "the poses are the same for any number", _at_least(0), "an integer >= 0"),
@@ -187,6 +188,16 @@ SEARCH_KNOBS = ("grid_steps", "grid_range", "turn_step", "spine_twist_prior", "r
 # keys a take's fit record holds only where set away from their default: added after takes were
 # fitted without them, they must not refit those takes
 RECORDED_WHEN_SET = SEARCH_KNOBS + ("mask_threshold",)
+
+
+SCHEDULES_KEY = ("fit", "schedules")
+
+
+def merged(values: dict, key: tuple[str, str], value):
+    """``value`` for ``key`` over what ``values`` holds for it: a later file's (or ``--set``'s)
+    ``[fit.schedules]`` replaces the schedules it names and keeps the others; any other key's
+    value replaces the earlier one whole."""
+    return values.get(key, {}) | value if key == SCHEDULES_KEY else value
 
 
 def setting_default(section: str, key: str):
@@ -246,7 +257,7 @@ class Config:
         out = []
         for s in SETTINGS:
             value, source = self.get(s.section, s.key), self.source(s.section, s.key)
-            if (s.section, s.key) == ("fit", "schedules"):
+            if (s.section, s.key) == SCHEDULES_KEY:
                 for name, table in schedules_table(schedules_from_table(value)).items():
                     where = self.sources.get(("fit.schedules", name), DEFAULT)
                     out.append(f"[fit.schedules] {name} = {toml_value(table)}   # {where}")
@@ -283,10 +294,9 @@ def load_config(files: list[Path]) -> Config:
     for path in files:
         if path.is_file():
             for key, value in read_config_file(path).items():
-                if key == ("fit", "schedules"):  # a take's file replaces the schedules it names
+                if key == SCHEDULES_KEY:
                     sources.update({("fit.schedules", name): str(path) for name in value})
-                    value = values[key] | value
-                values[key], sources[key] = value, str(path)
+                values[key], sources[key] = merged(values, key, value), str(path)
     preset = values[("fit", "preset")]
     for key, value in PRESETS[preset].items():  # under the keys a file sets, over the defaults
         if sources[("fit", key)] == DEFAULT:
@@ -343,7 +353,8 @@ def fit_option_defaults(preset: str | None, path: Path | None, settings: list[st
         if not path.is_file():
             raise InputFileError(path, "missing (--config names a Config.toml)")
         given = read_config_file(path)
-    given.update(parse_setting(text) for text in settings)
+    for key, value in (parse_setting(text) for text in settings):
+        given[key] = merged(given, key, value)
     # --preset over the file's [fit] preset; the file's own keys over either
     values = {("fit", k): v for k, v in PRESETS[preset or given.get(("fit", "preset"), DEFAULT)].items()}
     values.update(given)

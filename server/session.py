@@ -372,23 +372,8 @@ def model_scale(model: BodyModel) -> float:
     differs in the last digits, and a body 1e-7 larger fits another pose in the end)."""
     return float(model.scale / load_body_model().scale)
 
+
 SETTLE_FRAMES = 10  # frames tracked after a first-frame search before it is refined backwards (online runs)
-# hops that refit a pass's first frame, which has no neighbour to be refitted from: the
-# sequence's last frame on a backward pass is otherwise only ever tracking's fit (basketball's
-# last frame: the left ankle 70 mm off, the clip's worst). One frame per pass, so it can have
-# a deeper search than the rest: on the three accuracy clips' last frames, 120 hops lowered
-# the energy of 30 hops' fit on all three, by 0.3-0.5% (basketball's left wrist 48 -> 33 mm),
-# for about 13 s per pass. It is also fitted from each limb's other basins (the first pass's
-# ``search``, done for this frame in every pass): basketball's last frame kept a left elbow
-# 89 mm off through the hops, and from the basins its energy fell from 3,272 to 3,188 pixels
-# and its worst joint to 35 mm.
-PASS_START_HOPS = 120
-# Hops for every frame of a poor window's passes (``refine_poor_windows``). Each frame of the run
-# the passes left in a valley of its own is fitted from its neighbour, which is off too; a hop
-# moves one chain and fits all 35 parameters together, which goes down a valley that runs across
-# the chains (docs/accuracy.md, "Hops in poor windows": the cartwheel's frames over 40 mm 11 -> 7
-# with 20, 7 with 40 and 80)
-POOR_WINDOW_HOPS = 20
 
 
 def refine_chunks(order: list[int], chunk_frames: int) -> list[list[int]]:
@@ -402,17 +387,16 @@ def refine_chunks(order: list[int], chunk_frames: int) -> list[list[int]]:
 
 def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
                 stats: RunStats, backward: bool = True, progress=None, search: bool = False,
-                hops: int = 0, anchor: np.ndarray | None = None, start_hops: int = 0,
+                hops: int = 0, anchor: np.ndarray | None = None, start_hops: int | None = None,
                 schedules: Schedules = SCHEDULES) -> tuple[list[dict], int]:
     """Fitted frames fitted again in one direction, each by ``common.search.refine_frame`` from
     its neighbour's fit: going backwards each frame starts from the (already refined) fit of the
     frame after it, forwards from the frame before; each keeps the lowest energy. The pass's
-    first frame, which has no neighbour, is fitted by ``start_hops`` hops (else the pass's own
-    ``hops``, else PASS_START_HOPS) and from its limbs' other basins, unless ``anchor`` (35,) is
-    the fit of the frame beyond it, which
-    the pass then starts from (a run without refinement carrying its settled tracking back over
-    the frames after a first-frame search). With ``search``, each frame is also fitted from each limb's
-    other basins (tracking and its neighbours can share a torso and limb that are off together:
+    first frame, which has no neighbour, is fitted by ``start_hops`` hops (None: the pass's own
+    ``hops``, else the schedules' ``pass_start_hops``) and from its limbs' other basins, unless
+    ``anchor`` (35,) is the fit of the frame beyond it, which the pass then starts from (a run
+    without refinement carrying its settled tracking back over the frames after a first-frame
+    search). With ``search``, each frame is also fitted from each limb's other basins (tracking and its neighbours can share a torso and limb that are off together:
     basketball frame 84, the left ankle 74 mm off, an alternative leg 1.8% lower in energy).
     With ``hops`` > 0, every frame also gets that many hops, seeded by its frame number; a
     cluster's clients run them side by side.
@@ -463,7 +447,8 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     searched = []
     neighbour = None if anchor is None else np.asarray(anchor, dtype=np.float64)
     if neighbour is None and order:  # the pass's first frame, by hops on every thread
-        searched.append(refine_one(order[0], None, None, start_hops or hops or PASS_START_HOPS, basins=True))
+        first_hops = start_hops if start_hops is not None else hops or schedules.pass_start_hops
+        searched.append(refine_one(order[0], None, None, first_hops, basins=True))
         neighbour, order = np.asarray(out[order[0]]["params"], dtype=np.float64), order[1:]
     chunks = refine_chunks(order, options.refine_chunk_frames)
     side_by_side = isinstance(solver, LocalSolver) and solver.threads > 1 and len(chunks) > 1
@@ -523,8 +508,8 @@ def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], op
     """After the passes: the frames around each run of poor fits (``common.search.poor_windows``:
     the XOR share of the silhouette well above the take's median) refined once more, forwards
     from the fit before the window, then backwards from the fit after it (``refine_pass``, each
-    frame also by POOR_WINDOW_HOPS hops; a window at the take's end starts from hops). A run the
-    passes left in a valley of its own (the cartwheel rolling onto its side, where each frame
+    frame also by the schedules' ``poor_window_hops`` hops; a window at the take's end starts from
+    hops). A run the passes left in a valley of its own (the cartwheel rolling onto its side, where each frame
     fitted from a neighbour that is off stays off) is refined from both sides again, as further
     passes would, and searched more widely, at a few frames' cost. The volume energy is no XOR
     (metres squared): its fits are not judged so. A window's end frames are not also started
@@ -539,8 +524,8 @@ def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], op
             beyond = last + 1 if backward else first - 1
             anchor = np.asarray(out[beyond]["params"], dtype=np.float64) if 0 <= beyond < len(out) else None
             out[first:last + 1], _ = refine_pass(model, seq, out[first:last + 1], options, solver, stats, backward,
-                                                 progress, hops=POOR_WINDOW_HOPS, anchor=anchor,
-                                                 start_hops=PASS_START_HOPS, schedules=schedules)
+                                                 progress, hops=schedules.poor_window_hops, anchor=anchor,
+                                                 start_hops=schedules.pass_start_hops, schedules=schedules)
     return out, sum(1 for r, before in zip(out, records) if r["energy"] < before["energy"])
 
 
@@ -570,9 +555,6 @@ def refit_standing_out(model: BodyModel, seq: Sequence, records: list[dict], opt
 
 
 UNEXPLAINED_ROUNDS = 3  # the foreground found again from the fits it gave, while it grows
-# hops that refit each of the passes' first frames, from its own fit: with PASS_START_HOPS (120)
-# the posture takes beside a prop came out no better, a third slower (docs/accuracy.md)
-UNEXPLAINED_START_HOPS = 20
 
 
 def unexplained_pixels(model: BodyModel, seq: Sequence, records: list[dict]) -> tuple[np.ndarray | None, float]:
@@ -621,7 +603,7 @@ def leave_out_unexplained(model: BodyModel, seq: Sequence, records: list[dict], 
             r["energy"] = int(full_energy(model, frame_data(model, cleared, r["frame"]), np.asarray(r["params"])))
         for backward in (True, False):
             out, _ = refine_pass(model, cleared, out, options, solver, stats, backward, progress,
-                                 start_hops=UNEXPLAINED_START_HOPS, schedules=schedules)
+                                 start_hops=schedules.unexplained_start_hops, schedules=schedules)
     if flags is None:
         return seq, records, {}
     return cleared, out, {"share": round(float(flags.sum() / mean_area), 4), "rounds": len(added),
@@ -724,8 +706,10 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                 progress(n, len(frames), f"frame {frame}: first-frame search ({init} start)")
             ctx = context(model, data, frame, options, solver)
             # the actor-size search fitted this frame's voxel starts at this model's size already
+            # (fits of the same starts under the same first stage: a start is keyed by its variant alone)
             known = actor_size if (init == "auto" and actor_size and actor_size.scale == 1.0
-                                   and actor_size.frame == frame) else None
+                                   and actor_size.frame == frame
+                                   and schedules.wide.stages[0] == schedules.search.stages[0]) else None
             result = search_frame(model, data, known.starts if known else initial_starts(model, seq, data, init),
                                   options, ctx.dispatch, frame, ctx.side_by_side, memo=known.memo if known else None,
                                   schedules=schedules)

@@ -180,7 +180,7 @@ def test_config_keys_prints_a_config_toml_of_the_defaults(tmp_path, capsys):
     so that the file saved with another preset takes the preset's values."""
     import tomllib
 
-    from server.config import PRESET_KEYS, PRESETS, SETTINGS, read_config_file
+    from server.config import PRESET_KEYS, PRESETS, SCHEDULES_KEY, SETTINGS, read_config_file
 
     assert main(["config", "keys"]) == 0
     out = capsys.readouterr().out
@@ -190,7 +190,12 @@ def test_config_keys_prints_a_config_toml_of_the_defaults(tmp_path, capsys):
             tomllib.loads(line.removeprefix("# "))
     (tmp_path / "Config.toml").write_text(out)
     defaults = {(s.section, s.key): s.default for s in SETTINGS}
-    assert read_config_file(tmp_path / "Config.toml") == {k: v for k, v in defaults.items() if k not in PRESET_KEYS}
+    commented = PRESET_KEYS | {SCHEDULES_KEY}  # the schedules commented out too: [fit.schedules.NAME] tables set them
+    assert read_config_file(tmp_path / "Config.toml") == {k: v for k, v in defaults.items() if k not in commented}
+    with_tables = out + '\n[fit.schedules.tracking]\nstages = [{proposers = ["start"]}]\n'
+    (tmp_path / "Config.toml").write_text(with_tables)  # a schedule's table added to the file as printed
+    tracking = {"tracking": {"stages": [{"proposers": ["start"]}]}}
+    assert read_config_file(tmp_path / "Config.toml")[SCHEDULES_KEY] == tracking
     uncommented = "\n".join(line.removeprefix("# ") if " = " in line else line for line in out.splitlines())
     (tmp_path / "Config.toml").write_text(uncommented)
     assert read_config_file(tmp_path / "Config.toml") == defaults

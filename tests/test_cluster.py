@@ -147,7 +147,8 @@ def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_pat
     basins, or hopping, the clients running hops side by side), with two clients: each frame's poses and which frames
     the passes replaced are the single process's. Three frames, so that going backwards a
     client is sent a frame older than the two it holds."""
-    from server.session import PASS_START_HOPS, LocalSolver
+    from common.search import PASS_START_HOPS
+    from server.session import LocalSolver
 
     options = FitOptions(refine_passes=2, refine_search=search, refine_hops=hops)
     seq = load_sequence(seq_path)

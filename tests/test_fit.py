@@ -12,7 +12,7 @@ import pytest
 
 from common.body import CHAINS, JOINT_NAMES, LIMB_CHAINS, LIMB_ROOTS, P, PARAM_COUNT, PARAM_LIMITS, forward_kinematics
 from common.fitting import HOP_JOBS, FitOptions, FrameData, full_energy, hop_fit, solve_chain
-from common.search import (POLISHED, Context, Schedule, Stage, descend_outward, fit_frame, run_schedule,
+from common.search import (POLISHED, SCHEDULES, Context, Schedule, Stage, descend_outward, fit_frame, run_schedule,
                            solve_locally)
 from server.cli import main
 from server.output import counted
@@ -949,7 +949,8 @@ def test_a_pass_given_an_anchor_starts_from_it_without_hops(model, five_frames, 
     refitted backwards from that frame's fit (the anchor), which is neither refitted nor hopped;
     a pass without an anchor hops its first frame."""
     from common.sequence import load_sequence
-    from server.session import PASS_START_HOPS, LocalSolver, RunStats, refine_pass, run_fit
+    from common.search import PASS_START_HOPS
+    from server.session import LocalSolver, RunStats, refine_pass, run_fit
 
     seq = load_sequence(five_frames)
     options = FitOptions(refine_passes=0)
@@ -992,8 +993,8 @@ def test_a_refinement_pass_fits_each_inner_frame_from_halfway_between_its_neighb
         return fits(ctx, jobs, *rest)
 
     monkeypatch.setattr(search, "fit_starts", spy)
-    monkeypatch.setattr(session, "PASS_START_HOPS", 0)
-    refined, _ = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats(), backward)
+    refined, _ = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats(), backward,
+                             schedules=replace(SCHEDULES, pass_start_hops=0))
     step = -1 if backward else 1
     order = list(range(len(records)))[::step]
     for behind, i in zip(order, order[1:-1]):
@@ -1017,12 +1018,13 @@ def test_a_pass_refits_its_first_frame_from_its_limbs_other_basins(model, five_f
     from server import session
     from server.session import LocalSolver, RunStats, refine_pass, refinement_note, run_fit
 
-    monkeypatch.setattr(session, "PASS_START_HOPS", 0)  # the search alone, not the start's hops
+    searching = replace(SCHEDULES, pass_start_hops=0)  # the search alone, not the start's hops
     # the masks as rendered: the cleaning drops a few stray pixels of the hands (1-6 per camera),
     # and on them the arm's other basin lies 460 mm off with less energy
     seq = load_sequence(five_frames, clean_masks=False)
     options = FitOptions(refine_passes=2, refine_search=True)
-    summary = run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=2)
+    summary = run_fit(model, seq, tmp_path, options, LocalSolver(model, options), max_frames=2,
+                      schedules=searching)
     assert [(p["direction"], p["search"]) for p in summary["refinement_passes"]] == [("backward", True),
                                                                                      ("forward", False)]
     assert refinement_note(summary) == f"(2 passes, the first searching, {counted(summary['frames_refined'], 'frame')} improved)"
@@ -1044,7 +1046,7 @@ def test_a_pass_refits_its_first_frame_from_its_limbs_other_basins(model, five_f
     for search in (False, True):
         searched_frames.clear()
         refined, replaced = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats(),
-                                        search=search)
+                                        search=search, schedules=searching)
         assert searched_frames == [True, search]  # the pass's first frame (the last), then the other
         assert replaced >= 1 and refined[-1]["energy"] < records[-1]["energy"]
         assert all(r["energy"] <= b["energy"] for r, b in zip(refined, records))
@@ -1225,7 +1227,8 @@ def test_a_hopping_pass_refits_a_frame_whose_torso_and_leg_are_off_together(mode
     first pass only, and says so."""
     from common.body import clip_to_limits
     from common.sequence import load_sequence
-    from server.session import PASS_START_HOPS, LocalSolver, RunStats, refine_pass, refinement_note, run_fit
+    from common.search import PASS_START_HOPS
+    from server.session import LocalSolver, RunStats, refine_pass, refinement_note, run_fit
 
     seq = load_sequence(five_frames)
     options = FitOptions(refine_passes=2, refine_hops=10)
@@ -1313,7 +1316,6 @@ def test_schedules_read_from_a_file_or_set_reach_the_fit(tmp_path):
     import argparse
 
     from common.schedule_tables import schedules_from_table, schedules_table
-    from common.search import SCHEDULES
     from server.commands.fit import add_fit_arguments, schedules_from_args
     from server.config import fit_option_defaults
 
@@ -1322,7 +1324,7 @@ def test_schedules_read_from_a_file_or_set_reach_the_fit(tmp_path):
         add_fit_arguments(parser)
         args = parser.parse_args(["seq", "--out", "r", *argv])
         parser.set_defaults(**fit_option_defaults(None, config, args.set))
-        return schedules_from_args(parser.parse_args(["seq", "--out", "r", *argv]))
+        return schedules_from_args(parser.parse_args(["seq", "--out", "r", *argv]), FitOptions())
 
     assert schedules() == SCHEDULES
     assert schedules_from_table(schedules_table(SCHEDULES)) == SCHEDULES
@@ -1336,8 +1338,10 @@ def test_schedules_read_from_a_file_or_set_reach_the_fit(tmp_path):
     assert chosen.search == Schedule((Stage(("starts",), ("wide-round",), drop=(2, 1.5)),
                                       Stage(("again",), None, rounds=2, min_gain=0.01)), budget=1000)
     assert (chosen.search_hops, chosen.refine, chosen.wide) == (5, SCHEDULES.refine, SCHEDULES.wide)
+    # --set replaces the schedules it names and keeps the file's others
     given = schedules("--set", 'fit.schedules={limbs_lost={stages=[{proposers=["start"]}]}}', config=file)
-    assert given.limbs_lost == Schedule((Stage(("start",)),)) and given.tracking == SCHEDULES.tracking
+    assert given.limbs_lost == Schedule((Stage(("start",)),)) and given.tracking == chosen.tracking
+    assert (given.search, given.search_hops) == (chosen.search, 5)
 
 
 @pytest.mark.parametrize("table, message", [
@@ -1351,11 +1355,43 @@ def test_schedules_read_from_a_file_or_set_reach_the_fit(tmp_path):
     ('{search={budget=-1, stages=[{proposers=["starts"]}]}}', "search: budget: expected an integer >= 0"),
     ('{tracking_stages={stages=[{proposers=["start"]}]}}', "unknown schedule 'tracking_stages' (did you mean 'tracking'?)"),
     ('{search_hops=-2}', "search_hops: expected an integer >= 0, got -2"),
+    ('{pass_start_hops=1.5}', "pass_start_hops: expected an integer >= 0, got 1.5"),
+    ('{after_hops={budget=10, stages=[{proposers=["twists"]}]}}', "after_hops: budget: added to a refinement's"),
+    ('{tracking={stages=[{proposers=["again"]}]}}', "tracking: stage 1 makes no start: its proposers need one of start,"),
+    ('{search={stages=[{proposers=["starts"], variants="as-fitted"}]}}',
+     "search: stage 1 makes no start: its variants fit nothing with these settings (as-fitted)"),
 ])
 def test_fit_refuses_bad_schedules_naming_the_schedule_and_stage(small_sequence, tmp_path, capsys, table, message):
     assert fit(small_sequence, tmp_path / "r", "--set", f"fit.schedules={table}") == 2
     err = capsys.readouterr().err
-    assert "--set: [fit.schedules] " in err and message in err and "Traceback" not in err
+    assert "[fit.schedules] " in err and message in err and "Traceback" not in err
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.timeout(300)
+def test_a_run_keeps_its_own_schedules_and_resumes_only_with_them(small_sequence, tmp_path, capsys):
+    """run.json holds the schedules that are not the defaults (a run with the defaults holds
+    none, so that runs from before schedules were settings resume); --resume refuses others."""
+    lean = 'fit.schedules={tracking={stages=[{proposers=["start"]}]}}'
+    assert fit(small_sequence, tmp_path / "plain", "--frames", "1", "--refine-passes", "0") == 0
+    assert "schedules" not in json.loads((tmp_path / "plain" / "run.json").read_text())
+    assert fit(small_sequence, tmp_path / "r", "--frames", "1", "--refine-passes", "0", "--set", lean) == 0
+    assert json.loads((tmp_path / "r" / "run.json").read_text())["schedules"] == {
+        "tracking": {"stages": [{"proposers": ["start"]}], "budget": 0}}
+    capsys.readouterr()
+    assert fit(small_sequence, tmp_path / "r", "--frames", "2", "--refine-passes", "0", "--resume") == 2
+    assert "--resume: the settings differ" in capsys.readouterr().err
+    assert fit(small_sequence, tmp_path / "r", "--frames", "2", "--refine-passes", "0", "--resume", "--set", lean) == 0
+    assert len(read_lines(tmp_path / "r" / "poses.jsonl")) == 2
+
+
+def test_a_first_stage_that_fits_nothing_under_the_preset_is_refused(small_sequence, tmp_path, capsys):
+    """Tracking polished only, under the fast preset (no polish rounds), would make no fit: refused
+    before anything is fitted or written."""
+    table = '{tracking={stages=[{proposers=["start"], variants=["polish"]}]}}'
+    assert fit(small_sequence, tmp_path / "r", "--preset", "fast", "--set", f"fit.schedules={table}") == 2
+    assert "tracking: stage 1 makes no start: its variants fit nothing with these settings (polish)" in \
+        capsys.readouterr().err
     assert not (tmp_path / "r").exists()
 
 
@@ -1363,8 +1399,6 @@ def test_fit_refuses_bad_schedules_naming_the_schedule_and_stage(small_sequence,
 def test_a_leaner_tracking_schedule_is_what_tracks(model, frames):
     """A tracking schedule of the previous pose alone fits that one start: its evaluations are
     one fit's, a fraction of the default schedule's turns, polish and re-detection."""
-    from common.search import SCHEDULES
-
     data, truth = frames
     lean = replace(SCHEDULES, tracking=Schedule((Stage(("start",)),)))
     alone = fit_frame(model, data[1], truth[0].params, FitOptions(), schedules=lean)

@@ -27,7 +27,8 @@ import common.search as search  # noqa: E402  (refine_frame calls hop_fit by the
 from common.body import forward_kinematics, load_body_model  # noqa: E402
 from common.fitting import FitOptions, FrameResult, hop_fit  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
-from server.session import PASS_START_HOPS, frame_data  # noqa: E402
+from common.search import PASS_START_HOPS  # noqa: E402
+from server.session import frame_data  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

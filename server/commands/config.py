@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from common.errors import UserError
-from server.config import PRESET_KEYS, SECTIONS, SETTINGS, load_config, toml_value
+from server.config import PRESET_KEYS, SCHEDULES_KEY, SECTIONS, SETTINGS, load_config, toml_value
 from server.project import check_recordings, config_key_note, plan_lines, plan_take
 from server.takes import config_files, is_take, take_config
 
@@ -46,11 +46,12 @@ def run_keys(args) -> int:
     # a Config.toml of every key at its default: each section's keys under its header; the keys a
     # preset sets commented out, so that the file, saved and given a preset, still takes it
     print("# every key a Config.toml may hold, at its default; the [fit] keys a preset sets are\n"
-          "# commented out: set here, they are in force whatever the preset")
+          "# commented out: set here, they are in force whatever the preset; so are the schedules,\n"
+          "# which [fit.schedules.NAME] tables set (mocap config show prints those in force)")
     for section in SECTIONS:
         print(f"\n[{section}]")
         for s in SETTINGS:
             if s.section == section:
-                mark = "# " if (s.section, s.key) in PRESET_KEYS else ""
+                mark = "# " if (s.section, s.key) in PRESET_KEYS | {SCHEDULES_KEY} else ""
                 print(f"{mark}{s.key} = {toml_value(s.default)}   # {s.help}")
     return 0

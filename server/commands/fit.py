@@ -10,8 +10,8 @@ from common.body import load_body_model
 from common.errors import UserError, print_warning
 from common.export import sample_rate, write_motion_bvh
 from common.fitting import ENERGY_BACKENDS, FitOptions
-from common.schedule_tables import schedules_from_table
-from common.search import Schedules
+from common.schedule_tables import check_first_starts, schedules_from_table
+from common.search import SCHEDULES, Schedules
 from common.sequence import MAX_MASK_THRESHOLD, load_sequence
 from common.world import UP_CHOICES
 from common.argtypes import count
@@ -43,7 +43,7 @@ def add_fit_arguments(p) -> None:
                         "of their own")
     p.set_defaults(command_parser=p)  # server.cli re-parses with the preset's and file's values as defaults
     # the search's knobs, which only a Config.toml or --set changes, at their settings' defaults
-    p.set_defaults(**{key: setting_default("fit", key) for key in SEARCH_KNOBS + ("schedules",)})
+    p.set_defaults(**{key: setting_default("fit", key) for key in SEARCH_KNOBS})
     p.add_argument("--out", type=Path, required=True, help="result folder")
     p.add_argument("--energy", choices=ENERGY_BACKENDS, default="cpu", help="energy backend (default cpu)")
     p.add_argument("--frames", type=count(1), default=None, help="fit only the first N frames")
@@ -104,13 +104,15 @@ def options_from_args(args) -> FitOptions:
         raise UserError(f"bad fit option: {exc}") from None
 
 
-def schedules_from_args(args) -> Schedules:
+def schedules_from_args(args, options: FitOptions) -> Schedules:
     """The schedules of a Config.toml's ``[fit.schedules]`` (``--config``, ``--set``) over the
-    defaults (checked as the file was read)."""
+    defaults (checked as the file was read), each able to start under ``options``."""
     try:
-        return schedules_from_table(args.schedules)
+        schedules = schedules_from_table(args.schedules)
+        check_first_starts(schedules, options)
     except ValueError as exc:
         raise UserError(f"[fit.schedules] {exc}") from None
+    return schedules
 
 
 def finish(model, seq, args, summary: dict) -> None:
@@ -235,10 +237,10 @@ def add_world_arguments(p, clean: bool = True) -> None:
                        help="fit the masks as they are (default: blobs the other cameras do not support are dropped)")
 
 
-def actor_model(model, seq, options, args, init: str, threads: int = 0):
+def actor_model(model, seq, options, args, init: str, threads: int = 0, schedules: Schedules = SCHEDULES):
     """(the body model at the actor's size, the ``ActorSize`` search that chose it or None)
     (``--actor-height``; auto: see ``choose_actor_scale``, on ``threads`` threads, 0: as
-    ``resolve_threads`` says)."""
+    ``resolve_threads`` says; the search by ``schedules``' wide one)."""
     if args.actor_height != "auto":
         try:
             height = float(args.actor_height)
@@ -253,7 +255,7 @@ def actor_model(model, seq, options, args, init: str, threads: int = 0):
         return (model.scaled(scale) if scale != 1.0 else model), None
     if init == "truth":
         return model, None
-    size = choose_actor_scale(model, seq, options, resolve_threads(threads, options), schedules_from_args(args))
+    size = choose_actor_scale(model, seq, options, resolve_threads(threads, options), schedules)
     if size.scale in (ACTOR_SCALES[0], ACTOR_SCALES[-1]):
         edge, beyond = ("largest", "larger") if size.scale == ACTOR_SCALES[-1] else ("smallest", "smaller")
         print_warning(f"actor size {size.scale:.2f} is the {edge} the size search tries ({ACTOR_SCALES[0]:g}-"
@@ -302,9 +304,10 @@ def run(args) -> int:
     warn_if_software_gl(args.energy)
     base = load_body_model()
     seq = open_sequence_to_fit(args)
-    options, schedules = options_from_args(args), schedules_from_args(args)
+    options = options_from_args(args)
+    schedules = schedules_from_args(args, options)
     init = args.init or ("truth" if seq.truth() else "auto")
-    model, size = actor_model(base, seq, options, args, init, args.threads)
+    model, size = actor_model(base, seq, options, args, init, args.threads, schedules)
     total = min(len(seq.frames), args.frames or len(seq.frames))
     bar = Progress("fit", total, enabled=None if not args.quiet else False)
     if args.clients == 0:

@@ -46,7 +46,8 @@ def run(args) -> int:
     check_folder_target(args.out, RESULT_FILES, resume=args.resume, overwrite=args.overwrite)
     warn_if_software_gl(args.energy)
     seq = open_sequence_to_fit(args)
-    options, schedules = options_from_args(args), schedules_from_args(args)
+    options = options_from_args(args)
+    schedules = schedules_from_args(args, options)
     init = args.init or ("truth" if seq.truth() else "auto")
     with terminate_on_sigterm():
         # bound first, so that clients (and a container's health check) find the server while
@@ -58,7 +59,7 @@ def run(args) -> int:
         try:
             # the actor's size as mocap fit chooses it, on the server's threads; the FRAMEs carry it
             # to the clients
-            model, size = actor_model(load_body_model(), seq, options, args, init, args.threads)
+            model, size = actor_model(load_body_model(), seq, options, args, init, args.threads, schedules)
             if args.min_clients > 0:
                 logging.getLogger("server.cluster").info("waiting for %d client(s) on %s", args.min_clients,
                                                          solver.endpoint)
