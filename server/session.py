@@ -434,7 +434,7 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
             ctx = context(model, data, r["frame"], options, solver)
             dispatch, at_once = ctx.dispatch, ctx.side_by_side
         again = refine_frame(model, data, tracked, options, dispatch, neighbour, beyond, other, frame_hops,
-                             basins, r["frame"], at_once, schedules)
+                             basins, r["frame"], at_once, schedules=schedules)
         if keep_refit(model, seq, r, again, time.perf_counter() - t0):
             with lock:
                 replaced.add(i)

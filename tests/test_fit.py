@@ -926,9 +926,9 @@ def test_a_chunked_pass_meets_at_the_seams(model, five_frames, tmp_path, monkeyp
     starts = []
     real = session.refine_frame
 
-    def spy(model_, data, tracked, options_, dispatch, neighbour, *rest):
+    def spy(model_, data, tracked, options_, dispatch, neighbour, *rest, **named):
         starts.append((rest[-2], None if neighbour is None else np.array(neighbour)))
-        return real(model_, data, tracked, options_, dispatch, neighbour, *rest)
+        return real(model_, data, tracked, options_, dispatch, neighbour, *rest, **named)
 
     monkeypatch.setattr(session, "refine_frame", spy)
     refined, _ = refine_pass(model, seq, records, options, LocalSolver(model, options), RunStats(), backward=True)
@@ -1038,9 +1038,10 @@ def test_a_pass_refits_its_first_frame_from_its_limbs_other_basins(model, five_f
     searched_frames = []
     real = session.refine_frame
 
-    def spy(model_, data_, tracked, options_, dispatch, neighbour, beyond, other, hops, search, *rest):
+    def spy(model_, data_, tracked, options_, dispatch, neighbour, beyond, other, hops, search, *rest, **named):
         searched_frames.append(search)
-        return real(model_, data_, tracked, options_, dispatch, neighbour, beyond, other, hops, search, *rest)
+        return real(model_, data_, tracked, options_, dispatch, neighbour, beyond, other, hops, search, *rest,
+                    **named)
 
     monkeypatch.setattr(session, "refine_frame", spy)
     for search in (False, True):
