@@ -10,6 +10,8 @@ from common.search import PROPOSERS, SCHEDULES, VARIANTS, Schedule, Schedules, S
 
 SCHEDULE_NAMES = tuple(f.name for f in fields(Schedules) if isinstance(f.default, Schedule))
 HOP_BUDGETS = tuple(f.name for f in fields(Schedules) if isinstance(f.default, int))  # search_hops, ...
+RATIOS = tuple(f.name for f in fields(Schedules) if isinstance(f.default, float))  # loss_ratio, ...
+SETTINGS = SCHEDULE_NAMES + HOP_BUDGETS + RATIOS
 # the schedules that start with no fit, and the proposers that make their first starts: from the
 # previous frame's fit (tracking) or from the search's starts (the others refit a fit they are given)
 FIRST_PROPOSERS = {"tracking": ("start", "start_turns", "tilt_ahead"), "wide": ("starts",), "search": ("starts",)}
@@ -125,6 +127,10 @@ def schedules_from_table(table) -> Schedules:
             if type(value) is not int or value < 0:
                 raise ValueError(f"{name}: expected an integer >= 0, got {_shown(value)}")
             values[name] = value
+        elif name in RATIOS:
+            if not (_number(value) and 1.0 < value < 10.0):
+                raise ValueError(f"{name}: expected a number between 1 and 10 (times), got {_shown(value)}")
+            values[name] = float(value)
         elif name in SCHEDULE_NAMES:
             try:
                 values[name] = schedule_from_table(value)
@@ -133,9 +139,9 @@ def schedules_from_table(table) -> Schedules:
             except ValueError as exc:
                 raise ValueError(f"{name}: {exc}") from None
         else:
-            near = difflib.get_close_matches(name, SCHEDULE_NAMES + HOP_BUDGETS, n=1)
+            near = difflib.get_close_matches(name, SETTINGS, n=1)
             raise ValueError(f"unknown schedule {name!r}{f' (did you mean {near[0]!r}?)' if near else ''} "
-                             f"(known: {', '.join(SCHEDULE_NAMES + HOP_BUDGETS)})")
+                             f"(known: {', '.join(SETTINGS)})")
     return replace(SCHEDULES, **values)
 
 
@@ -155,7 +161,7 @@ def check_first_starts(schedules: Schedules, options) -> None:
 def schedules_table(schedules: Schedules) -> dict:
     """``schedules`` as a Config.toml's ``[fit.schedules]`` table."""
     return {name: schedule_table(getattr(schedules, name)) for name in SCHEDULE_NAMES} | {
-        name: getattr(schedules, name) for name in HOP_BUDGETS}
+        name: getattr(schedules, name) for name in HOP_BUDGETS + RATIOS}
 
 
 def _shown(value) -> str:

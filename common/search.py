@@ -260,6 +260,20 @@ POOR_WINDOW_HOPS = 20
 # better, a third slower (docs/accuracy.md)
 UNEXPLAINED_START_HOPS = 20
 
+# a refined frame whose energy is this many times the mean of its neighbours' stands out (the
+# masks' noise moves a frame's energy by a few per cent: 5 of the 17 shared clips' 1,686 refined
+# frames stand out at 1.08)
+STANDING_OUT_RATIO = 1.08
+# A refined frame whose XOR share of its silhouette area is this many times the take's median
+# share is poor, and the frames around it are refined once more (``poor_windows``): silhouette
+# noise and the body's own shape move the share by about a tenth, a run left in a valley of its
+# own (the cartwheel rolling onto its side) by up to a half. With the windows' hops a window
+# costs a few frames' search and has lowered every clip's error it was tried on, so the line
+# is at 1.15 (docs/accuracy.md, "Poor runs refined again", "Hops in poor windows")
+POOR_SHARE_RATIO = 1.15
+LOSS_ENERGY_RATIO = 1.25  # a frame's energy this far above the recent median: tracking is lost
+LIMB_LOSS_ENERGY_RATIO = 1.06  # ... this far: a limb may be lost, every limb is re-detected
+
 
 @dataclass(frozen=True)
 class Schedules:
@@ -268,7 +282,9 @@ class Schedules:
     refinement's stages where it hops; ``search_hops`` are the hops of the search's ``hops``
     proposer, ``pass_start_hops`` those of a refinement pass's first frame (server.session),
     ``poor_window_hops`` every frame's in a poor window's passes, ``unexplained_start_hops``
-    a pass's first frame's after clearing foreground no pose explains."""
+    a pass's first frame's after clearing foreground no pose explains; the ratios say when the
+    limbs-lost and search schedules run in tracking (``tracking_lost``) and which refined frames
+    are refined again (``poor_windows``, ``standing_out``)."""
 
     tracking: Schedule = TRACKING
     limbs_lost: Schedule = LIMBS_LOST
@@ -281,6 +297,10 @@ class Schedules:
     pass_start_hops: int = PASS_START_HOPS
     poor_window_hops: int = POOR_WINDOW_HOPS
     unexplained_start_hops: int = UNEXPLAINED_START_HOPS
+    limb_loss_ratio: float = LIMB_LOSS_ENERGY_RATIO
+    loss_ratio: float = LOSS_ENERGY_RATIO
+    poor_share_ratio: float = POOR_SHARE_RATIO
+    standing_out_ratio: float = STANDING_OUT_RATIO
 
 
 SCHEDULES = Schedules()
@@ -697,11 +717,6 @@ def refine_frame(model: BodyModel, frame: FrameData, fit: FrameResult, options: 
     return run_schedule(ctx, schedule, initial=fit)
 
 
-# a refined frame whose energy is this many times the mean of its neighbours' stands out (the
-# masks' noise moves a frame's energy by a few per cent: 5 of the 17 shared clips' 1,686 refined
-# frames stand out at 1.08)
-STANDING_OUT_RATIO = 1.08
-
 
 def standing_out(energies: list, ratio: float = STANDING_OUT_RATIO) -> list[int]:
     """Indices of the frames (not the first or the last) whose energy is ``ratio`` times the
@@ -710,13 +725,6 @@ def standing_out(energies: list, ratio: float = STANDING_OUT_RATIO) -> list[int]
     return [i for i in range(1, len(e) - 1) if e[i] >= ratio * 0.5 * (e[i - 1] + e[i + 1])]
 
 
-# A refined frame whose XOR share of its silhouette area is this many times the take's median
-# share is poor, and the frames around it are refined once more (``poor_windows``): silhouette
-# noise and the body's own shape move the share by about a tenth, a run left in a valley of its
-# own (the cartwheel rolling onto its side) by up to a half. With the windows' hops a window
-# costs a few frames' search and has lowered every clip's error it was tried on, so the line
-# is at 1.15 (docs/accuracy.md, "Poor runs refined again", "Hops in poor windows")
-POOR_SHARE_RATIO = 1.15
 POOR_MARGIN_FRAMES = 3  # frames refined either side of a run of poor ones
 
 
@@ -738,9 +746,7 @@ def poor_windows(shares: list, ratio: float = POOR_SHARE_RATIO, margin: int = PO
     return windows
 
 
-LOSS_ENERGY_RATIO = 1.25  # a frame's energy this far above the recent median: tracking is lost
-LIMB_LOSS_ENERGY_RATIO = 1.06  # ... this far: a limb may be lost, every limb is re-detected
-LOSS_HISTORY = 10         # frames in that median
+LOSS_HISTORY = 10         # frames in tracking_lost's median
 LOSS_MIN_HISTORY = 3
 
 

@@ -48,7 +48,7 @@ from common.scoring import accuracy, frame_quality, quality_summary, size_score
 from common.settle import candidate_frames, mask_step, settle_choice
 from common.search import (FIT_JOBS, SCHEDULES, VARIANTS, Context, Schedules, descend_outward, fit_frame,
                            is_chain_solve, lowest, refine_frame, run_schedule, search_frame,
-                           solve_locally, poor_windows, standing_out, tracking_lost, LIMB_LOSS_ENERGY_RATIO)
+                           solve_locally, poor_windows, standing_out, tracking_lost)
 from common.schedule_tables import schedules_table
 from common.sequence import Sequence
 from server.output import counted, write_text
@@ -314,12 +314,12 @@ def track(model: BodyModel, data: FrameData, frame: int, start: np.ndarray, befo
     result = fit_frame(model, data, ctx.start, options, ctx.dispatch, before=before, frame_number=frame,
                        schedules=schedules)
     limbs_redetected = recovered = False
-    if tracking_lost(energies, result.energy, LIMB_LOSS_ENERGY_RATIO):  # a limb lost: every limb searched
+    if tracking_lost(energies, result.energy, schedules.limb_loss_ratio):  # a limb lost: every limb searched
         again = run_schedule(Context(model, data, options, ctx.dispatch, frame, start=result.params),
                              schedules.limbs_lost, initial=result)
         limbs_redetected = again.energy < result.energy
         result = again
-    starts = recovery_starts(model, data) if tracking_lost(energies, result.energy) else []
+    starts = recovery_starts(model, data) if tracking_lost(energies, result.energy, schedules.loss_ratio) else []
     if starts:  # the whole body lost: start again from the voxels, as on a first frame
         if note:
             note(f"frame {frame}: tracking lost, searching from voxels")
@@ -519,7 +519,7 @@ def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], op
         return records, 0
     shares = [r["energy"] / max(int(np.count_nonzero(seq.silhouettes(r["frame"]))), 1) for r in records]
     out = [dict(r) for r in records]
-    for first, last in poor_windows(shares):
+    for first, last in poor_windows(shares, schedules.poor_share_ratio):
         for backward in (False, True):
             beyond = last + 1 if backward else first - 1
             anchor = np.asarray(out[beyond]["params"], dtype=np.float64) if 0 <= beyond < len(out) else None
@@ -540,7 +540,7 @@ def refit_standing_out(model: BodyModel, seq: Sequence, records: list[dict], opt
     changed, and how many were replaced."""
     out = [dict(r) for r in records]
     replaced = 0
-    for i in standing_out([r["energy"] for r in records]):
+    for i in standing_out([r["energy"] for r in records], schedules.standing_out_ratio):
         r = out[i]
         t0 = time.perf_counter()
         data = frame_data(model, seq, r["frame"])

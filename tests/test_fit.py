@@ -835,6 +835,37 @@ def test_a_lost_body_is_found_again_from_the_voxels(model, five_frames, tmp_path
 
 
 @pytest.mark.timeout(300)
+def test_the_loss_ratios_say_when_limbs_and_the_body_are_searched_again(model, five_frames, monkeypatch):
+    """A start thrown 0.6 m off the actor: the frame's energy jumps over the recent ones', so
+    tracking re-detects the limbs and searches from the voxels; with the schedules' ratios set
+    above the jump it does neither."""
+    from common.sequence import load_sequence
+    from server import session
+    from server.session import LocalSolver, frame_data, track
+
+    all_starts = session.voxel_starts
+    monkeypatch.setattr(session, "voxel_starts", lambda model, data: all_starts(model, data)[:3])
+    seq = load_sequence(five_frames)
+    truth = seq.truth()
+    frame = seq.frames[1]
+    start = truth[frame].params.copy()
+    start[0] += 0.6
+    data = frame_data(model, seq, frame)
+    energies = [int(full_energy(model, data, truth[frame].params))] * 3
+    options = FitOptions(refine_passes=0)
+    patient = replace(SCHEDULES, limb_loss_ratio=9.0, loss_ratio=9.5)
+    solver = LocalSolver(model, options)
+    try:
+        _, redetected, recovered = track(model, data, frame, start, None, energies, options, solver)
+        assert redetected and recovered
+        _, redetected, recovered = track(model, data, frame, start, None, energies, options, solver,
+                                         schedules=patient)
+        assert not redetected and not recovered
+    finally:
+        solver.close()
+
+
+@pytest.mark.timeout(300)
 def test_the_next_frames_masks_are_cleaned_while_a_frame_is_fitted(model, five_frames, tmp_path):
     """Tracking cleans the next frame's masks on a thread of its own; the poses are those of a
     run whose masks were all cleaned beforehand."""
@@ -1330,7 +1361,7 @@ def test_schedules_read_from_a_file_or_set_reach_the_fit(tmp_path):
     assert schedules() == SCHEDULES
     assert schedules_from_table(schedules_table(SCHEDULES)) == SCHEDULES
     file = tmp_path / "Config.toml"
-    file.write_text('[fit.schedules]\nsearch_hops = 5\n[fit.schedules.tracking]\n'
+    file.write_text('[fit.schedules]\nsearch_hops = 5\nloss_ratio = 1.5\n[fit.schedules.tracking]\n'
                     'stages = [{proposers = ["start", "start_turns"]}, {proposers = ["again"], variants = ["polish"]}]\n'
                     '[fit.schedules.search]\nbudget = 1000\nstages = [{proposers = ["starts"], variants = ["wide-round"], '
                     'drop = [2, 1.5]}, {proposers = ["again"], variants = "as-fitted", rounds = 2, min_gain = 0.01}]\n')
@@ -1338,7 +1369,8 @@ def test_schedules_read_from_a_file_or_set_reach_the_fit(tmp_path):
     assert chosen.tracking == Schedule((Stage(("start", "start_turns")), Stage(("again",), ("polish",))))
     assert chosen.search == Schedule((Stage(("starts",), ("wide-round",), drop=(2, 1.5)),
                                       Stage(("again",), None, rounds=2, min_gain=0.01)), budget=1000)
-    assert (chosen.search_hops, chosen.refine, chosen.wide) == (5, SCHEDULES.refine, SCHEDULES.wide)
+    assert (chosen.search_hops, chosen.loss_ratio, chosen.refine, chosen.wide) == (5, 1.5, SCHEDULES.refine,
+                                                                                     SCHEDULES.wide)
     # --set replaces the schedules it names and keeps the file's others
     given = schedules("--set", 'fit.schedules={limbs_lost={stages=[{proposers=["start"]}]}}', config=file)
     assert given.limbs_lost == Schedule((Stage(("start",)),)) and given.tracking == chosen.tracking
@@ -1357,6 +1389,7 @@ def test_schedules_read_from_a_file_or_set_reach_the_fit(tmp_path):
     ('{tracking_stages={stages=[{proposers=["start"]}]}}', "unknown schedule 'tracking_stages' (did you mean 'tracking'?)"),
     ('{search_hops=-2}', "search_hops: expected an integer >= 0, got -2"),
     ('{pass_start_hops=1.5}', "pass_start_hops: expected an integer >= 0, got 1.5"),
+    ('{loss_ratio=0.9}', "loss_ratio: expected a number between 1 and 10 (times), got 0.9"),
     ('{after_hops={budget=10, stages=[{proposers=["twists"]}]}}', "after_hops: budget: added to a refinement's"),
     ('{tracking={stages=[{proposers=["again"]}]}}', "tracking: stage 1 makes no start: its proposers need one of start,"),
     ('{search={stages=[{proposers=["starts"], variants="as-fitted"}]}}',
