@@ -396,10 +396,10 @@ def refine_pass(model: BodyModel, seq: Sequence, records: list[dict], options: F
     ``hops``, else the schedules' ``pass_start_hops``) and from its limbs' other basins, unless
     ``anchor`` (35,) is the fit of the frame beyond it, which the pass then starts from (a run
     without refinement carrying its settled tracking back over the frames after a first-frame
-    search). With ``search``, each frame is also fitted from each limb's other basins (tracking and its neighbours can share a torso and limb that are off together:
-    basketball frame 84, the left ankle 74 mm off, an alternative leg 1.8% lower in energy).
-    With ``hops`` > 0, every frame also gets that many hops, seeded by its frame number; a
-    cluster's clients run them side by side.
+    search). With ``search``, each frame is also fitted from each limb's other basins (tracking and
+    its neighbours can share a torso and limb that are off together: basketball frame 84, the left
+    ankle 74 mm off, an alternative leg 1.8% lower in energy). With ``hops`` > 0, every frame also
+    gets that many hops, seeded by its frame number; a cluster's clients run them side by side.
 
     ``options.refine_chunk_frames`` > 0 cuts the take into chunks of about that many frames
     (``refine_chunks``) refined side by side on a single process's threads (one after another
@@ -509,12 +509,12 @@ def refine_poor_windows(model: BodyModel, seq: Sequence, records: list[dict], op
     the XOR share of the silhouette well above the take's median) refined once more, forwards
     from the fit before the window, then backwards from the fit after it (``refine_pass``, each
     frame also by the schedules' ``poor_window_hops`` hops; a window at the take's end starts from
-    hops). A run the passes left in a valley of its own (the cartwheel rolling onto its side, where each frame
-    fitted from a neighbour that is off stays off) is refined from both sides again, as further
-    passes would, and searched more widely, at a few frames' cost. The volume energy is no XOR
-    (metres squared): its fits are not judged so. A window's end frames are not also started
-    from halfway to the frame beyond it. Returns the records, changed, and how many frames
-    ended with a lower energy."""
+    hops). A run the passes left in a valley of its own (the cartwheel rolling onto its side, where
+    each frame fitted from a neighbour that is off stays off) is refined from both sides again, as
+    further passes would, and searched more widely, at a few frames' cost. The volume energy is no
+    XOR (metres squared): its fits are not judged so. A window's end frames are not also started
+    from halfway to the frame beyond it. Returns the records, changed, and how many frames ended
+    with a lower energy."""
     if options.energy == "volume":
         return records, 0
     shares = [r["energy"] / max(int(np.count_nonzero(seq.silhouettes(r["frame"]))), 1) for r in records]

@@ -46,10 +46,10 @@ def test_every_tracked_and_refined_frame_is_counted_once(small_sequence, tmp_pat
 
     standing_out = []  # each run's frames that stood out after the passes
     found = session.standing_out
-    monkeypatch.setattr(session, "standing_out", lambda energies: standing_out.append(found(energies)) or
-                        standing_out[-1])
+    monkeypatch.setattr(session, "standing_out", lambda energies, ratio: standing_out.append(found(energies, ratio))
+                        or standing_out[-1])
     poor = []  # the shares each run judged; frame 1 taken for poor, alone (no margin), in both runs
-    monkeypatch.setattr(session, "poor_windows", lambda shares: poor.append(shares) or [(1, 1)])
+    monkeypatch.setattr(session, "poor_windows", lambda shares, ratio: poor.append(shares) or [(1, 1)])
     watcher = Watcher()
     watcher.install()
     try:
