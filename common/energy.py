@@ -236,11 +236,10 @@ class EnergySetup:
     (``conic_bits.pack_rows``, each camera's pixels beyond its own image clear), which windows
     of one size are cut from (``input_windows``) and which the cpu energy reads without cutting
     byte windows. Where both are given they must hold the same pixels; the cpu energy reads
-    ``packed``. open_edges: (K, 4) bool, the left, top, right and bottom edges of each camera's
-    image that its silhouette touches (``open_image_edges``), or None: a body may reach past
-    such an edge unseen, so a window's pixels beyond it count for nothing; beyond an edge the
-    silhouette does not touch, the body cannot be (it would cross the edge) and pays as outside
-    the silhouette, as everywhere else.
+    ``packed``. bounds: (K, 4) int64 x_lo, y_lo, x_hi, y_hi, the pixels of each camera that
+    count (``counted_bounds``: a camera's image edges that its silhouette touches, past which a
+    body may reach unseen), or None: every pixel; a window's pixels beyond them count for
+    nothing, whatever covers them.
     """
 
     studio: Studio
@@ -251,7 +250,7 @@ class EnergySetup:
     prerender: bool = True
     volume_points: np.ndarray | None = None  # (n, 3) surface voxel centres, for the volume energy
     packed: np.ndarray | None = None
-    open_edges: np.ndarray | None = None
+    bounds: np.ndarray | None = None
 
     def __post_init__(self):
         if self.inputs is None and self.packed is None:
@@ -317,8 +316,11 @@ def _longest_run(flags: np.ndarray) -> int:
 
 
 def counted_bounds(studio: Studio, open_edges: np.ndarray | None) -> np.ndarray:
-    """(K, 4) int64 x_lo, y_lo, x_hi, y_hi: the pixels of each camera an energy counts, its
-    image's edges where ``open_edges`` (K, 4) bool (``EnergySetup``) are set, no bound elsewhere."""
+    """(K, 4) int64 x_lo, y_lo, x_hi, y_hi: the pixels of each camera an energy counts
+    (``EnergySetup.bounds``), its image's edges where ``open_edges`` (K, 4) bool
+    (``open_image_edges``) are set: a body may reach past them unseen; no bound elsewhere: past
+    an edge the silhouette does not touch the body cannot be (it would cross the edge), so it
+    pays there as anywhere outside the silhouette."""
     far = np.array([-_FAR_PX, -_FAR_PX, _FAR_PX, _FAR_PX], dtype=np.int64)
     bounds = np.tile(far, (len(studio), 1))
     if open_edges is not None:
@@ -329,13 +331,12 @@ def counted_bounds(studio: Studio, open_edges: np.ndarray | None) -> np.ndarray:
 
 def window_pixels(setup: EnergySetup) -> np.ndarray | None:
     """(K, h, w) bool: the pixels of ``setup.input_windows`` an energy counts and a render
-    shows, those inside each camera's window and not beyond an open edge of its image
-    (``EnergySetup``, which checks that the windows fit the inputs); None when that is all of
-    them."""
+    shows, those inside each camera's window and its ``bounds`` (``EnergySetup``, which checks
+    that the windows fit the inputs); None when that is all of them."""
     shape = padded_shape([(win.width, win.height) for win in setup.windows])
     counted = inside_images([(win.width, win.height) for win in setup.windows], shape)
-    if setup.open_edges is not None:
-        x_lo, y_lo, x_hi, y_hi = counted_bounds(setup.studio, setup.open_edges).T
+    if setup.bounds is not None:
+        x_lo, y_lo, x_hi, y_hi = setup.bounds.T
         x0, y0 = window_origins(setup.windows)
         ys = y0[:, None] + np.arange(shape[0])[None, :]  # (K, h) image rows
         xs = x0[:, None] + np.arange(shape[1])[None, :]  # (K, w) image columns
@@ -435,8 +436,9 @@ class CpuEnergy:
                 C, drawable = self._conics(np.atleast_2d(setup.static_params)[:1], self._static)
             else:
                 C, drawable = np.zeros((1, len(studio), 0, 3, 3)), np.zeros((1, len(studio), 0), np.bool_)
+            bounds = setup.bounds if setup.bounds is not None else counted_bounds(studio, None)
             self.gain, self.loss, base = window_value_bits(setup.packed, x0, y0, self.rows, self.width, C, drawable,
-                                                           counted_bounds(studio, setup.open_edges))
+                                                           bounds)
         else:
             self._static_mask = M = self._render_static()
             inputs = np.ascontiguousarray(setup.input_windows, dtype=np.bool_)

@@ -12,7 +12,7 @@ import numpy as np
 from common.body import BodyModel, forward_kinematics, rest_params
 from common.camera import Camera, Studio, distort_normalized
 from common.conic_bits import pack_rows
-from common.energy import EnergySetup, Window, open_image_edges, window_corners
+from common.energy import EnergySetup, Window, counted_bounds, open_image_edges, window_corners
 from common.objective import make_energy
 from common.packing import clear_padding, downsample_masks, pad_stack
 
@@ -140,11 +140,12 @@ class FrameData:
         return pack_rows(self.half_masks)
 
     @cached_property
-    def open_edges(self) -> np.ndarray:
-        """(K, 4) bool: the image edges each camera's silhouette touches (``energy.open_image_edges``),
-        past which its windows count nothing: a person partly out of a camera's view is fitted
-        from what that camera does see, not pushed back into its image."""
-        return open_image_edges(self.masks, self.studio.sizes)
+    def counted_bounds(self) -> np.ndarray:
+        """(K, 4) int64: the pixels each camera's windows count (``energy.counted_bounds``), not
+        those past the image edges its silhouette touches (``energy.open_image_edges``): a person
+        partly out of a camera's view is fitted from what that camera does see, not pushed back
+        into its image. Once per frame: a fit builds thousands of windows' energies."""
+        return counted_bounds(self.studio, open_image_edges(self.masks, self.studio.sizes))
 
     @cached_property
     def surface_points(self) -> np.ndarray:
@@ -184,7 +185,7 @@ class FrameData:
         corners = window_corners(*self._pinholes, centre, size)
         windows = tuple(Window(int(x0), int(y0), size, size) for x0, y0 in corners)
         return EnergySetup(self.studio, windows, None, tuple(segments), np.asarray(params), prerender=prerender,
-                           packed=self.packed_masks, open_edges=self.open_edges)
+                           packed=self.packed_masks, bounds=self.counted_bounds)
 
     @cached_property
     def _pinholes(self) -> tuple:

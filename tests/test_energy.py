@@ -9,7 +9,8 @@ import pytest
 
 from common.body import CHAINS, PARAM_COUNT, clip_to_limits, forward_kinematics, rest_params
 from common.camera import circle_studio
-from common.energy import ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window, ellipsoid_world, window_origins
+from common.energy import (ARM_WINDOW, SMALL_WINDOW, CpuEnergy, EnergySetup, Window, counted_bounds, ellipsoid_world,
+                           window_origins)
 from common.objective import make_energy
 from common.fitting import FrameData
 
@@ -189,13 +190,13 @@ def test_a_window_counts_nothing_past_an_image_edge_the_silhouette_touches(model
                 crossed += not (0 <= win.x0 and win.x0 + win.width <= cam.width
                                 and 0 <= win.y0 and win.y0 + win.height <= cam.height)
                 expected += int(xor[k, max(win.y0, 0):win.y0 + win.height, max(win.x0, 0):win.x0 + win.width].sum())
-            assert int(CpuEnergy(model, replace(setup, open_edges=all_open))(x)[0]) == expected
-            closed = CpuEnergy(model, replace(setup, open_edges=None))
-            shut = CpuEnergy(model, replace(setup, open_edges=~all_open))
+            assert int(CpuEnergy(model, replace(setup, bounds=counted_bounds(data.studio, all_open)))(x)[0]) == expected
+            closed = CpuEnergy(model, replace(setup, bounds=None))
+            shut = CpuEnergy(model, replace(setup, bounds=counted_bounds(data.studio, ~all_open)))
             assert int(shut(x)[0]) == int(closed(x)[0]) >= expected
             np.testing.assert_array_equal(shut.render(x), closed.render(x))
             # some edges open, some not: the byte windows (gl's, cameras of other sizes') as the row bits
-            mixed = replace(setup, open_edges=rng.random(all_open.shape) < 0.5)
+            mixed = replace(setup, bounds=counted_bounds(data.studio, rng.random(all_open.shape) < 0.5))
             packed, byte = CpuEnergy(model, mixed), CpuEnergy(model, replace(mixed, inputs=mixed.input_windows,
                                                                                packed=None))
             poses = perturbed(x, rng, 4, spread=0.1)
