@@ -112,7 +112,8 @@ def xor_bits(static: np.ndarray, inputs: np.ndarray) -> tuple:
     """static, inputs (K, h, w) bool -> the value a moving part adds by covering a pixel
     (0 where static covers it, else 1 - 2 * input) as two bit masks per row, gain (+1: neither
     static nor input) and loss (-1: input, not static), (K, h, ceil(w / 64)) uint64, bit
-    c % 64 of word c // 64 for column c; and the static parts' own XOR count |static xor inputs|.
+    c % 64 of word c // 64 for column c; and the static parts' own XOR count |static xor inputs|
+    per camera, (K,) int64.
     Rows are read 8 pixels (bytes) at a time, as uint64 words; a row of another width is
     padded to a multiple of 8 with pixels static and input both cover (no bits, no count), as
     a window's pixels beyond its camera's image are (``CpuEnergy``)."""
@@ -136,12 +137,12 @@ def _xor_bits_octets(static: np.ndarray, inputs: np.ndarray, words: int) -> tupl
     K, h, octets = inputs.shape
     gain = np.zeros((K, h, words), np.uint64)
     loss = np.zeros((K, h, words), np.uint64)
-    base = 0
+    base = np.zeros(K, np.int64)
     for k in range(K):
         for r in range(h):
             for o in range(octets):
                 s, i = static[k, r, o], inputs[k, r, o]
-                base += _popcount(s ^ i)
+                base[k] += _popcount(s ^ i)
                 shift = np.uint64(8 * (o & 7))
                 gain[k, r, o >> 3] |= (((~s & ~i & _BYTE_LOW_BITS) * _GATHER_BYTES) >> np.uint64(56)) << shift
                 loss[k, r, o >> 3] |= (((~s & i & _BYTE_LOW_BITS) * _GATHER_BYTES) >> np.uint64(56)) << shift
@@ -186,8 +187,8 @@ def window_value_bits(packed: np.ndarray, x0: np.ndarray, y0: np.ndarray, rows: 
     int, cut from ``packed`` (K, H, words) masks (``pack_rows``; rows and columns outside an
     image are clear), with the still parts drawn as the conics C (1, K, S, 3, 3), drawable
     (1, K, S) (S may be 0): gain (+1: neither still part nor silhouette) and loss (-1:
-    silhouette, no still part), (K, rows, ceil(width / 64)) uint64, and |still xor silhouette|,
-    as ``xor_bits`` of the byte windows. Only pixels inside ``bounds`` (K, 4) int, each camera's
+    silhouette, no still part), (K, rows, ceil(width / 64)) uint64, and |still xor silhouette|
+    per camera, (K,) int64, as ``xor_bits`` of the byte windows. Only pixels inside ``bounds`` (K, 4) int, each camera's
     x_lo, y_lo, x_hi, y_hi (``energy.counted_bounds``), are worth anything; the rest are worth
     nothing whatever covers them."""
     K, H = packed.shape[0], packed.shape[1]
@@ -196,7 +197,7 @@ def window_value_bits(packed: np.ndarray, x0: np.ndarray, y0: np.ndarray, rows: 
     gain = np.zeros((K, rows, words), np.uint64)
     loss = np.zeros((K, rows, words), np.uint64)
     still = np.zeros((rows, words), np.uint64)
-    base = 0
+    base = np.zeros(K, np.int64)
     fw = float(width)
     spare = words * 64 - width
     last_word = _ALL_BITS >> np.uint64(spare) if spare else _ALL_BITS
@@ -225,7 +226,7 @@ def window_value_bits(packed: np.ndarray, x0: np.ndarray, y0: np.ndarray, rows: 
                 s_bits = still[r, j] & mask
                 gain[k, r, j] = ~s_bits & ~silhouette & mask
                 loss[k, r, j] = ~s_bits & silhouette
-                base += _popcount(s_bits ^ silhouette)
+                base[k] += _popcount(s_bits ^ silhouette)
                 still[r, j] = np.uint64(0)
     return gain, loss, base
 

@@ -1,4 +1,4 @@
-"""The XOR energy E(pose) = sum over cameras of |rendered XOR input| inside each camera's window.
+"""The XOR energy E(pose) = sum over cameras of w_k |rendered XOR input| inside each camera's window.
 
 One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``):
 
@@ -18,6 +18,10 @@ One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``)
   and a sixth longer on a whole body, about the same on a limb: tools/energy_kernel_bench.py,
   docs/accuracy.md.) The conics and the sums of an evaluation are compiled loops (numba):
   numpy's per-call overhead, not arithmetic, was most of an evaluation's time.
+- Each camera's count is weighted (``camera_weights``): a camera that sees the body larger than
+  the studio's median camera counts as if it saw it at the median's scale, so one near camera,
+  whose misfit between body model and actor grows with the square of its scale, cannot outvote
+  the others. Where the cameras see the body alike (the paper's studio) every weight is 1.
 """
 from __future__ import annotations
 
@@ -151,21 +155,24 @@ def image_conics(P: np.ndarray, centres: np.ndarray, A: np.ndarray) -> tuple:
 
 @njit(cache=True, nogil=True)
 def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.ndarray, rows: int, width: int,
-                  gain: np.ndarray, loss: np.ndarray) -> np.ndarray:
-    """Sum of per-pixel values over the union of the conics' covered spans, per batch entry:
-    the evaluation's inner loop. Covers the pixels ``conic_coverage`` covers.
+                  gain: np.ndarray, loss: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Sum of per-pixel values over the union of the conics' covered spans, each camera's
+    times its weight, per batch entry: the evaluation's inner loop. Covers the pixels
+    ``conic_coverage`` covers.
 
     C (B, K, S, 3, 3) conics (negative inside); drawable (B, K, S); y0, x0 (K,) window corners;
-    gain, loss (K, rows, words) the values as bit masks (``xor_bits``) -> (B,) int64 sums.
+    gain, loss (K, rows, words) the values as bit masks (``xor_bits``); weights (K,) float64
+    (``camera_weights``) -> (B,) float64 sums.
     """
     B, K, S = C.shape[0], C.shape[1], C.shape[2]
     words = gain.shape[2]
-    out = np.zeros(B, np.int64)
+    out = np.zeros(B, np.float64)
     union = np.zeros((rows, words), np.uint64)  # the covered pixels of one camera, zeroed as summed
     fw = float(width)
     for b in range(B):
-        total = 0
+        total = 0.0
         for k in range(K):
+            camera = 0
             top, bottom = rows, 0
             for s in range(S):
                 first, last = _conic_rows(C[b, k, s], drawable[b, k, s], y0[k], rows)
@@ -180,32 +187,33 @@ def xor_span_sums(C: np.ndarray, drawable: np.ndarray, y0: np.ndarray, x0: np.nd
             for row in range(top, bottom):
                 u, g, l = union[row], gain[k, row], loss[k, row]
                 for j in range(words):
-                    total += np.int64(_popcount(u[j] & g[j])) - np.int64(_popcount(u[j] & l[j]))
+                    camera += np.int64(_popcount(u[j] & g[j])) - np.int64(_popcount(u[j] & l[j]))
                     u[j] = np.uint64(0)
+            total += weights[k] * camera
         out[b] = total
     return out
 
 
 @njit(cache=True, nogil=True)
 def pose_energies(p, rest_offsets, param_joint, param_axis, parents, offsets, head_top_offset, needed, seg,
-                  local_centres, local_A, P, y0, x0, rows, width, gain, loss) -> np.ndarray:
+                  local_centres, local_A, P, y0, x0, rows, width, gain, loss, weights) -> np.ndarray:
     """The moving parts' XOR sums of a batch of poses in one compiled call: forward kinematics,
     posed ellipsoids, conics and spans (each step the same arithmetic as its own kernel).
 
     p (B, 35); the kinematic tables (``BodyModel.kinematic_tables``), segment parents (16,)
     and the segments needed (16,) bool; seg (S,) the moving segments, their local ellipsoid
-    centres (S, 3) and axes scaled by radii (S, 3, 3); then as ``xor_span_sums`` -> (B,) int64.
+    centres (S, 3) and axes scaled by radii (S, 3, 3); then as ``xor_span_sums`` -> (B,) float64.
     One call instead of four kernels and their numpy glue: the glue cost as much as the work.
     Large batches (a limb's grid) go through in chunks of POSE_CHUNK poses, whose conics stay
     in the cache: a re-detection's grid of 2,916 poses made 5 MB of conics at once.
     """
     B = p.shape[0]
-    out = np.empty(B, np.int64)
+    out = np.empty(B, np.float64)
     for c0 in range(0, B, POSE_CHUNK):
         c1 = min(B, c0 + POSE_CHUNK)
         C, drawable = pose_conics(p[c0:c1], rest_offsets, param_joint, param_axis, parents, offsets, head_top_offset,
                                   needed, seg, local_centres, local_A, P)
-        out[c0:c1] = xor_span_sums(C, drawable, y0, x0, rows, width, gain, loss)
+        out[c0:c1] = xor_span_sums(C, drawable, y0, x0, rows, width, gain, loss, weights)
     return out
 
 
@@ -239,7 +247,8 @@ class EnergySetup:
     ``packed``. bounds: (K, 4) int64 x_lo, y_lo, x_hi, y_hi, the pixels of each camera that
     count (``counted_bounds``: a camera's image edges that its silhouette touches, past which a
     body may reach unseen), or None: every pixel; a window's pixels beyond them count for
-    nothing, whatever covers them.
+    nothing, whatever covers them. weights: (K,) float64, each camera's pixels' worth
+    (``camera_weights``), or None: 1 each.
     """
 
     studio: Studio
@@ -251,6 +260,7 @@ class EnergySetup:
     volume_points: np.ndarray | None = None  # (n, 3) surface voxel centres, for the volume energy
     packed: np.ndarray | None = None
     bounds: np.ndarray | None = None
+    weights: np.ndarray | None = None
 
     def __post_init__(self):
         if self.inputs is None and self.packed is None:
@@ -270,6 +280,10 @@ class EnergySetup:
             if largest != (h, w):
                 raise ValueError(f"input windows are {w}x{h}, the windows' largest width and height "
                                  f"{largest[1]}x{largest[0]}")
+        if self.weights is not None:
+            w = np.asarray(self.weights)
+            if w.shape != (len(self.studio),) or not (np.all(np.isfinite(w)) and np.all(w > 0)):
+                raise ValueError(f"{len(self.studio)} cameras need as many positive weights, got {w.tolist()}")
 
     @property
     def input_windows(self) -> np.ndarray:
@@ -327,6 +341,32 @@ def counted_bounds(studio: Studio, open_edges: np.ndarray | None) -> np.ndarray:
         edges = np.array([(0, 0, w, h) for w, h in studio.sizes], dtype=np.int64).reshape(-1, 4)
         bounds = np.where(np.asarray(open_edges, dtype=bool), edges, bounds)
     return bounds
+
+
+# A camera that sees the body at s times the median camera's scale (focal length over depth)
+# sees it s^2 times larger, and the body model's misfit to the actor with it: a walk 2.2 m
+# from the middle of the 3 m ring neared one camera to 0.8 m, which then held 60% of all
+# silhouette pixels and fitted an arm past the edges of the views that saw it
+# (docs/accuracy.md, "A near camera").
+MIN_SCALE_DEPTH_M = 0.05  # depths below this (the actor at the camera) count as this
+# Weights are multiples of this: integer pixel counts times them add up exactly in float64, in
+# any order, so a pre-rendered window's energy still equals the whole render's, and ties stay ties
+WEIGHT_STEP = 1.0 / 1024
+
+
+def camera_weights(studio: Studio, centre: np.ndarray | None) -> np.ndarray | None:
+    """(K,) float64: what a pixel of each camera is worth (``EnergySetup.weights``), 1 for a
+    camera that sees a body at ``centre`` (3,) m no larger than the median camera does, else
+    (median scale / its scale)^2, scale being focal length (pixels) over the centre's depth:
+    every camera nearer or sharper than the median counts as if it saw the body at the
+    median's size; multiples of WEIGHT_STEP. None (every weight 1) where ``centre`` is None."""
+    if centre is None:
+        return None
+    cams = studio.cameras
+    depth = np.array([(c.R @ np.asarray(centre, dtype=np.float64) + c.t)[2] for c in cams])
+    scale = np.array([0.5 * (c.K[0, 0] + c.K[1, 1]) for c in cams]) / np.maximum(depth, MIN_SCALE_DEPTH_M)
+    weights = np.minimum(1.0, (np.median(scale) / scale) ** 2)
+    return np.maximum(WEIGHT_STEP, np.round(weights / WEIGHT_STEP) * WEIGHT_STEP)
 
 
 def window_pixels(setup: EnergySetup) -> np.ndarray | None:
@@ -445,13 +485,15 @@ class CpuEnergy:
             if self.counted is not None:  # beyond what is counted static and input both set: v = 0, no base
                 M, inputs = M | ~self.counted, inputs | ~self.counted
             self.gain, self.loss, base = xor_bits(M, inputs)
-        self.base = int(base)
+        self.weights = (np.ones(len(studio)) if setup.weights is None
+                        else np.ascontiguousarray(setup.weights, dtype=np.float64))
+        self.base = float(base @ self.weights)
         seg = np.asarray(self.moving, dtype=np.int64)
         self.kernel_tables = (*model.kinematic_tables[:3], _SEGMENT_PARENTS, *model.kinematic_tables[3:],
                                _segment_mask(self.moving), seg,
                                np.ascontiguousarray(model.ellipsoid_centres[seg]),
                                model.ellipsoid_axes[seg] * model.ellipsoid_radii[seg][:, None, :],
-                               self.P, self.y0, self.x0, self.rows, self.width, self.gain, self.loss)
+                               self.P, self.y0, self.x0, self.rows, self.width, self.gain, self.loss, self.weights)
 
     @cached_property
     def counted(self) -> np.ndarray | None:
@@ -483,7 +525,7 @@ class CpuEnergy:
         return covered if self.counted is None else covered & self.counted
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
-        """(B, 35) or (35,) -> (B,) int64 energies (pixels)."""
+        """(B, 35) or (35,) -> (B,) float64 energies (pixels, weighted: ``camera_weights``)."""
         p = np.atleast_2d(np.asarray(params, dtype=np.float64))
         if p.shape[1] != PARAM_COUNT:
             raise ValueError(f"expected {PARAM_COUNT} parameters, got {p.shape[1]}")

@@ -266,7 +266,9 @@ class GlEnergy:
         self.static_mask = M
         if self.counted is not None:  # beyond what is counted static and input both set: v = 0, no base (as cpu)
             I, M = I | ~self.counted, M | ~self.counted
-        self.base = int(np.count_nonzero(M ^ I))
+        self.weights = (np.ones(self.K) if setup.weights is None
+                        else np.ascontiguousarray(setup.weights, dtype=np.float64))
+        self.base = float(np.count_nonzero(M ^ I, axis=(1, 2)) @ self.weights)
         planes = pack_planes(I).astype(np.uint32) | (pack_planes(M).astype(np.uint32) << 8)   # (P, h, w)
         self.planes = self._own(ctx.buffer(planes.tobytes()))
 
@@ -359,12 +361,12 @@ class GlEnergy:
     # ---------------------------------------------------------------------- interface
 
     def __call__(self, params: np.ndarray) -> np.ndarray:
-        """(B, 35) or (35,) -> (B,) int64 energies (pixels)."""
+        """(B, 35) or (35,) -> (B,) float64 energies (pixels, weighted as the cpu energy's)."""
         p = np.atleast_2d(np.asarray(params, dtype=np.float64))
         B = len(p)
         self.evaluations += B
         if "moving" not in self.parts:
-            return np.full(B, self.base, dtype=np.int64)
+            return np.full(B, self.base)
         self._upload(p, "moving")
         nbytes = B * self.K * 4
         if self.count_buf.size < nbytes:
@@ -375,7 +377,7 @@ class GlEnergy:
         self._draw(B, "moving", "count")
         self.ctx.memory_barrier(self.mgl.BUFFER_UPDATE_BARRIER_BIT)
         counts = np.frombuffer(self.count_buf.read(nbytes), dtype=np.int32).reshape(B, self.K)
-        return self.base + counts.sum(axis=1, dtype=np.int64)
+        return self.base + counts @ self.weights
 
     def render(self, params: np.ndarray) -> np.ndarray:
         """(35,) -> (K, h, w) bool: the model's silhouette windows (moving and static parts)."""

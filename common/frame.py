@@ -12,9 +12,10 @@ import numpy as np
 from common.body import BodyModel, forward_kinematics, rest_params
 from common.camera import Camera, Studio, distort_normalized
 from common.conic_bits import pack_rows
-from common.energy import EnergySetup, Window, counted_bounds, open_image_edges, window_corners
+from common.energy import EnergySetup, Window, camera_weights, counted_bounds, open_image_edges, window_corners
 from common.objective import make_energy
 from common.packing import clear_padding, downsample_masks, pad_stack
+from common.voxels import silhouette_centre
 
 HALF = 0.5  # torso works at half resolution (paper: 160x120 of 320x240)
 VOLUME_GRID = 64  # voxels per side for the volume energy's SPOT reconstruction
@@ -148,6 +149,14 @@ class FrameData:
         return counted_bounds(self.studio, open_image_edges(self.masks, self.studio.sizes))
 
     @cached_property
+    def camera_weights(self) -> np.ndarray | None:
+        """(K,) float64 or None: what a pixel of each camera is worth in every energy of this
+        frame, at either resolution (``energy.camera_weights`` about the silhouettes' centre,
+        ``voxels.silhouette_centre``): one weight per frame, so that every fit of a frame,
+        on the server or a client, is measured alike."""
+        return camera_weights(self.studio, silhouette_centre(self.studio, self.masks))
+
+    @cached_property
     def surface_points(self) -> np.ndarray:
         """(n, 3) centres of the frame's SPOT surface voxels (for the volume energy)."""
         return spot_grid(self.studio, self.masks, VOLUME_GRID).reconstruct(self.masks).surface_points()
@@ -159,7 +168,7 @@ class FrameData:
         # cameras of one size: their images are windows of one size, cut from the row bits
         packed = (self.half_packed_masks if half else self.packed_masks) if len(set(studio.sizes)) == 1 else None
         return EnergySetup(studio, windows, masks, tuple(range(16)), np.asarray(params), prerender=False,
-                           packed=packed)
+                           packed=packed, weights=self.camera_weights)
 
     def whole_image_energy(self, half: bool = False):
         """The ``cpu`` energy of the whole images with every segment moving. Nothing is
@@ -185,7 +194,7 @@ class FrameData:
         corners = window_corners(*self._pinholes, centre, size)
         windows = tuple(Window(int(x0), int(y0), size, size) for x0, y0 in corners)
         return EnergySetup(self.studio, windows, None, tuple(segments), np.asarray(params), prerender=prerender,
-                           packed=self.packed_masks, bounds=self.counted_bounds)
+                           packed=self.packed_masks, bounds=self.counted_bounds, weights=self.camera_weights)
 
     @cached_property
     def _pinholes(self) -> tuple:

@@ -234,7 +234,7 @@ def powell_cpu(energy: CpuEnergy, x0: np.ndarray, indices, steps: np.ndarray, xt
         raise ValueError(f"hold_rotations must be (16, 3, 3), got {np.shape(hold_rotations)}")
     problem = (full, idx, hold, np.ascontiguousarray(hold_rotations if hold else _NO_HOLD, dtype=np.float64),
                _LIMB_ROOTS, _LIMITS_LOW, _LIMITS_HIGH, float(prior_weight), int(prior_index),
-               np.int64(energy.base), energy.kernel_tables)
+               np.float64(energy.base), energy.kernel_tables)
     x, fun, nfev, nit = _powell(full[idx], np.ascontiguousarray(PARAM_LIMITS[idx, 0]),
                                 np.ascontiguousarray(PARAM_LIMITS[idx, 1]), steps,
                                 float(xtol), float(ftol), int(max_evals), int(max_iter), problem)

@@ -35,9 +35,10 @@ import numpy as np
 from common.camera import Camera, CalibrationError, Studio, make_camera
 from common.packing import clear_padding, packed_length, padded_shape, unpackbits_masks
 
-PROTOCOL_VERSION = 6  # 2: hops (HOP_JOB_NAMES) beside the chains; 3: cameras of different sizes; 4: whole fits;
+PROTOCOL_VERSION = 7  # 2: hops (HOP_JOB_NAMES) beside the chains; 3: cameras of different sizes; 4: whole fits;
 #                       5: FRAME's body_scale (the actor's size); 6: windows count nothing past the image
-#                       edges a silhouette touches (an older client's limb energies differ)
+#                       edges a silhouette touches (an older client's limb energies differ); 7: cameras
+#                       weighted by the scale they see the body at (energy.camera_weights)
 PARAM_COUNT = 35  # pose parameters of the body model
 CHAIN_NAMES = ("torso", "head", "left_arm", "right_arm", "left_leg", "right_leg")
 # the hops of a refinement's round (common.fitting.HOP_JOBS): sent and answered as chains are;

@@ -37,6 +37,13 @@ def frame(model, small_loaded):
     return FrameData(model, seq.studio, seq.silhouettes(f)), truth[f].params
 
 
+def weighted(setup: EnergySetup, per_camera) -> float:
+    """What an energy of ``setup`` counts for ``per_camera`` (K,) pixels: their sum, each
+    camera's times its weight (``camera_weights``; exact: the weights are dyadic)."""
+    weights = np.ones(len(setup.studio)) if setup.weights is None else setup.weights
+    return float(np.asarray(per_camera) @ weights)
+
+
 def setups(frame_data: FrameData, x: np.ndarray):
     """(name, EnergySetup) for every kind of window the fitter uses."""
     arm = CHAINS["left_arm"].segments
@@ -59,8 +66,8 @@ def test_energy_is_the_popcount_of_render_xor_input(model, frame, rng):
             rendered = energy.render(p)
             assert rendered.shape == setup.input_windows.shape
             assert rendered.any(), name
-            expected = np.count_nonzero(rendered ^ setup.input_windows)
-            assert int(energy(p)[0]) == expected, name
+            expected = weighted(setup, np.count_nonzero(rendered ^ setup.input_windows, axis=(1, 2)))
+            assert energy(p)[0] == expected, name
 
 
 def test_compiled_span_sums_equal_per_pixel_sums_of_the_rendered_union(model, frame, rng):
@@ -94,8 +101,8 @@ def test_compiled_span_sums_equal_per_pixel_sums_of_the_rendered_union(model, fr
     unpack = lambda words: np.unpackbits(words.view(np.uint8), axis=-1, bitorder="little")[..., :width].astype(bool)
     np.testing.assert_array_equal(unpack(energy.gain), values == 1)
     np.testing.assert_array_equal(unpack(energy.loss), values == -1)
-    sums = xor_span_sums(C, drawable, energy.y0, energy.x0, rows, width, energy.gain, energy.loss)
-    np.testing.assert_array_equal(sums, [values[c].sum() for c in covered])
+    sums = xor_span_sums(C, drawable, energy.y0, energy.x0, rows, width, energy.gain, energy.loss, energy.weights)
+    np.testing.assert_array_equal(sums, [np.where(c, values, 0).sum(axis=(1, 2)) @ energy.weights for c in covered])
     assert (energy(poses) == energy.base + sums).all()
 
 
@@ -155,8 +162,8 @@ def test_batch_equals_single_and_counts_evaluations(model, frame, rng):
         energy = make_energy("cpu", model, setup)
         poses = perturbed(truth, rng, 9)
         batch = energy(poses)
-        assert batch.shape == (9,) and batch.dtype.kind == "i"
-        single = np.array([int(energy(p)[0]) for p in poses])
+        assert batch.shape == (9,) and batch.dtype == np.float64
+        single = np.array([energy(p)[0] for p in poses])
         np.testing.assert_array_equal(batch, single, err_msg=name)
         assert energy.evaluations == 18
 
@@ -185,15 +192,16 @@ def test_a_window_counts_nothing_past_an_image_edge_the_silhouette_touches(model
         for setup in (replace(data.window_setup(x, leg[:2], ARM_WINDOW, True), moving=leg),
                       data.window_setup(x, leg[2:], SMALL_WINDOW, False)):
             xor = whole.render(x) ^ data.masks
-            expected = 0
+            inside = []
             for k, (cam, win) in enumerate(zip(setup.studio, setup.windows)):
                 crossed += not (0 <= win.x0 and win.x0 + win.width <= cam.width
                                 and 0 <= win.y0 and win.y0 + win.height <= cam.height)
-                expected += int(xor[k, max(win.y0, 0):win.y0 + win.height, max(win.x0, 0):win.x0 + win.width].sum())
-            assert int(CpuEnergy(model, replace(setup, bounds=counted_bounds(data.studio, all_open)))(x)[0]) == expected
+                inside.append(xor[k, max(win.y0, 0):win.y0 + win.height, max(win.x0, 0):win.x0 + win.width].sum())
+            expected = weighted(setup, inside)
+            assert CpuEnergy(model, replace(setup, bounds=counted_bounds(data.studio, all_open)))(x)[0] == expected
             closed = CpuEnergy(model, replace(setup, bounds=None))
             shut = CpuEnergy(model, replace(setup, bounds=counted_bounds(data.studio, ~all_open)))
-            assert int(shut(x)[0]) == int(closed(x)[0]) >= expected
+            assert shut(x)[0] == closed(x)[0] >= expected
             np.testing.assert_array_equal(shut.render(x), closed.render(x))
             # some edges open, some not: the byte windows (gl's, cameras of other sizes') as the row bits
             mixed = replace(setup, bounds=counted_bounds(data.studio, rng.random(all_open.shape) < 0.5))
@@ -487,7 +495,7 @@ def test_xor_bits_masks_pixel_by_pixel(shape):
     np.testing.assert_array_equal(bits(gain), ~static & ~inputs)
     np.testing.assert_array_equal(bits(loss), ~static & inputs)
     assert gain.shape == loss.shape == (*shape[:2], (shape[2] + 63) // 64)
-    assert base == int(np.count_nonzero(static != inputs))
+    np.testing.assert_array_equal(base, np.count_nonzero(static != inputs, axis=(1, 2)))
     # the bits past the last column are clear, so a span reaching the word's end adds nothing
     spare = (-shape[2]) % 64
     if spare:
@@ -591,7 +599,7 @@ def test_value_bits_from_row_bits_equal_those_of_byte_windows(seed):
     expected = xor_bits(still | beyond, _cut(masks, x0, y0, rows, width) | beyond)
     np.testing.assert_array_equal(gain, expected[0])
     np.testing.assert_array_equal(loss, expected[1])
-    assert base == expected[2]
+    np.testing.assert_array_equal(base, expected[2])
     np.testing.assert_array_equal(cut_windows(packed, x0, y0, rows, width), _cut(masks, x0, y0, rows, width))
 
 
@@ -604,3 +612,28 @@ def test_setups_cut_from_packed_rows_are_checked(model, frame):
         replace(setup, windows=(Window(0, 0, 32, 32),) + setup.windows[1:])
     with pytest.raises(ValueError, match="needs its input windows"):
         replace(setup, packed=None)
+
+
+def test_cameras_count_no_more_than_the_median_camera_sees_the_body():
+    """``camera_weights``: a camera that sees the body at s times the median camera's scale
+    (nearer, or a longer focal length) counts 1 / s^2 per pixel, the others 1; weights are
+    multiples of WEIGHT_STEP (exact sums); no centre, no weights."""
+    from common.camera import Studio
+    from common.energy import WEIGHT_STEP, camera_weights
+
+    studio = circle_studio(8, 320, 240, radius=3.0, overhead=False)
+    middle = np.array([0.0, 0.0, 0.9])  # where every camera looks
+    np.testing.assert_array_equal(camera_weights(studio, middle), np.ones(8))
+    assert camera_weights(studio, None) is None
+    near = 0.5 * (middle + studio.cameras[0].center)  # halfway to camera 0
+    weights = camera_weights(studio, near)
+    depth = np.array([(c.R @ near + c.t)[2] for c in studio.cameras])
+    expected = np.minimum(1.0, (depth / np.median(depth)) ** 2)
+    np.testing.assert_allclose(weights, expected, atol=WEIGHT_STEP / 2)
+    assert weights[0] < 0.3 and weights.max() == 1.0
+    assert np.all(weights / WEIGHT_STEP == np.round(weights / WEIGHT_STEP))
+    # a sharper camera at the same distance: twice the focal length, a quarter the worth
+    cams = list(studio.cameras)
+    cams[3] = replace(cams[3], K=cams[3].K * np.array([[2, 1, 1], [1, 2, 1], [1, 1, 1]]))
+    np.testing.assert_array_equal(camera_weights(Studio(tuple(cams), studio.source), middle),
+                                  [1, 1, 1, 0.25, 1, 1, 1, 1])

@@ -181,7 +181,7 @@ def test_interface(ctx, model, studio):
     assert isinstance(gl, GlEnergy) and gl.backend == "gl" and gl.surface == "mesh"
     assert gl.renderer_name == ctx.info["GL_RENDERER"] and gl.renderer_name
     single = gl(p)
-    assert single.shape == (1,) and single.dtype == np.int64
+    assert single.shape == (1,) and single.dtype == np.float64
     assert gl(np.repeat(p[None], 3, axis=0)).shape == (3,)
     assert gl.evaluations == 4
     assert gl.render(p).shape == setup.input_windows.shape and gl.render(p).dtype == bool

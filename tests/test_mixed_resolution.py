@@ -186,8 +186,10 @@ def test_undistortion_is_per_camera(model, studio, masks):
 def test_whole_image_energy_is_the_sum_of_the_cameras_alone(model, studio, masks, candidates, half):
     frame = FrameData(model, studio, with_garbage_padding(masks, SIZES))
     mixed = frame.whole_image_energy(half)(candidates)
-    alone = sum(FrameData(model, single(studio, k), masks[k:k + 1, :h, :w]).whole_image_energy(half)(candidates)
-                for k, (w, h) in enumerate(SIZES))
+    weights = frame.camera_weights  # the sharper cameras' pixels worth less (energy.camera_weights)
+    assert weights is not None and weights.min() < 1
+    alone = sum(weights[k] * FrameData(model, single(studio, k), masks[k:k + 1, :h, :w])
+                .whole_image_energy(half)(candidates) for k, (w, h) in enumerate(SIZES))
     np.testing.assert_array_equal(mixed, alone)
     if not half:
         assert mixed[0] == 0  # the pose that drew the silhouettes
@@ -207,7 +209,7 @@ def test_window_energies_are_the_sum_of_the_cameras_alone(model, studio, masks, 
         parts = [CpuEnergy(model, FrameData(model, single(studio, k), masks[k:k + 1, :h, :w])
                            .window_setup(start, segments, size, prerender)) for k, (w, h) in enumerate(SIZES)]
         batch = candidates + np.linspace(-0.05, 0.05, len(candidates))[:, None] * (np.arange(35) >= 3)
-        np.testing.assert_array_equal(mixed(batch), sum(e(batch) for e in parts))
+        np.testing.assert_array_equal(mixed(batch), sum(w * e(batch) for w, e in zip(frame.camera_weights, parts)))
 
 
 def test_energy_refuses_input_windows_that_do_not_fit(model, studio, pose):
@@ -227,13 +229,15 @@ def test_gl_energy_counts_each_camera_as_alone(model, studio, masks, candidates)
     except UserError as exc:
         pytest.skip(f"no headless OpenGL: {exc}")
     garbage = with_garbage_padding(masks, SIZES)
-    mixed = GlEnergy(model, whole_setup(studio, garbage, candidates[0]), surface="ellipsoid")
+    weights = np.array([1.0, 0.75, 0.5])  # each camera's pixels' worth, as the cpu energy weighs them
+    setup = replace(whole_setup(studio, garbage, candidates[0]), weights=weights)
+    mixed = GlEnergy(model, setup, surface="ellipsoid")
     parts = [GlEnergy(model, whole_setup(single(studio, k), masks[k:k + 1, :h, :w], candidates[0]),
                       surface="ellipsoid") for k, (w, h) in enumerate(SIZES)]
-    e_mixed, e_alone = mixed(candidates), sum(e(candidates) for e in parts)
+    e_mixed, e_alone = mixed(candidates), sum(w * e(candidates) for w, e in zip(weights, parts))
     silhouette = masks.sum()
     assert np.max(np.abs(e_mixed - e_alone)) <= 0.002 * silhouette, (e_mixed, e_alone)
-    cpu = CpuEnergy(model, whole_setup(studio, garbage, candidates[0]))(candidates)
+    cpu = CpuEnergy(model, setup)(candidates)
     assert np.max(np.abs(e_mixed - cpu)) <= 0.01 * silhouette, (e_mixed, cpu)
     rendered = mixed.render(candidates[2])
     assert not (rendered & ~inside_images(SIZES, PADDED)).any()

@@ -52,7 +52,7 @@ POWELL_SPREAD_RAD = 0.15  # the starts' spread about the truth on the arm's para
 
 @njit(cache=True)
 def _repeat(calls, poses, tables):
-    total = 0
+    total = 0.0
     for _ in range(calls):
         total += pose_energies(poses, *tables)[0]
     return total

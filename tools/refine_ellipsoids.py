@@ -86,7 +86,7 @@ def main() -> None:
                 C, ok = image_conics(P, c[None], A[None])
                 gain, loss, base = xor_bits(conic_coverage(C, ok, y0, x0, H, W)[0], np.ascontiguousarray(targets[i], bool))
                 values.append((gain, loss))
-                bases.append(int(base))
+                bases.append(int(base.sum()))
 
             def f(Z):
                 c_loc = centres[seg] + Z[:, 0:3]
@@ -99,7 +99,7 @@ def main() -> None:
                     cw = (c_loc @ R.T + o)[:, None]
                     Aw = (R @ A_loc)[:, None]
                     C, ok = image_conics(P, cw, Aw)
-                    out += bases[i] + xor_span_sums(C, ok, y0, x0, H, W, *values[i])
+                    out += bases[i] + xor_span_sums(C, ok, y0, x0, H, W, *values[i], np.ones(len(P)))
                 return out
 
             res = optimize.powell(f, np.zeros(9), SHAPE_LIMITS[:, 0], SHAPE_LIMITS[:, 1], SHAPE_STEPS,
