@@ -349,6 +349,12 @@ def counted_bounds(studio: Studio, open_edges: np.ndarray | None) -> np.ndarray:
 # silhouette pixels and fitted an arm past the edges of the views that saw it
 # (docs/accuracy.md, "A near camera").
 MIN_SCALE_DEPTH_M = 0.05  # depths below this (the actor at the camera) count as this
+# Up to this many times the median camera's scale a camera counts in full, as in the paper's
+# energy. At 1 (every camera nearer than the median down-weighted, up to 0.4 with the actor 1 m
+# from the middle of the ring) the posture takes moved by chance with the changed landscape,
+# 6.30 -> 6.78 mm on average, the chair's first frame to another pose; at 1.5 the ring's
+# cameras count in full wherever an actor stands within 1 m of its middle.
+FULL_WEIGHT_SCALE = 1.5
 # Weights are multiples of this: integer pixel counts times them add up exactly in float64, in
 # any order, so a pre-rendered window's energy still equals the whole render's, and ties stay ties
 WEIGHT_STEP = 1.0 / 1024
@@ -356,17 +362,25 @@ WEIGHT_STEP = 1.0 / 1024
 
 def camera_weights(studio: Studio, centre: np.ndarray | None) -> np.ndarray | None:
     """(K,) float64: what a pixel of each camera is worth (``EnergySetup.weights``), 1 for a
-    camera that sees a body at ``centre`` (3,) m no larger than the median camera does, else
-    (median scale / its scale)^2, scale being focal length (pixels) over the centre's depth:
-    every camera nearer or sharper than the median counts as if it saw the body at the
-    median's size; multiples of WEIGHT_STEP. None (every weight 1) where ``centre`` is None."""
+    camera that sees a body at ``centre`` (3,) m no larger than FULL_WEIGHT_SCALE times the
+    median camera does, else (FULL_WEIGHT_SCALE median scale / its scale)^2, scale being focal
+    length (pixels) over the centre's depth: a camera much nearer or sharper than the others
+    counts as if it saw the body at FULL_WEIGHT_SCALE times the median's size; multiples of
+    WEIGHT_STEP. None (every weight 1) where ``centre`` is None."""
     if centre is None:
         return None
     cams = studio.cameras
     depth = np.array([(c.R @ np.asarray(centre, dtype=np.float64) + c.t)[2] for c in cams])
     scale = np.array([0.5 * (c.K[0, 0] + c.K[1, 1]) for c in cams]) / np.maximum(depth, MIN_SCALE_DEPTH_M)
-    weights = np.minimum(1.0, (np.median(scale) / scale) ** 2)
+    weights = np.minimum(1.0, (FULL_WEIGHT_SCALE * np.median(scale) / scale) ** 2)
     return np.maximum(WEIGHT_STEP, np.round(weights / WEIGHT_STEP) * WEIGHT_STEP)
+
+
+def whole_energy(value) -> int:
+    """An energy (pixels, weighted by ``camera_weights``: float64) as the whole number results
+    carry and compare, rounded: the same on the server, which checks a client's claim, and on
+    every client."""
+    return int(round(float(value)))
 
 
 def window_pixels(setup: EnergySetup) -> np.ndarray | None:

@@ -29,7 +29,7 @@ from common.body import (
     hold_limbs_in_world,
 )
 from common import optimize
-from common.energy import ARM_WINDOW, MIN_DEPTH_M, SMALL_WINDOW, CpuEnergy
+from common.energy import ARM_WINDOW, MIN_DEPTH_M, SMALL_WINDOW, CpuEnergy, whole_energy
 from common.frame import HALF, FrameData
 from common.objective import HeldLimbs, SpinePrior, with_spine_prior
 from common.powell_cpu import powell_cpu
@@ -232,7 +232,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             # the prior is in full-resolution pixels: a half-resolution energy counts a quarter as many
             scale = HALF ** 2 if options.torso_half_resolution else 1.0
             energy = with_spine_prior(whole, scale * options.spine_twist_prior if backend != "volume" else 0.0)
-            before = before if before is not None else int(energy(x)[0])
+            before = before if before is not None else energy(x)[0]
             idx = CHAINS["torso"].params
             steps = np.array([options.torso_step_m] * 3 + [options.torso_step_rad] * 6)
             hold = HeldLimbs(model, forward_kinematics(model, x).rotations[0])
@@ -247,7 +247,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
         elif chain == "head":
             setup = frame.window_setup(x, CHAINS["head"].segments, SMALL_WINDOW, options.prerender)
             energy = frame.energy(backend, setup)
-            before = before if before is not None else int(energy(x)[0])
+            before = before if before is not None else energy(x)[0]
             steps = np.full(2, options.extremity_step_rad)
             x, energy_value, n, it = powell(energy, x, CHAINS["head"].params, steps, options,
                                             options.max_evals_extremity)
@@ -259,7 +259,7 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
             setup = frame.window_setup(x, _limb_centre_segments(chain), options.limb_window_px, options.prerender)
             setup = replace(setup, moving=CHAINS[chain].segments)
             energy = frame.energy(backend, setup)
-            before = before if before is not None else int(energy(x)[0])
+            before = before if before is not None else energy(x)[0]
             n = 0
             if backend == _stage_backends(options)[0] and options.grid_steps > 1:
                 hinge = (proximal[3],) if options.hinge_grid_full_range else ()
@@ -285,7 +285,8 @@ def solve_chain(model: BodyModel, frame: FrameData, chain: str, params: np.ndarr
         evals += n + 1
         iters += it
     wall1, cpu1 = _clock()
-    return ChainResult(chain, x, int(before), int(round(energy_value)), evals, iters, wall1 - wall0, cpu1 - cpu0)
+    return ChainResult(chain, x, whole_energy(before), whole_energy(energy_value), evals, iters, wall1 - wall0,
+                       cpu1 - cpu0)
 
 
 # Which limbs are re-detected when (FitOptions.redetect_turn):
@@ -429,7 +430,7 @@ def distinct_rows(joints: np.ndarray, count: int, taken: np.ndarray | None = Non
 
 def full_energy(model: BodyModel, frame: FrameData, params: np.ndarray) -> int:
     """Whole-body XOR energy at full resolution (the convergence test and the reported energy)."""
-    return int(frame.whole_image_energy()(params)[0])
+    return whole_energy(frame.whole_image_energy()(params)[0])
 
 
 # dispatch(jobs, params, iteration, options=None) starts ``jobs`` (limb chains, hops or whole
@@ -473,7 +474,7 @@ def hop(model: BodyModel, frame: FrameData, params: np.ndarray, options: FitOpti
     if chain == "torso":  # the limbs keep their world orientation, as in the torso's solves
         start = hold_limbs_in_world(model, start, params)[0]
     x, _, n, _ = powell(objective, clip_to_limits(start), every, steps, options, HOP_MAX_EVALS)
-    before, after = (round(float(objective(p[None])[0])) for p in (np.asarray(params, dtype=np.float64), x))
+    before, after = (whole_energy(objective(p[None])[0]) for p in (np.asarray(params, dtype=np.float64), x))
     wall1, cpu1 = _clock()
     return ChainResult(job, x, before, after, n + 2, 1, wall1 - wall0, cpu1 - cpu0)
 
@@ -516,7 +517,7 @@ def hop_fit(params: np.ndarray, hops: int, options: FitOptions, dispatch: Dispat
         kept = results if lower is None else results[:lower + 1]
         evaluations += sum(r.evaluations for r in kept)
         done += len(kept)
-    return FrameResult(best, int(best_energy), hops, evaluations, tuple(tried))
+    return FrameResult(best, whole_energy(best_energy), hops, evaluations, tuple(tried))
 
 
 def merge_chains(params: np.ndarray, results: list) -> np.ndarray:

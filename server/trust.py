@@ -16,6 +16,7 @@ import zmq
 import zmq.auth
 
 from common.body import CHAINS, LIMB_CHAINS
+from common.energy import whole_energy
 from common.errors import UserError
 from common.fitting import (HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, _limb_centre_segments,
                             _stage_backends, full_energy, with_spine_prior)
@@ -147,7 +148,7 @@ def score_job(frame: FrameData, job: str, start: np.ndarray, params: np.ndarray,
               iteration: int) -> tuple[int, int | None]:
     """(energy_before, energy): what ``solve_job`` reports for ``job`` solved from ``start``
     to ``params`` (35,), one evaluation each, in the energy it was solved in. The XOR counts
-    are integers and deterministic, so an honest result matches exactly. ``energy`` is None for
+    are deterministic (their weights dyadic), so an honest result matches exactly. ``energy`` is None for
     a coarse-to-fine limb outside the re-detection round: its last (gl) stage places its windows
     at the first stage's result, which the message does not carry.
 
@@ -156,7 +157,7 @@ def score_job(frame: FrameData, job: str, start: np.ndarray, params: np.ndarray,
         return full_energy(frame.model, frame, start), full_energy(frame.model, frame, params)
     if job in HOP_JOBS:
         objective = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
-        before, after = (round(float(objective(p[None])[0])) for p in (start, params))
+        before, after = (whole_energy(objective(p[None])[0]) for p in (start, params))
         return before, after
     if job not in LIMB_CHAINS:
         raise ValueError(f"{job!r} is not a job the cluster dispatches")
@@ -164,13 +165,13 @@ def score_job(frame: FrameData, job: str, start: np.ndarray, params: np.ndarray,
     if iteration == REDETECT_ROUND:  # ``redetect_limb``: the whole images, every stage the same energy
         setup = replace(frame.full_setup(start), moving=moving, prerender=True)
         energy = frame.energy("cpu" if options.energy == "coarse-to-fine" else options.energy, setup)
-        return int(energy(start)[0]), int(energy(params)[0])
+        return whole_energy(energy(start)[0]), whole_energy(energy(params)[0])
     backends = _stage_backends(options)
     setup = replace(frame.window_setup(start, _limb_centre_segments(job), options.limb_window_px, options.prerender),
                     moving=moving)
     energy = frame.energy(backends[0], setup)
-    before = int(energy(start)[0])
-    return before, (int(round(float(energy(params)[0]))) if len(backends) == 1 else None)
+    before = whole_energy(energy(start)[0])
+    return before, (whole_energy(energy(params)[0]) if len(backends) == 1 else None)
 
 
 def check_result(frame: FrameData, result: ChainResult, start: np.ndarray, options: FitOptions,
