@@ -18,10 +18,11 @@ One interface, two backends (this module: ``cpu``; ``common.energy_gl``: ``gl``)
   and a sixth longer on a whole body, about the same on a limb: tools/energy_kernel_bench.py,
   docs/accuracy.md.) The conics and the sums of an evaluation are compiled loops (numba):
   numpy's per-call overhead, not arithmetic, was most of an evaluation's time.
-- Each camera's count is weighted (``camera_weights``): a camera that sees the body larger than
-  the studio's median camera counts as if it saw it at the median's scale, so one near camera,
-  whose misfit between body model and actor grows with the square of its scale, cannot outvote
-  the others. Where the cameras see the body alike (the paper's studio) every weight is 1.
+- Each camera's count is weighted (``camera_weights``): a camera that sees the body more than
+  1.5 times larger (linearly) than the studio's median camera counts as if it saw it at 1.5
+  times the median's scale, so one near camera, whose misfit between body model and actor
+  grows with the square of its scale, cannot outvote the others. Where the cameras see the
+  body alike (the paper's studio) every weight is 1.
 """
 from __future__ import annotations
 
@@ -352,8 +353,8 @@ MIN_SCALE_DEPTH_M = 0.05  # depths below this (the actor at the camera) count as
 # Up to this many times the median camera's scale a camera counts in full, as in the paper's
 # energy. At 1 (every camera nearer than the median down-weighted, up to 0.4 with the actor 1 m
 # from the middle of the ring) the posture takes moved by chance with the changed landscape,
-# 6.30 -> 6.78 mm on average, the chair's first frame to another pose; at 1.5 the ring's
-# cameras count in full wherever an actor stands within 1 m of its middle.
+# 6.30 -> 6.78 mm on average, the chair's first frame to another pose; at 1.5 the default
+# ring's cameras count in full wherever an actor stands within 0.9 m of its middle.
 FULL_WEIGHT_SCALE = 1.5
 # Weights are multiples of this: integer pixel counts times them add up exactly in float64, in
 # any order, so a pre-rendered window's energy still equals the whole render's, and ties stay ties

@@ -615,25 +615,26 @@ def test_setups_cut_from_packed_rows_are_checked(model, frame):
 
 
 def test_cameras_count_no_more_than_the_median_camera_sees_the_body():
-    """``camera_weights``: a camera that sees the body at s times the median camera's scale
-    (nearer, or a longer focal length) counts 1 / s^2 per pixel, the others 1; weights are
-    multiples of WEIGHT_STEP (exact sums); no centre, no weights."""
+    """``camera_weights``: a camera that sees the body at s > FULL_WEIGHT_SCALE times the median
+    camera's scale (nearer, or a longer focal length) counts (FULL_WEIGHT_SCALE / s)^2 per
+    pixel, the others 1; weights are multiples of WEIGHT_STEP (exact sums); no centre, no
+    weights."""
     from common.camera import Studio
-    from common.energy import WEIGHT_STEP, camera_weights
+    from common.energy import FULL_WEIGHT_SCALE, WEIGHT_STEP, camera_weights
 
     studio = circle_studio(8, 320, 240, radius=3.0, overhead=False)
     middle = np.array([0.0, 0.0, 0.9])  # where every camera looks
     np.testing.assert_array_equal(camera_weights(studio, middle), np.ones(8))
     assert camera_weights(studio, None) is None
-    near = 0.5 * (middle + studio.cameras[0].center)  # halfway to camera 0
+    near = middle + 0.7 * (studio.cameras[0].center - middle)  # most of the way to camera 0
     weights = camera_weights(studio, near)
     depth = np.array([(c.R @ near + c.t)[2] for c in studio.cameras])
-    expected = np.minimum(1.0, (depth / np.median(depth)) ** 2)
+    expected = np.minimum(1.0, (FULL_WEIGHT_SCALE * depth / np.median(depth)) ** 2)
     np.testing.assert_allclose(weights, expected, atol=WEIGHT_STEP / 2)
-    assert weights[0] < 0.3 and weights.max() == 1.0
+    assert weights[0] < 0.5 and weights.max() == 1.0
     assert np.all(weights / WEIGHT_STEP == np.round(weights / WEIGHT_STEP))
-    # a sharper camera at the same distance: twice the focal length, a quarter the worth
+    # a sharper camera at the same distance: three times the focal length, (1.5 / 3)^2 the worth
     cams = list(studio.cameras)
-    cams[3] = replace(cams[3], K=cams[3].K * np.array([[2, 1, 1], [1, 2, 1], [1, 1, 1]]))
+    cams[3] = replace(cams[3], K=cams[3].K * np.array([[3, 1, 1], [1, 3, 1], [1, 1, 1]]))
     np.testing.assert_array_equal(camera_weights(Studio(tuple(cams), studio.source), middle),
-                                  [1, 1, 1, 0.25, 1, 1, 1, 1])
+                                  [1, 1, 1, (FULL_WEIGHT_SCALE / 3) ** 2, 1, 1, 1, 1])

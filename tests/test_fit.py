@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from common.body import CHAINS, JOINT_NAMES, LIMB_CHAINS, LIMB_ROOTS, P, PARAM_COUNT, PARAM_LIMITS, forward_kinematics
+from common.energy import whole_energy
 from common.fitting import HOP_JOBS, FitOptions, FrameData, full_energy, hop_fit, solve_chain
 from common.search import (POLISHED, SCHEDULES, Context, Schedule, Stage, descend_outward, fit_frame, run_schedule,
                            solve_locally)
@@ -97,7 +98,7 @@ def test_the_torsos_spine_prior_is_in_full_resolution_pixels(model, frames, half
     options = FitOptions(torso_half_resolution=half, spine_twist_prior=1000.0)
     r = solve_chain(model, data[1], "torso", start, options)
     xor = float(data[1].whole_image_energy(half)(start[None])[0])
-    assert r.energy_before == int(xor + (0.25 if half else 1.0) * 1000.0 * 0.3 ** 2)
+    assert r.energy_before == whole_energy(xor + (0.25 if half else 1.0) * 1000.0 * 0.3 ** 2)
 
 
 def test_solve_chain_is_deterministic(model, frames):

