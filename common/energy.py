@@ -287,6 +287,12 @@ class EnergySetup:
                 raise ValueError(f"{len(self.studio)} cameras need as many positive weights, got {w.tolist()}")
 
     @property
+    def camera_weights(self) -> np.ndarray:
+        """(K,) float64: ``weights``, or 1 for every camera where None."""
+        return (np.ones(len(self.studio)) if self.weights is None
+                else np.ascontiguousarray(self.weights, dtype=np.float64))
+
+    @property
     def input_windows(self) -> np.ndarray:
         """(K, h, w) bool: ``inputs``, or the windows cut from ``packed`` (cut on each call: the
         byte energies, gl, read them once per build)."""
@@ -349,7 +355,6 @@ def counted_bounds(studio: Studio, open_edges: np.ndarray | None) -> np.ndarray:
 # from the middle of the 3 m ring neared one camera to 0.8 m, which then held 60% of all
 # silhouette pixels and fitted an arm past the edges of the views that saw it
 # (docs/accuracy.md, "A near camera").
-MIN_SCALE_DEPTH_M = 0.05  # depths below this (the actor at the camera) count as this
 # Up to this many times the median camera's scale a camera counts in full, as in the paper's
 # energy. At 1 (every camera nearer than the median down-weighted, up to 0.4 with the actor 1 m
 # from the middle of the ring) the posture takes moved by chance with the changed landscape,
@@ -367,12 +372,13 @@ def camera_weights(studio: Studio, centre: np.ndarray | None) -> np.ndarray | No
     median camera does, else (FULL_WEIGHT_SCALE median scale / its scale)^2, scale being focal
     length (pixels) over the centre's depth: a camera much nearer or sharper than the others
     counts as if it saw the body at FULL_WEIGHT_SCALE times the median's size; multiples of
-    WEIGHT_STEP. None (every weight 1) where ``centre`` is None."""
+    WEIGHT_STEP, at least WEIGHT_STEP. None (every weight 1) where ``centre`` is None (fewer than
+    two cameras see a silhouette: ``voxels.silhouette_centre``)."""
     if centre is None:
         return None
     cams = studio.cameras
     depth = np.array([(c.R @ np.asarray(centre, dtype=np.float64) + c.t)[2] for c in cams])
-    scale = np.array([0.5 * (c.K[0, 0] + c.K[1, 1]) for c in cams]) / np.maximum(depth, MIN_SCALE_DEPTH_M)
+    scale = np.array([0.5 * (c.K[0, 0] + c.K[1, 1]) for c in cams]) / np.maximum(depth, MIN_DEPTH_M)
     weights = np.minimum(1.0, (FULL_WEIGHT_SCALE * np.median(scale) / scale) ** 2)
     return np.maximum(WEIGHT_STEP, np.round(weights / WEIGHT_STEP) * WEIGHT_STEP)
 
@@ -500,8 +506,7 @@ class CpuEnergy:
             if self.counted is not None:  # beyond what is counted static and input both set: v = 0, no base
                 M, inputs = M | ~self.counted, inputs | ~self.counted
             self.gain, self.loss, base = xor_bits(M, inputs)
-        self.weights = (np.ones(len(studio)) if setup.weights is None
-                        else np.ascontiguousarray(setup.weights, dtype=np.float64))
+        self.weights = setup.camera_weights
         self.base = float(base @ self.weights)
         seg = np.asarray(self.moving, dtype=np.int64)
         self.kernel_tables = (*model.kinematic_tables[:3], _SEGMENT_PARENTS, *model.kinematic_tables[3:],

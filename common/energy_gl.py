@@ -266,8 +266,7 @@ class GlEnergy:
         self.static_mask = M
         if self.counted is not None:  # beyond what is counted static and input both set: v = 0, no base (as cpu)
             I, M = I | ~self.counted, M | ~self.counted
-        self.weights = (np.ones(self.K) if setup.weights is None
-                        else np.ascontiguousarray(setup.weights, dtype=np.float64))
+        self.weights = setup.camera_weights
         self.base = float(np.count_nonzero(M ^ I, axis=(1, 2)) @ self.weights)
         planes = pack_planes(I).astype(np.uint32) | (pack_planes(M).astype(np.uint32) << 8)   # (P, h, w)
         self.planes = self._own(ctx.buffer(planes.tobytes()))

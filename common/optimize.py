@@ -1,4 +1,5 @@
-"""Powell's direction-set method with batched line searches, for integer XOR energies.
+"""Powell's direction-set method with batched line searches, for XOR energies (pixel counts,
+weighted per camera: piecewise constant).
 
 Why not scipy's Powell: with bounds, scipy's line search (``fminbound``) never compares its
 result with the starting point, so on a piecewise-constant energy it regularly returns a pose

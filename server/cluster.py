@@ -81,6 +81,7 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 from zmq.utils.monitor import recv_monitor_message
 
+from common.energy import whole_energy
 from common.errors import UserError
 from common.fitting import (
     HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, redetects,
@@ -222,8 +223,8 @@ def _job_kind(chain: str, iteration: int, options: FitOptions, wire_options: dic
 
 
 def _chain_result(msg: Result) -> ChainResult:
-    return ChainResult(msg.chain, np.asarray(msg.params, dtype=np.float64), int(round(msg.energy_before)),
-                       int(round(msg.energy)), msg.evaluations, msg.iterations, msg.wall_seconds, msg.cpu_seconds)
+    return ChainResult(msg.chain, np.asarray(msg.params, dtype=np.float64), whole_energy(msg.energy_before),
+                       whole_energy(msg.energy), msg.evaluations, msg.iterations, msg.wall_seconds, msg.cpu_seconds)
 
 
 # ----------------------------------------------------------------------------- solver

@@ -37,6 +37,7 @@ import numpy as np
 
 from common import voxels
 from common.body import P, BodyModel, forward_kinematics, joints_dict, load_body_model, rest_params
+from common.energy import whole_energy
 from common.errors import InputFileError, UserError, print_warning
 from common.consistency import UNEXPLAINED_FRAMES_SHARE, unexplained_foreground
 from common.fitting import HOP_JOBS, ChainResult, FitOptions, FrameData, FrameResult, fit_rounds, full_energy
@@ -600,7 +601,7 @@ def leave_out_unexplained(model: BodyModel, seq: Sequence, records: list[dict], 
         for r in out:  # the energies the passes compare against, at the cleared masks
             if "first_pass" not in r:
                 r.setdefault("tracked_energy", r["energy"])
-            r["energy"] = int(full_energy(model, frame_data(model, cleared, r["frame"]), np.asarray(r["params"])))
+            r["energy"] = full_energy(model, frame_data(model, cleared, r["frame"]), np.asarray(r["params"]))
         for backward in (True, False):
             out, _ = refine_pass(model, cleared, out, options, solver, stats, backward, progress,
                                  start_hops=schedules.unexplained_start_hops, schedules=schedules)
@@ -645,7 +646,7 @@ def settle_records(model: BodyModel, seq: Sequence, records: list[dict]) -> tupl
         r.setdefault("first_pass", tracking_fit(r))
         r["params"] = records[s]["params"]
         r["joints"] = records[s]["joints"]
-        r["energy"] = int(energies[t, c])
+        r["energy"] = whole_energy(energies[t, c])
         r["settled_from"] = int(records[s]["frame"])
         quality[t] = frame_quality(frame_data(model, seq, r["frame"]), params[s])
     return out, moved, quality

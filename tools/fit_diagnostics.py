@@ -36,6 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from common.body import CHAINS, P, forward_kinematics, load_body_model  # noqa: E402
+from common.energy import whole_energy  # noqa: E402
 from common.fitting import FitOptions, FrameData, full_energy  # noqa: E402
 from common.proposals import midway, same_pose_near  # noqa: E402
 from common.search import fit_frame  # noqa: E402
@@ -135,7 +136,7 @@ def chains_against_truth(model, seq, truth, records, frames: list[int], options:
         line = whole(fit[None] + np.linspace(0.0, 1.0, LINE_POINTS)[:, None] * (target - fit)[None])
         fewest = f"{'+'.join(names)} {change:+d}" if names else "none"
         text = (f"frame {f:5d}  fewest chains at the truth that lower it: {fewest}  "
-                f"straight line to the truth: highest {int(line.max()) - energy:+d}")
+                f"straight line to the truth: highest {whole_energy(line.max()) - energy:+d}")
         if f - 1 in by_frame and f + 1 in by_frame:
             halfway = fit_frame(model, data, midway(by_frame[f - 1]["params"], by_frame[f + 1]["params"]), options)
             text += (f"  fitted from halfway between frames {f - 1} and {f + 1}: {halfway.energy} "
@@ -156,7 +157,7 @@ def fewest_chains_lowering(energy, fit: np.ndarray, truth_params: np.ndarray, fi
         changes = energy(poses) - fit_energy
         best = int(np.argmin(changes))
         if changes[best] < 0:
-            return sets[best], int(changes[best])
+            return sets[best], whole_energy(changes[best])
     return (), 0
 
 
