@@ -377,7 +377,7 @@ def camera_weights(studio: Studio, centre: np.ndarray | None) -> np.ndarray | No
     if centre is None:
         return None
     cams = studio.cameras
-    depth = np.array([(c.R @ np.asarray(centre, dtype=np.float64) + c.t)[2] for c in cams])
+    depth = np.array([c.depth(centre) for c in cams])
     scale = np.array([0.5 * (c.K[0, 0] + c.K[1, 1]) for c in cams]) / np.maximum(depth, MIN_DEPTH_M)
     weights = np.minimum(1.0, (FULL_WEIGHT_SCALE * np.median(scale) / scale) ** 2)
     return np.maximum(WEIGHT_STEP, np.round(weights / WEIGHT_STEP) * WEIGHT_STEP)
