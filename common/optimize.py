@@ -1,5 +1,6 @@
-"""Powell's direction-set method with batched line searches, for XOR energies (pixel counts,
-weighted per camera: piecewise constant).
+"""Powell's direction-set method with batched line searches, and an evolution strategy over
+many parameters at once (``cma_es``), for XOR energies (pixel counts, weighted per camera:
+piecewise constant).
 
 Why not scipy's Powell: with bounds, scipy's line search (``fminbound``) never compares its
 result with the starting point, so on a piecewise-constant energy it regularly returns a pose
@@ -16,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 BRACKET = np.array([-1.0, -0.5, -0.25, 0.25, 0.5, 1.0])  # first probes, in units of the step
 EXPAND = 2.0      # bracket growth when the best probe is at the end of the bracket
@@ -132,3 +134,99 @@ def powell(f, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, steps: np.nd
                 x, fx = np.clip(x + t * delta, lo, hi), ft
             dirs = np.concatenate([np.delete(dirs, biggest_i, axis=0), delta[None]])
     return OptimizeResult(x, fx, counter.nfev, nit, status, message)
+
+
+# CMA-ES (Hansen's tutorial, "The CMA Evolution Strategy", 2016): the population's size is
+# about its 4 + 3 ln(n) for the 35 pose parameters
+CMA_POPULATION = 16
+
+
+@njit(cache=True)
+def _cholesky(C: np.ndarray) -> np.ndarray:
+    """The lower factor L (n, n) of a covariance C = L L^T, in plain loops: LAPACK's
+    decompositions start threads that, on a machine whose cores are already busy (a fit's own
+    threads), made each decomposition of a 35x35 matrix take milliseconds instead of
+    microseconds; and loops give the same bits on every machine, as a cluster's clients must."""
+    n = C.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        d = C[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        L[j, j] = np.sqrt(max(d, 1e-300))
+        for i in range(j + 1, n):
+            v = C[i, j]
+            for k in range(j):
+                v -= L[i, k] * L[j, k]
+            L[i, j] = v / L[j, j]
+    return L
+
+
+@njit(cache=True)
+def _times_transposed(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """A B^T for A (m, k) and B (n, k), in plain loops (as ``_cholesky``: no BLAS threads, the
+    same bits everywhere)."""
+    out = np.zeros((A.shape[0], B.shape[0]))
+    for i in range(A.shape[0]):
+        for j in range(B.shape[0]):
+            v = 0.0
+            for k in range(A.shape[1]):
+                v += A[i, k] * B[j, k]
+            out[i, j] = v
+    return out
+
+
+def cma_es(f, x0: np.ndarray, sigmas: np.ndarray, lower: np.ndarray, upper: np.ndarray, max_evals: int,
+           rng: np.random.Generator, population: int = CMA_POPULATION) -> OptimizeResult:
+    """Minimise f over the box [lower, upper] from x0 by a covariance matrix adaptation
+    evolution strategy: each generation samples ``population`` points (N, n) around a mean, moves
+    the mean to the weighted best half and learns from them the directions along which the
+    energy falls, as a covariance (n, n), sampled through its Cholesky factor. Samples outside
+    the box are moved onto it.
+
+    Why beside Powell: a pose fitted chain by chain, or by Powell along the parameters, can sit
+    where the energy falls only along a direction that moves many parameters at once (the torso
+    turned with the limbs turned back); the learned covariance finds such a direction.
+
+    f: (N, n) -> (N,); sigmas (n,): the first samples' standard deviations; ``rng`` draws every
+    sample, so a seeded generator gives the same result. Returns the best point evaluated (x0
+    where none is lower) as an OptimizeResult (nit: generations)."""
+    lo, hi = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    n = len(x0)
+    mu = population // 2
+    w = np.log(mu + 0.5) - np.log(np.arange(1, mu + 1))
+    w /= w.sum()
+    mueff = 1.0 / float(np.sum(w ** 2))
+    cc = (4 + mueff / n) / (n + 4 + 2 * mueff / n)
+    cs = (mueff + 2) / (n + mueff + 5)
+    c1 = 2 / ((n + 1.3) ** 2 + mueff)
+    cmu = min(1 - c1, 2 * (mueff - 2 + 1 / mueff) / ((n + 2) ** 2 + mueff))
+    damps = 1 + 2 * max(0.0, np.sqrt((mueff - 1) / (n + 1)) - 1) + cs
+    chi_n = np.sqrt(n) * (1 - 1 / (4 * n) + 1 / (21 * n * n))
+    counter = _Counter(f, max_evals)
+    mean = np.clip(np.asarray(x0, dtype=np.float64), lo, hi)
+    best_x, best_f = mean.copy(), float(counter(mean[None])[0])
+    sigma, cov = 1.0, np.diag(np.asarray(sigmas, dtype=np.float64) ** 2)
+    pc, ps = np.zeros(n), np.zeros(n)
+    generation = 0
+    while counter.nfev + population <= max_evals:
+        z = rng.standard_normal((population, n))
+        X = np.clip(mean + sigma * _times_transposed(z, _cholesky(cov)), lo, hi)
+        y = (X - mean) / sigma
+        F = counter(X)
+        generation += 1
+        order = np.argsort(F, kind="stable")[:mu]
+        if F[order[0]] < best_f:
+            best_f, best_x = float(F[order[0]]), X[order[0]].copy()
+        step = (w[:, None] * y[order]).sum(axis=0)
+        mean = mean + sigma * step
+        # the path in the samples' own standard units (what C^-1/2 of the step is, up to a turn)
+        ps = (1 - cs) * ps + np.sqrt(cs * (2 - cs) * mueff) * (w[:, None] * z[order]).sum(axis=0)
+        norm = np.linalg.norm(ps) / np.sqrt(1 - (1 - cs) ** (2 * generation)) / chi_n
+        hsig = float(norm < 1.4 + 2 / (n + 1))
+        pc = (1 - cc) * pc + hsig * np.sqrt(cc * (2 - cc) * mueff) * step
+        chosen = y[order] * np.sqrt(w)[:, None]
+        cov = ((1 - c1 - cmu) * cov + c1 * (np.outer(pc, pc) + (1 - hsig) * cc * (2 - cc) * cov)
+               + cmu * _times_transposed(chosen.T, chosen.T))
+        sigma *= np.exp((cs / damps) * (np.linalg.norm(ps) / chi_n - 1))
+    return OptimizeResult(best_x, best_f, counter.nfev, generation, 1, "evaluation budget spent")

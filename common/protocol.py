@@ -35,18 +35,22 @@ import numpy as np
 from common.camera import Camera, CalibrationError, Studio, make_camera
 from common.packing import clear_padding, packed_length, padded_shape, unpackbits_masks
 
-PROTOCOL_VERSION = 7  # 2: hops (HOP_JOB_NAMES) beside the chains; 3: cameras of different sizes; 4: whole fits;
+PROTOCOL_VERSION = 8  # 2: hops (HOP_JOB_NAMES) beside the chains; 3: cameras of different sizes; 4: whole fits;
 #                       5: FRAME's body_scale (the actor's size); 6: windows count nothing past the image
 #                       edges a silhouette touches (an older client's limb energies differ); 7: cameras
-#                       weighted by the scale they see the body at (energy.camera_weights)
+#                       weighted by the scale they see the body at (energy.camera_weights); 8: evolutions
+#                       (EVOLVE_JOB_NAMES)
 PARAM_COUNT = 35  # pose parameters of the body model
 CHAIN_NAMES = ("torso", "head", "left_arm", "right_arm", "left_leg", "right_leg")
 # the hops of a refinement's round (common.fitting.HOP_JOBS): sent and answered as chains are;
 # job k of a Solve with iteration i is hop number i + k
 HOP_JOB_NAMES = ("hop0", "hop1", "hop2", "hop3")
+# a frame's evolutions (common.fitting.EVOLVE_JOBS): job k of a Solve with iteration i is
+# evolution number i + k
+EVOLVE_JOB_NAMES = ("evolve0", "evolve1", "evolve2", "evolve3")
 # whole fits of a round of starts (common.search.FIT_JOBS), each Solve with its own start
 FIT_JOB_NAMES = tuple(f"fit{k}" for k in range(16))
-JOB_NAMES = CHAIN_NAMES + HOP_JOB_NAMES + FIT_JOB_NAMES
+JOB_NAMES = CHAIN_NAMES + HOP_JOB_NAMES + EVOLVE_JOB_NAMES + FIT_JOB_NAMES
 
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024  # all frames of one message; also a client's zmq.MAXMSGSIZE
 # The largest message a client sends is an Error of MAX_TEXT_CHARS 4-byte characters, 16.7 KB
@@ -333,8 +337,9 @@ class Frame:
 @dataclass(frozen=True, kw_only=True)
 class Solve:
     """Server -> client, per iteration: fit ``chains`` starting from the full pose ``params``
-    (chains of CHAIN_NAMES, hops of HOP_JOB_NAMES: job k is hop number ``iteration`` + k, or a
-    whole fit from ``params``, FIT_JOB_NAMES).
+    (chains of CHAIN_NAMES, hops of HOP_JOB_NAMES: job k is hop number ``iteration`` + k,
+    evolutions of EVOLVE_JOB_NAMES, numbered the same way, or a whole fit from ``params``,
+    FIT_JOB_NAMES).
 
     ``options`` holds plain scalars (bool, int, float, str) such as grid steps or the energy
     backend; the solver refuses names it does not know.

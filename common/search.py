@@ -27,9 +27,11 @@ Schedules:
 - ``REFINE`` (``REFINE_SEARCH``): a tracked frame again, from its neighbour's fit (turned,
   tilted ahead), then from halfway between its neighbours (turned), each polished and its limbs
   re-detected; its pelvis turned alone; its arms' other twists (and its limbs' other basins);
-  hops where asked, their best turned and its pelvis turned alone.
+  hops where asked, their best turned and its pelvis turned alone;
+- ``FINISH``: a refined frame once more, on its own: evolutions over all 35 parameters from its
+  fit (``evolve``), the lowest polished.
 
-One module of about 700 lines: the schedules, the loop that runs them, the jobs their fits go
+One module of about 800 lines: the schedules, the loop that runs them, the jobs their fits go
 out as and the proposers are read together (a stage names its proposers and variants, the
 loop its jobs).
 """
@@ -42,8 +44,8 @@ from typing import Callable
 import numpy as np
 
 from common.body import CHAINS, LIMB_CHAINS, MIRROR_SIGNS, BodyModel, clip_to_limits, swap_sides
-from common.fitting import (HOP_JOBS, REDETECT_ROUND, ChainResult, Dispatch, FitOptions, FrameResult, fit_rounds,
-                            full_energy, hop, hop_fit, merge_chains, solve_chain)
+from common.fitting import (EVOLVE_JOBS, HOP_JOBS, REDETECT_ROUND, ChainResult, Dispatch, FitOptions, FrameResult,
+                            evolve, fit_rounds, full_energy, hop, hop_fit, merge_chains, solve_chain)
 from common.frame import FrameData
 from common.helping_pool import HelpingPool
 from common.proposals import (ARM_CHAINS, arm_twist_alternative, arm_twist_options, arm_twist_tried, arm_twists,
@@ -60,7 +62,8 @@ FIT_JOBS = tuple(f"fit{k}" for k in range(16))
 def solve_job(model: BodyModel, frame: FrameData, job: str, params: np.ndarray, options: FitOptions,
               iteration: int = 0, frame_number: int = 0, pool: HelpingPool | None = None) -> ChainResult:
     """The unit of work anyone does, server or client: a chain's solve (``solve_chain``), a hop
-    (HOP_JOBS[k] is hop number ``iteration`` + k, seeded by ``frame_number``), or a whole fit
+    (HOP_JOBS[k] is hop number ``iteration`` + k, seeded by ``frame_number``), an evolution
+    (EVOLVE_JOBS[k], number ``iteration`` + k, seeded the same way), or a whole fit
     from ``params`` (FIT_JOBS: ``fit_rounds``, its limbs solved here or on ``pool``, going on
     from round ``iteration``), whose energies are the full energy at the start and at the fit.
     A whole fit's seconds count the jobs its thread ran for others while it waited on ``pool``."""
@@ -72,6 +75,8 @@ def solve_job(model: BodyModel, frame: FrameData, job: str, params: np.ndarray, 
                            fit.iterations, time.perf_counter() - wall0, time.thread_time() - cpu0)
     if job in HOP_JOBS:
         return hop(model, frame, params, options, iteration + HOP_JOBS.index(job), frame_number, job)
+    if job in EVOLVE_JOBS:
+        return evolve(model, frame, params, options, iteration + EVOLVE_JOBS.index(job), frame_number, job)
     return solve_chain(model, frame, job, params, options, iteration=iteration)
 
 
@@ -234,6 +239,15 @@ REFINE_SEARCH = Schedule((*REFINE.stages[:-2], Stage(("basins", "twists"), ("dee
 # right forearm folded up the wrong way (464 mm off): the tracked fit's twists, tried before
 # the hops, had its torso off too; the hops' best, twisted, comes to 5% less energy, 30 mm off
 AFTER_HOPS = Schedule((Stage(("pelvis_twists", "turns")), Stage(("twists",), ("deep",))))
+# Every frame once more after the refinement, each frame on its own: evolutions over all 35
+# parameters from its fit (``evolve``), the lowest polished. Each frame's fit already had its
+# neighbours' poses as starts, so a frame finished apart from them gives up nothing; its
+# evolutions are jobs side by side, on a cluster's clients too (docs/accuracy.md, "Evolved
+# whole-body moves")
+FINISH = Schedule((Stage(("evolved",)), Stage(("again",), ("polish",))))
+# evolutions a frame in the finish: on the dance's refined fits, two of 6,000 evaluations each
+# came to 7.50 mm mean error, one of 12,000 to 7.75 (from 8.59)
+FINISH_EVOLUTIONS = 2
 # hops that end a search: 06_02 from source frame 262 (five of eight views) 54 -> 27 mm. Logged
 # hop by hop on the 34 first frames of `mocap bench init --first-frame-only`, the mean error
 # after 0, 10, 20 and 30 hops was 14.6, 13.7, 13.1 and 12.7 mm, at about 0.1 s a hop; with 20,
@@ -279,10 +293,12 @@ LIMB_LOSS_ENERGY_RATIO = 1.06  # ... this far: a limb may be lost, every limb is
 class Schedules:
     """The schedules a run fits its frames by, and its hop budgets (a Config.toml's
     ``[fit.schedules]``, whose keys are these fields' names): ``after_hops`` is added to a
-    refinement's stages where it hops; ``search_hops`` are the hops of the search's ``hops``
-    proposer, ``pass_start_hops`` those of a refinement pass's first frame (server.session),
-    ``poor_window_hops`` every frame's in a poor window's passes, ``unexplained_start_hops``
-    a pass's first frame's after clearing foreground no pose explains; the ratios say when the
+    refinement's stages where it hops; ``finish`` fits every frame once more after the
+    refinement, with ``finish_evolutions`` evolutions (0: no finish); ``search_hops`` are the
+    hops of the search's ``hops`` proposer, ``pass_start_hops`` those of a refinement pass's
+    first frame (server.session), ``poor_window_hops`` every frame's in a poor window's passes,
+    ``unexplained_start_hops`` a pass's first frame's after clearing foreground no pose
+    explains; the ratios say when the
     limbs-lost and search schedules run in tracking (``tracking_lost``) and which refined frames
     are refined again (``poor_windows``, ``standing_out``)."""
 
@@ -293,10 +309,12 @@ class Schedules:
     refine: Schedule = REFINE
     refine_search: Schedule = REFINE_SEARCH
     after_hops: Schedule = AFTER_HOPS
+    finish: Schedule = FINISH
     search_hops: int = SEARCH_HOPS
     pass_start_hops: int = PASS_START_HOPS
     poor_window_hops: int = POOR_WINDOW_HOPS
     unexplained_start_hops: int = UNEXPLAINED_START_HOPS
+    finish_evolutions: int = FINISH_EVOLUTIONS
     limb_loss_ratio: float = LIMB_LOSS_ENERGY_RATIO
     loss_ratio: float = LOSS_ENERGY_RATIO
     poor_share_ratio: float = POOR_SHARE_RATIO
@@ -313,7 +331,7 @@ class Context:
     start: the pose the frame starts from (tracking: the previous frame's fit; refinement: the
     neighbour's), before: the one before it, other: refinement's neighbour on the other side;
     starts: a search's starts; hops: basin hops for the ``hops`` proposer, ``side_by_side`` at
-    once."""
+    once; evolutions: the ``evolved`` proposer's, all at once."""
 
     model: BodyModel
     frame: FrameData
@@ -326,6 +344,7 @@ class Context:
     starts: tuple = ()
     hops: int = 0
     side_by_side: int = 1
+    evolutions: int = 0
 
 
 @dataclass
@@ -661,12 +680,27 @@ def _hops(ctx, source, spent, own):
     return [replace(hopped, energy=full_energy(ctx.model, ctx.frame, hopped.params))]
 
 
+def _evolved(ctx, source, spent, own):
+    """The fit moved by ``ctx.evolutions`` evolutions (``evolve``), side by side, each as one fit
+    whose energy is the full energy."""
+    if source is None or ctx.evolutions < 1:
+        return []
+    fits = []
+    for k in range(0, ctx.evolutions, len(EVOLVE_JOBS)):
+        jobs = list(EVOLVE_JOBS[:min(len(EVOLVE_JOBS), ctx.evolutions - k)])
+        for r in ctx.dispatch(jobs, source.params, k, ctx.options)():
+            fits.append(FrameResult(r.params, full_energy(ctx.model, ctx.frame, r.params), r.iterations,
+                                    r.evaluations, (r,)))
+    return fits
+
+
 PROPOSERS = {
     "start": _start, "start_turns": _start_turns, "turns": _best_turns, "tilt_ahead": _tilt_ahead,
     "moved_on": _moved_on, "midway": _midway, "midway_turns": _midway_turns, "pelvis_twists": _pelvis_twists,
     "starts": _starts,
     "best": _best, "origin": _origin, "again": _again, "redetected": _redetected,
     "rotations": _rotations, "swaps": _swaps, "basins": _basins, "twists": _twists, "hops": _hops,
+    "evolved": _evolved,
 }
 
 
@@ -716,6 +750,13 @@ def refine_frame(model: BodyModel, frame: FrameData, fit: FrameResult, options: 
         schedule = Schedule((*schedule.stages, *schedules.after_hops.stages), schedule.budget)
     return run_schedule(ctx, schedule, initial=fit)
 
+
+def finish_frame(model: BodyModel, frame: FrameData, fit: FrameResult, options: FitOptions, dispatch: Dispatch,
+                 frame_number: int = 0, schedules: Schedules = SCHEDULES) -> FrameResult:
+    """A refined frame (``fit``) fitted once more on its own by the finish schedule (FINISH), with
+    the schedules' ``finish_evolutions`` evolutions; ``fit`` where nothing is lower."""
+    ctx = Context(model, frame, options, dispatch, frame_number, evolutions=schedules.finish_evolutions)
+    return run_schedule(ctx, schedules.finish, initial=fit)
 
 
 def standing_out(energies: list, ratio: float = STANDING_OUT_RATIO) -> list[int]:

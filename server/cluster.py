@@ -84,7 +84,7 @@ from zmq.utils.monitor import recv_monitor_message
 from common.energy import whole_energy
 from common.errors import UserError
 from common.fitting import (
-    HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, redetects,
+    EVOLVE_JOBS, HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, redetects,
 )
 from common.helping_pool import HelpingPool
 from common.search import FIT_JOBS, job_options, job_starts, solve_job, solve_locally
@@ -177,8 +177,9 @@ class _Claim:
 
 @dataclass
 class _Round:
-    """One dispatch: the limb chains of one iteration of one frame, a round of hops or a round of
-    whole fits (the "chains" are then jobs of common.fitting.HOP_JOBS or common.search.FIT_JOBS),
+    """One dispatch: the limb chains of one iteration of one frame, a round of hops, a frame's
+    evolutions or a round of whole fits (the "chains" are then jobs of common.fitting.HOP_JOBS,
+    EVOLVE_JOBS or common.search.FIT_JOBS),
     each job with its own start and options."""
 
     frame: int
@@ -215,6 +216,8 @@ def _job_kind(chain: str, iteration: int, options: FitOptions, wire_options: dic
         kind = "fit"
     elif chain in HOP_JOBS:
         kind = "hop"
+    elif chain in EVOLVE_JOBS:
+        kind = "evolve"
     elif iteration == REDETECT_ROUND or (options.redetect_limbs and redetects(options.redetect_turn, chain, iteration)):
         kind = "search"
     else:

@@ -47,8 +47,8 @@ from common.proposals import voxel_starts
 from common.retarget import nearest_turn
 from common.scoring import accuracy, frame_quality, quality_summary, size_score
 from common.settle import candidate_frames, mask_step, settle_choice
-from common.search import (FIT_JOBS, SCHEDULES, VARIANTS, Context, Schedules, descend_outward, fit_frame,
-                           is_chain_solve, lowest, refine_frame, run_schedule, search_frame,
+from common.search import (FIT_JOBS, SCHEDULES, VARIANTS, Context, Schedules, descend_outward, finish_frame,
+                           fit_frame, is_chain_solve, lowest, refine_frame, run_schedule, search_frame,
                            solve_locally, poor_windows, standing_out, tracking_lost)
 from common.schedule_tables import schedules_table
 from common.sequence import Sequence
@@ -555,6 +555,28 @@ def refit_standing_out(model: BodyModel, seq: Sequence, records: list[dict], opt
     return out, replaced
 
 
+def finish_frames(model: BodyModel, seq: Sequence, records: list[dict], options: FitOptions, solver: Solver,
+                  stats: RunStats, progress=None, schedules: Schedules = SCHEDULES) -> tuple[list[dict], int]:
+    """After the refinement: every frame fitted once more on its own (``common.search.finish_frame``:
+    evolutions over all 35 parameters from its fit, the lowest polished), each keeping the lowest
+    energy. The volume energy is no XOR: its fits are left as they are. Returns the records,
+    changed, and how many were replaced."""
+    if options.energy == "volume" or schedules.finish_evolutions < 1:
+        return records, 0
+    out = [dict(r) for r in records]
+    replaced = 0
+    for n, r in enumerate(out):
+        t0 = time.perf_counter()
+        data = frame_data(model, seq, r["frame"])
+        ctx = context(model, data, r["frame"], options, solver)
+        again = finish_frame(model, data, record_fit(r), options, ctx.dispatch, r["frame"], schedules)
+        stats.add_chains([c for c in again.chains if is_chain_solve(c)])
+        replaced += keep_refit(model, seq, r, again, time.perf_counter() - t0)
+        if progress:
+            progress(n + 1, len(out), "finishing")
+    return out, replaced
+
+
 UNEXPLAINED_ROUNDS = 3  # the foreground found again from the fits it gave, while it grows
 
 
@@ -772,7 +794,8 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
                        "hops_run": stats.hops_run - hops_before,
                        "hop_seconds": stats.hop_seconds - hop_seconds_before,
                        "frames_replaced": replaced, "seconds": time.perf_counter() - t0})
-    standing_out_refitted = poor_refined = 0
+    standing_out_refitted = poor_refined = finished = 0
+    finish_seconds = 0.0
     left_out = {}
     if passes:
         records, poor_refined = refine_poor_windows(model, seq, records, options, solver, stats, progress, schedules)
@@ -780,6 +803,10 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         uncleared = seq
         seq, records, left_out = leave_out_unexplained(model, seq, records, options, solver, stats, progress,
                                                        schedules)
+        t0 = time.perf_counter()
+        records, finished = finish_frames(model, seq, records, options, solver, stats, progress, schedules)
+        finish_seconds = time.perf_counter() - t0
+        rewrite_complete(poses_path, records)
     write_foreground_left_out(out_dir, seq.foreground_left_out)
     settled, refined = 0, sum(1 for r in records if "first_pass" in r)
     if passes:  # offline runs only: a frame's pose may come from a later frame's fit
@@ -816,6 +843,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "mean_seconds_per_frame": float(np.mean(stats.seconds)) if stats.seconds else None,
         "refine_seconds_per_frame": sum(p["seconds"] for p in passes) / len(records) if passes else 0.0,
         "refinement_passes": passes,
+        "finish_seconds_per_frame": finish_seconds / len(records),
         # with the actor-size search, which a user waits for too
         "wall_seconds": wall,
         "actor_size_seconds": actor_size.seconds if actor_size else 0.0,
@@ -829,6 +857,7 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
         "frames_refined": refined,
         "frames_poor_refined": poor_refined,
         "frames_standing_out_refitted": standing_out_refitted,
+        "frames_finished": finished,  # lowered by the finish's evolutions (finish_frames)
         # foreground no fitted pose explains, cleared from the masks (leave_out_unexplained)
         "foreground_left_out": left_out,
         "frames_settled": settled,

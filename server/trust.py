@@ -18,7 +18,7 @@ import zmq.auth
 from common.body import CHAINS, LIMB_CHAINS
 from common.energy import whole_energy
 from common.errors import UserError
-from common.fitting import (HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, _limb_centre_segments,
+from common.fitting import (EVOLVE_JOBS, HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, _limb_centre_segments,
                             _stage_backends, full_energy, with_spine_prior)
 from common.search import FIT_JOBS
 from server.output import shell_word
@@ -152,10 +152,10 @@ def score_job(frame: FrameData, job: str, start: np.ndarray, params: np.ndarray,
     a coarse-to-fine limb outside the re-detection round: its last (gl) stage places its windows
     at the first stage's result, which the message does not carry.
 
-    The server dispatches limb chains, hops and whole fits only (torso and head it fits itself)."""
+    The server dispatches limb chains, hops, evolutions and whole fits only (torso and head it fits itself)."""
     if job in FIT_JOBS:
         return full_energy(frame.model, frame, start), full_energy(frame.model, frame, params)
-    if job in HOP_JOBS:
+    if job in HOP_JOBS or job in EVOLVE_JOBS:  # both on the same objective
         objective = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
         before, after = (whole_energy(objective(p[None])[0]) for p in (start, params))
         return before, after

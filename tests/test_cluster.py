@@ -160,6 +160,8 @@ def test_refinement_passes_same_poses_as_single_process(model, seq_path, tmp_pat
     assert [p["frames_replaced"] for p in cluster["refinement_passes"]] == \
         [p["frames_replaced"] for p in single["refinement_passes"]]
     assert [p["direction"] for p in cluster["refinement_passes"]] == ["backward", "forward"]
+    # the finish's evolutions went to the clients too, and lowered the same frames
+    assert cluster["frames_finished"] == single["frames_finished"]
     # the plain forward pass starts with PASS_START_HOPS hops, side by side on the cluster too
     assert single["refinement_passes"][1]["hops_run"] == PASS_START_HOPS
     assert cluster["refinement_passes"][1]["hops_run"] >= PASS_START_HOPS

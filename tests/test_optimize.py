@@ -1,5 +1,6 @@
-"""Batched Powell (common.optimize): never worse than the start, inside the bounds, within the
-evaluation budget, and it finds the minimum of convex quadratics."""
+"""Batched Powell and CMA-ES (common.optimize): never worse than the start, inside the bounds,
+within the evaluation budget; Powell finds the minimum of convex quadratics, CMA-ES that of a
+valley along no parameter."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,7 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from common.optimize import BRACKET, line_search, powell, _Counter
+from common.optimize import BRACKET, CMA_POPULATION, cma_es, line_search, powell, _Counter
 
 PROPERTY = settings(max_examples=60, deadline=None, derandomize=True,
                     suppress_health_check=[HealthCheck.too_slow])
@@ -175,3 +176,47 @@ def test_powell_refuses_a_line_search_resolution_that_is_not_positive(xtol):
     refining short of the budget (and the compiled twin sizes its probes' arrays by it)."""
     with pytest.raises(ValueError, match="xtol must be positive"):
         powell(lambda X: np.sum(X ** 2, axis=1), np.ones(2), -np.ones(2), np.ones(2), np.full(2, 0.1), xtol=xtol)
+
+
+def valley(X: np.ndarray) -> np.ndarray:
+    """A narrow valley along no parameter, in whole units as pixel counts are: x0 and x1 must
+    move together (their sum is cheap, their difference dear), the other parameters to 0."""
+    X = np.atleast_2d(X)
+    along, across = (X[:, 0] + X[:, 1]) / np.sqrt(2.0), (X[:, 0] - X[:, 1]) / np.sqrt(2.0)
+    return np.floor(100.0 * ((along - 1.0) ** 2 + 400.0 * across ** 2 + np.sum(X[:, 2:] ** 2, axis=1)))
+
+
+@pytest.mark.timeout(60)
+def test_cma_es_goes_down_a_valley_that_runs_across_the_parameters():
+    """From a point where moving any one parameter gains almost nothing (the valley's floor
+    runs diagonally), the strategy learns the diagonal and reaches the minimum at x0 = x1 = 0.71."""
+    n = 8
+    lo, hi = np.full(n, -3.0), np.full(n, 3.0)
+    start = np.zeros(n)
+    res = cma_es(valley, start, np.full(n, 0.05), lo, hi, 6000, np.random.default_rng(0))
+    assert valley(start)[0] == 100.0 and res.fun <= 2.0
+    np.testing.assert_allclose(res.x[:2], np.sqrt(0.5), atol=0.05)
+    assert res.nfev <= 6000 and res.status == 1 and res.nit == (res.nfev - 1) // CMA_POPULATION
+
+
+def test_cma_es_is_seeded_keeps_the_box_and_never_returns_worse_than_its_start():
+    n = 5
+    lo, hi = np.full(n, -0.2), np.full(n, 0.5)
+    start = np.full(n, 0.1)
+    recorder = Recorder(valley)
+    one = cma_es(recorder, start, np.full(n, 0.3), lo, hi, 800, np.random.default_rng(7))
+    again = cma_es(valley, start, np.full(n, 0.3), lo, hi, 800, np.random.default_rng(7))
+    other = cma_es(valley, start, np.full(n, 0.3), lo, hi, 800, np.random.default_rng(8))
+    assert np.array_equal(one.x, again.x) and one.fun == again.fun and not np.array_equal(one.x, other.x)
+    points = recorder.all_points
+    assert len(points) == one.nfev <= 800 and np.all(points >= lo) and np.all(points <= hi)
+    assert one.fun == valley(one.x)[0] == points_min(valley, points) <= valley(start)[0]
+    # a start at the minimum is returned as it is
+    floor = np.array([np.sqrt(0.5), np.sqrt(0.5), 0.0])
+    at_floor = cma_es(valley, floor, np.full(3, 0.3), np.full(3, -1.0), np.full(3, 1.0), 400,
+                      np.random.default_rng(0))
+    assert np.array_equal(at_floor.x, floor) and at_floor.fun == 0.0
+
+
+def points_min(f, points: np.ndarray) -> float:
+    return float(f(points).min())

@@ -21,14 +21,14 @@ except ImportError:  # not in every environment yet; the fixed examples below st
 PARAMS = tuple(0.01 * i - 0.1 for i in range(PARAM_COUNT))
 
 
-def test_the_wire_knows_the_fitters_chains_and_hops():
+def test_the_wire_knows_the_fitters_chains_hops_and_evolutions():
     from common.body import CHAINS
-    from common.fitting import HOP_JOBS
+    from common.fitting import EVOLVE_JOBS, HOP_JOBS
     from common.search import FIT_JOBS
 
     assert set(CHAIN_NAMES) == set(CHAINS) and protocol.HOP_JOB_NAMES == HOP_JOBS
-    assert protocol.FIT_JOB_NAMES == FIT_JOBS
-    assert JOB_NAMES == CHAIN_NAMES + HOP_JOBS + FIT_JOBS
+    assert protocol.FIT_JOB_NAMES == FIT_JOBS and protocol.EVOLVE_JOB_NAMES == EVOLVE_JOBS
+    assert JOB_NAMES == CHAIN_NAMES + HOP_JOBS + EVOLVE_JOBS + FIT_JOBS
     solve = Solve(session="s", frame=3, iteration=8, request=1, params=PARAMS, chains=HOP_JOBS[:2])
     assert decode(encode(solve)) == solve
     with pytest.raises(ProtocolError, match="'hop9' is not one of"):
