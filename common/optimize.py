@@ -176,6 +176,26 @@ def _times_transposed(A: np.ndarray, B: np.ndarray) -> np.ndarray:
     return out
 
 
+@njit(cache=True)
+def _solve_lower(L: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """x with L x = v, L (n, n) lower triangular, by forward substitution (plain loops, as
+    ``_cholesky``)."""
+    n = L.shape[0]
+    x = np.zeros(n)
+    for i in range(n):
+        s = v[i]
+        for k in range(i):
+            s -= L[i, k] * x[k]
+        x[i] = s / L[i, i]
+    return x
+
+
+def _norm(v: np.ndarray) -> float:
+    """The Euclidean norm by numpy's own summation (``np.linalg.norm`` calls BLAS, whose
+    kernels differ between CPUs)."""
+    return float(np.sqrt((v * v).sum()))
+
+
 def cma_es(f, x0: np.ndarray, sigmas: np.ndarray, lower: np.ndarray, upper: np.ndarray, max_evals: int,
            rng: np.random.Generator, population: int = CMA_POPULATION) -> OptimizeResult:
     """Minimise f over the box [lower, upper] from x0 by a covariance matrix adaptation
@@ -210,8 +230,9 @@ def cma_es(f, x0: np.ndarray, sigmas: np.ndarray, lower: np.ndarray, upper: np.n
     pc, ps = np.zeros(n), np.zeros(n)
     generation = 0
     while counter.nfev + population <= max_evals:
+        factor = _cholesky(cov)
         z = rng.standard_normal((population, n))
-        X = np.clip(mean + sigma * _times_transposed(z, _cholesky(cov)), lo, hi)
+        X = np.clip(mean + sigma * _times_transposed(z, factor), lo, hi)
         y = (X - mean) / sigma
         F = counter(X)
         generation += 1
@@ -220,13 +241,15 @@ def cma_es(f, x0: np.ndarray, sigmas: np.ndarray, lower: np.ndarray, upper: np.n
             best_f, best_x = float(F[order[0]]), X[order[0]].copy()
         step = (w[:, None] * y[order]).sum(axis=0)
         mean = mean + sigma * step
-        # the path in the samples' own standard units (what C^-1/2 of the step is, up to a turn)
-        ps = (1 - cs) * ps + np.sqrt(cs * (2 - cs) * mueff) * (w[:, None] * z[order]).sum(axis=0)
-        norm = np.linalg.norm(ps) / np.sqrt(1 - (1 - cs) ** (2 * generation)) / chi_n
+        # the path in the samples' standard units (L^-1 of the step: C^-1/2 up to a turn), of the
+        # step the mean took: the samples' own draws z would go on lengthening it while the
+        # samples are moved onto the box's faces, and the spread would grow without bound
+        ps = (1 - cs) * ps + np.sqrt(cs * (2 - cs) * mueff) * _solve_lower(factor, step)
+        norm = _norm(ps) / np.sqrt(1 - (1 - cs) ** (2 * generation)) / chi_n
         hsig = float(norm < 1.4 + 2 / (n + 1))
         pc = (1 - cc) * pc + hsig * np.sqrt(cc * (2 - cc) * mueff) * step
         chosen = y[order] * np.sqrt(w)[:, None]
         cov = ((1 - c1 - cmu) * cov + c1 * (np.outer(pc, pc) + (1 - hsig) * cc * (2 - cc) * cov)
                + cmu * _times_transposed(chosen.T, chosen.T))
-        sigma *= np.exp((cs / damps) * (np.linalg.norm(ps) / chi_n - 1))
+        sigma *= np.exp((cs / damps) * (_norm(ps) / chi_n - 1))
     return OptimizeResult(best_x, best_f, counter.nfev, generation, 1, "evaluation budget spent")

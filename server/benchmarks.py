@@ -137,7 +137,8 @@ def fit_rows(sequence: Path, frames: int) -> list[dict]:
         rows.append(row)
         if options.refine_passes:
             rows.append({**row, "mode": f"{label}_refined",
-                         "seconds_per_frame": summary["seconds_per_frame"] + summary["refine_seconds_per_frame"],
+                         "seconds_per_frame": summary["seconds_per_frame"] + summary["refine_seconds_per_frame"]
+                         + summary.get("finish_seconds_per_frame", 0.0),
                          "paper_seconds_per_frame": None, "mean_joint_error_mm": summary.get("mean_joint_error_mm")})
     return rows
 

@@ -121,6 +121,9 @@ def summary_rows(result: ResultData) -> list[tuple[str, str]]:
           if s.get("take_seconds", s.get("wall_seconds")) != s.get("wall_seconds") else []),
         *([("refinement seconds per frame", _fmt(s.get("refine_seconds_per_frame"), ".3f",
                                                  f" s {refinement_note(s)}"))] if refined else []),
+        *([("finish seconds per frame", _fmt(s["finish_seconds_per_frame"], ".3f",
+                                             f" s ({counted(s.get('frames_finished', 0), 'frame')} lowered)"))]
+          if s.get("finish_seconds_per_frame") else []),
         ("evaluations per frame", _fmt(s.get("evaluations_per_frame"), ".0f")),
         ("mean energy (XOR pixels)", _fmt(float(np.nanmean(result.energies)), ".0f")),
     ]

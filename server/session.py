@@ -706,12 +706,13 @@ def run_fit(model: BodyModel, seq: Sequence, out_dir: Path, options: FitOptions,
     poses_path = out_dir / POSES_FILE
     stats = RunStats()
     wall0 = time.perf_counter()
-    # tracking goes on from tracking's fits, as the run would have: a run stopped after its
-    # refinement wrote the frames holds refined (and finished) fits
+    # tracking goes on from tracking's fits, as the run would have (settling after a search
+    # replaces the first frames' records, not the poses tracking goes on from), and from the
+    # energies as written (settled ones too, as the run's)
     tracked = [tracked_record(d) for d in done]
     x = np.asarray(tracked[-1]["params"], dtype=np.float64) if done else None
     x_before = np.asarray(tracked[-2]["params"], dtype=np.float64) if len(done) > 1 else None
-    energies = [int(d["energy"]) for d in tracked]
+    energies = [int(d["energy"]) for d in done]
     # a run that starts from a search goes back over its first frames once tracking has settled;
     # the refinement passes after tracking do that and more
     settle_index = min(SETTLE_FRAMES, len(frames) - 1) if init != "truth" and not options.refine_passes else -1

@@ -1174,19 +1174,17 @@ def test_a_folded_arm_is_turned_and_half_unfolded(model):
 
 
 # radians from the truth: the pelvis tilted and the spine bent back while the left leg swings
-# forward, a valley the hierarchy alone does not leave (the two hop tests below)
+# forward, a valley the hierarchy alone does not leave (the hop and evolution tests below)
 TORSO_AND_LEG_OFF = {"l_hip_x": -0.6, "l_hip_y": 0.4, "root_tilt_x": 0.2, "spine_x": -0.3}
 
 
-@pytest.mark.timeout(120)
-def test_hops_take_a_torso_and_leg_off_together_towards_the_truth(model, five_frames):
-    """Pelvis tilted and spine bent back while the left leg swings forward: the hierarchy's fit
-    from there stays off (about 39 mm worst joint, 18 mm mean, measured), hops take the torso
-    and the leg down the valley together. Seeded: the same hops give the same pose."""
+def torso_and_leg_off(model, sequence) -> tuple:
+    """(frame, its truth, its FrameData, FitOptions(), the hierarchy's fit from the truth with
+    TORSO_AND_LEG_OFF) for the second frame of ``sequence``."""
     from common.body import clip_to_limits
     from common.sequence import load_sequence
 
-    seq = load_sequence(five_frames)
+    seq = load_sequence(sequence)
     frame = seq.frames[1]
     truth = seq.truth()[frame]
     data = FrameData(model, seq.studio, seq.silhouettes(frame))
@@ -1194,7 +1192,15 @@ def test_hops_take_a_torso_and_leg_off_together_towards_the_truth(model, five_fr
     for name, change in TORSO_AND_LEG_OFF.items():
         start[P[name]] += change
     options = FitOptions()
-    fitted = fit_frame(model, data, clip_to_limits(start), options)
+    return frame, truth, data, options, fit_frame(model, data, clip_to_limits(start), options)
+
+
+@pytest.mark.timeout(120)
+def test_hops_take_a_torso_and_leg_off_together_towards_the_truth(model, five_frames):
+    """Pelvis tilted and spine bent back while the left leg swings forward: the hierarchy's fit
+    from there stays off (about 39 mm worst joint, 18 mm mean, measured), hops take the torso
+    and the leg down the valley together. Seeded: the same hops give the same pose."""
+    frame, truth, data, options, fitted = torso_and_leg_off(model, five_frames)
     hopped = hop_fit(fitted.params, 20, options, solve_locally(model, data, options, frame))
     assert full_energy(model, data, hopped.params) < fitted.energy
     assert hopped.energy < hopped.chains[0].energy_before  # the objective, spine prior included
@@ -1243,21 +1249,11 @@ def test_evolutions_take_a_torso_and_leg_off_together_towards_the_truth(model, f
     check scores them (an honest client's result is accepted), and is a function of its seed
     and number alone. The finish (evolutions, the lowest polished) ends lower than the fit, and
     with no evolutions it is the fit."""
-    from common.body import clip_to_limits
     from common.fitting import EVOLVE_JOBS, FrameResult, evolve
     from common.search import finish_frame
-    from common.sequence import load_sequence
     from server.trust import check_result
 
-    seq = load_sequence(five_frames)
-    frame = seq.frames[1]
-    truth = seq.truth()[frame]
-    data = FrameData(model, seq.studio, seq.silhouettes(frame))
-    start = np.array(truth.params, dtype=np.float64)
-    for name, change in TORSO_AND_LEG_OFF.items():
-        start[P[name]] += change
-    options = FitOptions()
-    fitted = fit_frame(model, data, clip_to_limits(start), options)
+    frame, truth, data, options, fitted = torso_and_leg_off(model, five_frames)
     moved = evolve(model, data, fitted.params, options, 0, frame, EVOLVE_JOBS[0])
     assert moved.energy < moved.energy_before and check_result(data, moved, fitted.params, options, 0) is None
     assert np.array_equal(evolve(model, data, fitted.params, options, 0, frame, EVOLVE_JOBS[1]).params, moved.params)

@@ -30,7 +30,7 @@ from common.fitting import EVOLVE_JOBS, FitOptions, FrameData, FrameResult, evol
 from common.scoring import joint_errors_mm  # noqa: E402
 from common.search import SCHEDULES, finish_frame, solve_locally  # noqa: E402
 from common.sequence import load_sequence  # noqa: E402
-from server.results import load_records  # noqa: E402
+from server.results import load_records, read_foreground_left_out  # noqa: E402
 
 
 def counts(text: str) -> list[int]:
@@ -66,6 +66,9 @@ def main(argv=None) -> int:
     summary = json.loads((args.result / "summary.json").read_text())
     model = load_body_model().scaled(summary.get("actor_scale", 1.0))
     seq = load_sequence(args.sequence)
+    cleared = read_foreground_left_out(args.result)
+    if cleared is not None:  # the records' energies are against the masks the fit cleared
+        seq = seq.without_foreground(cleared)
     truth = seq.truth()
     if not truth:
         raise SystemExit(f"{args.sequence}: no truth.jsonl")

@@ -159,6 +159,9 @@ def print_summary(summary: dict, out, result: Path | None = None) -> None:
     refined = bool(summary.get("refinement_passes"))
     if refined:
         rows.append(("refinement s/frame", f"{summary['refine_seconds_per_frame']:.3f} {refinement_note(summary)}"))
+        if summary.get("finish_seconds_per_frame"):
+            rows.append(("finish s/frame", f"{summary['finish_seconds_per_frame']:.3f} "
+                                           f"({counted(summary['frames_finished'], 'frame')} lowered)"))
     if "mean_joint_error_mm" in summary:
         tracked = f" (tracking alone {tracking_error_note(summary)})" if refined else ""
         rows += [("mean / max joint error", f"{summary['mean_joint_error_mm']:.1f} / "
