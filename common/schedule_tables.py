@@ -9,9 +9,10 @@ from dataclasses import fields, replace
 from common.search import PROPOSERS, SCHEDULES, VARIANTS, Schedule, Schedules, Stage
 
 SCHEDULE_NAMES = tuple(f.name for f in fields(Schedules) if isinstance(f.default, Schedule))
-HOP_BUDGETS = tuple(f.name for f in fields(Schedules) if isinstance(f.default, int))  # search_hops, ...
+# the budgets counted in hops or evolutions: search_hops, ..., finish_evolutions
+COUNT_BUDGETS = tuple(f.name for f in fields(Schedules) if isinstance(f.default, int))
 RATIOS = tuple(f.name for f in fields(Schedules) if isinstance(f.default, float))  # loss_ratio, ...
-SETTINGS = SCHEDULE_NAMES + HOP_BUDGETS + RATIOS
+SETTINGS = SCHEDULE_NAMES + COUNT_BUDGETS + RATIOS
 # the schedules that start with no fit, and the proposers that make their first starts: from the
 # previous frame's fit (tracking) or from the search's starts (the others refit a fit they are given)
 FIRST_PROPOSERS = {"tracking": ("start", "start_turns", "tilt_ahead"), "wide": ("starts",), "search": ("starts",)}
@@ -123,7 +124,7 @@ def schedules_from_table(table) -> Schedules:
         raise ValueError(f"expected a table, got {_shown(table)}")
     values = {}
     for name, value in table.items():
-        if name in HOP_BUDGETS:
+        if name in COUNT_BUDGETS:
             if type(value) is not int or value < 0:
                 raise ValueError(f"{name}: expected an integer >= 0, got {_shown(value)}")
             values[name] = value
@@ -161,7 +162,7 @@ def check_first_starts(schedules: Schedules, options) -> None:
 def schedules_table(schedules: Schedules) -> dict:
     """``schedules`` as a Config.toml's ``[fit.schedules]`` table."""
     return {name: schedule_table(getattr(schedules, name)) for name in SCHEDULE_NAMES} | {
-        name: getattr(schedules, name) for name in HOP_BUDGETS + RATIOS}
+        name: getattr(schedules, name) for name in COUNT_BUDGETS + RATIOS}
 
 
 def _shown(value) -> str:

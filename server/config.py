@@ -22,7 +22,7 @@ from typing import Any, Callable
 from common.errors import InputFileError, UserError
 from common.export import ALL_FORMATS, FORMATS
 from common.fitting import ENERGY_BACKENDS, FitOptions
-from common.schedule_tables import HOP_BUDGETS, RATIOS, SCHEDULE_NAMES, schedules_from_table, schedules_table
+from common.schedule_tables import COUNT_BUDGETS, RATIOS, SCHEDULE_NAMES, schedules_from_table, schedules_table
 from common.segmentation import METHODS
 from common.sequence import MAX_MASK_THRESHOLD
 from common.world import UP_CHOICES
@@ -169,7 +169,7 @@ SETTINGS: tuple[Setting, ...] = (
             "every part in every evaluation, the same energies, slower)"),
     Setting("fit", "schedules", {}, dict, "the search's schedules where not the defaults: [fit.schedules.NAME] "
             "stages = [{proposers = [...], variants = [...], ...}, ...], budget = evaluations; NAME one of "
-            + ", ".join(SCHEDULE_NAMES) + "; the hop budgets " + ", ".join(HOP_BUDGETS)
+            + ", ".join(SCHEDULE_NAMES) + "; the budgets of hops and evolutions " + ", ".join(COUNT_BUDGETS)
             + " = N; the ratios " + ", ".join(RATIOS) + " = R (docs/fitting.md, \"Schedules\")",
             wanted="a table of schedules", structured=schedules_from_table),
     Setting("fit", "threads", 0, int, "single process: starts and limbs fitted at once (0: every core); "
