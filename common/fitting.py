@@ -455,6 +455,12 @@ HOP_MAX_EVALS = 3000    # per hop: a few sweeps over 35 directions
 HOP_JOBS = ("hop0", "hop1", "hop2", "hop3")
 
 
+def whole_body_objective(frame: FrameData, options: FitOptions):
+    """The hops' and evolutions' objective: the whole-image ``cpu`` energy plus the spine prior
+    (the server's check of their results scores the same)."""
+    return with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
+
+
 def hop(model: BodyModel, frame: FrameData, params: np.ndarray, options: FitOptions, index: int,
         seed: int, job: str) -> ChainResult:
     """Hop number ``index`` from ``params`` (35,): chain HOP_CHAINS[index % 5] is moved by a
@@ -464,7 +470,7 @@ def hop(model: BodyModel, frame: FrameData, params: np.ndarray, options: FitOpti
     prior. Returns it as ``job``'s ChainResult whose energies (before, after) are that
     objective, rounded here to whole pixels so that a cluster compares the same numbers."""
     wall0, cpu0 = _clock()
-    objective = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
+    objective = whole_body_objective(frame, options)
     every = np.arange(len(params))
     steps = np.where(every < 3, HOP_STEP_M, HOP_STEP_RAD)
     rng = np.random.default_rng((seed, index))
@@ -507,7 +513,7 @@ def evolve(model: BodyModel, frame: FrameData, params: np.ndarray, options: FitO
     evolutions a frame and a polish lowered the energy of 53 of 100 frames, and the mean error
     from 7.12 to 6.43 mm); an evolution strategy learns such directions from its samples."""
     wall0, cpu0 = _clock()
-    objective = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
+    objective = whole_body_objective(frame, options)
     start = np.asarray(params, dtype=np.float64)
     sigmas = np.where(np.arange(len(start)) < 3, EVOLVE_SIGMA_M, EVOLVE_SIGMA_RAD)
     res = optimize.cma_es(objective, start, sigmas, PARAM_LIMITS[:, 0], PARAM_LIMITS[:, 1], evaluations,

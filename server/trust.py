@@ -19,7 +19,7 @@ from common.body import CHAINS, LIMB_CHAINS
 from common.energy import whole_energy
 from common.errors import UserError
 from common.fitting import (EVOLVE_JOBS, HOP_JOBS, REDETECT_ROUND, ChainResult, FitOptions, FrameData, _limb_centre_segments,
-                            _stage_backends, full_energy, with_spine_prior)
+                            _stage_backends, full_energy, whole_body_objective)
 from common.search import FIT_JOBS
 from server.output import shell_word
 
@@ -156,7 +156,7 @@ def score_job(frame: FrameData, job: str, start: np.ndarray, params: np.ndarray,
     if job in FIT_JOBS:
         return full_energy(frame.model, frame, start), full_energy(frame.model, frame, params)
     if job in HOP_JOBS or job in EVOLVE_JOBS:  # both on the same objective
-        objective = with_spine_prior(frame.whole_image_energy(), options.spine_twist_prior)
+        objective = whole_body_objective(frame, options)
         before, after = (whole_energy(objective(p[None])[0]) for p in (start, params))
         return before, after
     if job not in LIMB_CHAINS:
